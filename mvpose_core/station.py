@@ -1,0 +1,420 @@
+"""The station description: one typed model, loaded from YAML, used by every part of mvpose.
+
+A station file lists the cameras, the rigs that hold them (on the robot flange or fixed in the
+cell), the views (robot flange poses at which a robot-mounted rig takes pictures; a fixed station
+has one view with every fixed rig), and the recipes (part types: marks from CAD, which camera sees
+which mark in which view, the taught reference pose, grasp frame, tolerances, robot convention).
+
+Poses in the file are written ``{xyz: [X, Y, Z], wpr: [W, P, R]}`` in mm and degrees with
+R = Rz(R)·Ry(P)·Rx(W) (the FANUC convention, see :mod:`mvpose_core.transforms`), and each field
+that holds a pose is named after the transform it is: ``T_gf_from_rig`` is the pose of the rig in
+the flange frame (the hand-eye transform), ``T_rf_from_pf0`` the taught part pose in the robot base.
+
+Every model forbids unknown keys, so a typo stops start-up instead of being ignored.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from mvpose_core.camera import CameraModel
+from mvpose_core.transforms import (
+    Array,
+    RobotConvention,
+    matrix_to_xyzwpr,
+    xyzwpr_to_matrix,
+)
+
+Identifier = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=64)]
+Vec3 = tuple[float, float, float]
+
+
+class StationFileError(ValueError):
+    """A station file cannot be used; the message names the file, the field and the value."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Pose(_Model):
+    """A rigid transform: translation in mm, rotation as FANUC W P R in degrees."""
+
+    xyz: Vec3
+    wpr: Vec3 = (0.0, 0.0, 0.0)
+
+    @property
+    def matrix(self) -> Array:
+        return xyzwpr_to_matrix([*self.xyz, *self.wpr])
+
+    @classmethod
+    def from_matrix(cls, T: Array) -> Pose:
+        v = matrix_to_xyzwpr(T)
+        return cls(xyz=(float(v[0]), float(v[1]), float(v[2])), wpr=(float(v[3]), float(v[4]), float(v[5])))
+
+
+# ------------------------------------------------------------------------------- cameras
+
+
+class SimFault(_Model):
+    """A fault the simulated camera injects (for tests and demos)."""
+
+    kind: Literal["none", "timeout", "disconnect", "corrupt"] = "none"
+    every_n: int = Field(0, ge=0, description="inject on every n-th grab (0 = never)")
+
+
+class DriverConfig(_Model):
+    """Which backend drives a camera and how it is opened and configured."""
+
+    kind: Literal["sim", "genicam", "pylon", "files"]
+    serial: str | None = None
+    user_id: str | None = None
+    cti: str | None = Field(None, description="GenTL producer (.cti) path, genicam only")
+    folder: str | None = Field(None, description="image folder, files only")
+    exposure_us: float = Field(5000.0, gt=0)
+    gain_db: float = Field(0.0, ge=0)
+    trigger: Literal["software", "hardware", "free_run"] = "software"
+    grab_timeout_ms: float = Field(200.0, gt=0)
+    latency_ms: float = Field(0.0, ge=0, description="sim only: delay before a frame is ready")
+    image_noise: float = Field(2.0, ge=0, description="sim only: read noise, grey levels")
+    fault: SimFault = SimFault()
+
+    @model_validator(mode="after")
+    def _check_kind(self) -> DriverConfig:
+        if self.kind in ("genicam", "pylon") and not (self.serial or self.user_id):
+            raise ValueError(f"a {self.kind} camera needs 'serial' or 'user_id'")
+        if self.kind == "files" and not self.folder:
+            raise ValueError("a files camera needs 'folder'")
+        return self
+
+
+class Intrinsics(_Model):
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+
+
+class CameraConfig(_Model):
+    """One physical camera."""
+
+    id: Identifier
+    driver: DriverConfig
+    image_size: tuple[int, int] = Field(description="width, height in px")
+    pixel_format: Literal["mono8", "mono10", "mono12", "mono16"] = "mono8"
+    intrinsics: Intrinsics
+    distortion: list[float] = Field(
+        default_factory=lambda: [0.0] * 5, description="OpenCV k1 k2 p1 p2 [k3 [k4 k5 k6]]"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraConfig:
+        if len(self.distortion) not in (4, 5, 8):
+            raise ValueError(
+                f"distortion needs 4, 5 or 8 coefficients, got {len(self.distortion)}"
+            )
+        if self.image_size[0] <= 0 or self.image_size[1] <= 0:
+            raise ValueError(f"image_size must be positive, got {list(self.image_size)}")
+        return self
+
+    @property
+    def model(self) -> CameraModel:
+        i = self.intrinsics
+        return CameraModel(
+            fx=i.fx, fy=i.fy, cx=i.cx, cy=i.cy,
+            width=self.image_size[0], height=self.image_size[1],
+            dist=tuple(self.distortion),
+        )
+
+
+# ------------------------------------------------------------------------------- rigs, views
+
+
+class RigCamera(_Model):
+    camera: Identifier
+    T_rig_from_cf: Pose = Pose(xyz=(0.0, 0.0, 0.0))
+
+
+class RigConfig(_Model):
+    """Cameras held rigidly together: on the robot flange, or fixed in the cell."""
+
+    id: Identifier
+    mount: Literal["robot", "fixed"]
+    cameras: list[RigCamera] = Field(min_length=1)
+    T_gf_from_rig: Pose | None = Field(None, description="hand-eye: rig in flange frame (robot)")
+    T_rf_from_rig: Pose | None = Field(None, description="rig in robot base frame (fixed)")
+
+    @model_validator(mode="after")
+    def _check(self) -> RigConfig:
+        if self.mount == "robot" and (self.T_gf_from_rig is None or self.T_rf_from_rig is not None):
+            raise ValueError("a robot-mounted rig needs T_gf_from_rig (hand-eye) and no T_rf_from_rig")
+        if self.mount == "fixed" and (self.T_rf_from_rig is None or self.T_gf_from_rig is not None):
+            raise ValueError("a fixed rig needs T_rf_from_rig and no T_gf_from_rig")
+        ids = [c.camera for c in self.cameras]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"rig lists a camera twice: {ids}")
+        return self
+
+
+class ViewConfig(_Model):
+    """Where the station looks from: a robot flange pose (robot rigs) or the fixed rigs."""
+
+    id: int = Field(ge=1, le=255, description="1-based view index, as the PLC sends it")
+    rigs: list[Identifier] = Field(min_length=1)
+    T_rf_from_gf: Pose | None = Field(None, description="taught flange pose for robot rigs")
+
+
+# ------------------------------------------------------------------------------- recipes
+
+
+class MarkConfig(_Model):
+    id: Identifier
+    position: Vec3 = Field(description="mark centre in the part frame PF, mm (from CAD)")
+    normal: Vec3 = Field((0.0, 0.0, 1.0), description="outward surface normal in PF")
+
+    @model_validator(mode="after")
+    def _check(self) -> MarkConfig:
+        if not np.all(np.isfinite(self.position)):
+            raise ValueError(f"mark position must be finite, got {list(self.position)}")
+        n = float(np.linalg.norm(self.normal))
+        if not np.isfinite(n) or n < 1e-9:
+            raise ValueError(f"mark normal must be a non-zero vector, got {list(self.normal)}")
+        return self
+
+
+class Sighting(_Model):
+    """Marks a camera is expected to see in a view."""
+
+    view: int = Field(ge=1)
+    camera: Identifier
+    marks: list[Identifier] = Field(min_length=1)
+
+
+class Tolerances(_Model):
+    """Quality gate of a recipe (the paper's grasp needs 0.2° and 1.0 mm)."""
+
+    rotation_deg: float = Field(0.2, gt=0, description="max 1σ rotation at the grasp point")
+    translation_mm: float = Field(1.0, gt=0, description="max 1σ translation at the grasp point")
+    max_rms_px: float = Field(1.0, gt=0, description="max RMS reprojection error")
+    max_residual_px: float = Field(3.0, gt=0, description="max single reprojection residual")
+    min_marks: int | None = Field(None, ge=3, description="marks needed; default all")
+    max_offset_mm: float = Field(100.0, gt=0, description="displacement the station accepts")
+    max_offset_deg: float = Field(10.0, gt=0, description="rotation the station accepts")
+
+
+class RecipeConfig(_Model):
+    """A part type and how the station measures it."""
+
+    name: Identifier
+    version: int = Field(1, ge=1)
+    description: str = ""
+    marks: list[MarkConfig] = Field(min_length=3)
+    mark_diameter_mm: float = Field(gt=0)
+    polarity: Literal["dark_on_light", "light_on_dark"] = "dark_on_light"
+    sightings: list[Sighting] = Field(min_length=1)
+    T_rf_from_pf0: Pose = Field(description="part pose at the taught reference (zero offset)")
+    T_pf_from_grasp: Pose = Field(
+        Pose(xyz=(0.0, 0.0, 0.0)), description="grasp (tool) frame in the part frame"
+    )
+    robot_convention: RobotConvention = RobotConvention.FANUC
+    detector_noise_px: float = Field(0.1, gt=0, description="a-priori σ of a mark centre")
+    tolerances: Tolerances = Tolerances()
+
+    @model_validator(mode="after")
+    def _check(self) -> RecipeConfig:
+        ids = [m.id for m in self.marks]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"mark ids must be unique, got {ids}")
+        known = set(ids)
+        for s in self.sightings:
+            unknown = [m for m in s.marks if m not in known]
+            if unknown:
+                raise ValueError(f"sighting view {s.view} camera {s.camera!r} names unknown marks {unknown}")
+        tm = self.tolerances.min_marks
+        if tm is not None and tm > len(ids):
+            raise ValueError(f"tolerances.min_marks = {tm} exceeds the {len(ids)} marks")
+        return self
+
+    @property
+    def min_marks(self) -> int:
+        return self.tolerances.min_marks or len(self.marks)
+
+    def mark_positions(self) -> Array:
+        """Mark centres ``["M", 3]`` in PF, in the order of :attr:`marks`."""
+        return np.array([m.position for m in self.marks], dtype=float)
+
+    def mark_index(self, mark_id: str) -> int:
+        for i, m in enumerate(self.marks):
+            if m.id == mark_id:
+                return i
+        raise KeyError(f"recipe {self.name!r} has no mark {mark_id!r}")
+
+
+# ------------------------------------------------------------------------------- station
+
+
+class StationConfig(_Model):
+    """The whole station."""
+
+    name: Identifier
+    description: str = ""
+    deadline_ms: float = Field(50.0, gt=0, description="trigger → result budget")
+    cameras: list[CameraConfig] = Field(min_length=1)
+    rigs: list[RigConfig] = Field(min_length=1)
+    views: list[ViewConfig] = Field(min_length=1)
+    recipes: list[RecipeConfig] = Field(min_length=1)
+    default_recipe: Identifier | None = None
+    calibration: str | None = Field(None, description="calibration file this station uses")
+
+    @model_validator(mode="after")
+    def _cross_check(self) -> StationConfig:
+        cams = _unique([c.id for c in self.cameras], "camera")
+        rigs = {r.id: r for r in self.rigs}
+        _unique(list(rigs), "rig")
+        seen: dict[str, str] = {}
+        for r in self.rigs:
+            for rc in r.cameras:
+                if rc.camera not in cams:
+                    raise ValueError(f"rig {r.id!r} names unknown camera {rc.camera!r}")
+                if rc.camera in seen:
+                    raise ValueError(f"camera {rc.camera!r} is in rigs {seen[rc.camera]!r} and {r.id!r}")
+                seen[rc.camera] = r.id
+        _unique([str(v.id) for v in self.views], "view")
+        for v in self.views:
+            mounts = set()
+            for rid in v.rigs:
+                if rid not in rigs:
+                    raise ValueError(f"view {v.id} names unknown rig {rid!r}")
+                mounts.add(rigs[rid].mount)
+            if "robot" in mounts and v.T_rf_from_gf is None:
+                raise ValueError(f"view {v.id} holds a robot-mounted rig and needs T_rf_from_gf")
+            if mounts == {"fixed"} and v.T_rf_from_gf is not None:
+                raise ValueError(f"view {v.id} holds only fixed rigs and must not set T_rf_from_gf")
+        _unique([r.name for r in self.recipes], "recipe")
+        for rec in self.recipes:
+            for s in rec.sightings:
+                view = self.view(s.view) if s.view in {v.id for v in self.views} else None
+                if view is None:
+                    raise ValueError(f"recipe {rec.name!r}: sighting names unknown view {s.view}")
+                if s.camera not in cams:
+                    raise ValueError(f"recipe {rec.name!r}: sighting names unknown camera {s.camera!r}")
+                if seen.get(s.camera) not in view.rigs:
+                    raise ValueError(
+                        f"recipe {rec.name!r}: camera {s.camera!r} is not in view {s.view}"
+                    )
+        if self.default_recipe is not None and self.default_recipe not in {r.name for r in self.recipes}:
+            raise ValueError(f"default_recipe {self.default_recipe!r} is not a recipe")
+        return self
+
+    # -------------------------------------------------------------- look-ups
+    def camera(self, camera_id: str) -> CameraConfig:
+        for c in self.cameras:
+            if c.id == camera_id:
+                return c
+        raise KeyError(f"station {self.name!r} has no camera {camera_id!r}")
+
+    def rig(self, rig_id: str) -> RigConfig:
+        for r in self.rigs:
+            if r.id == rig_id:
+                return r
+        raise KeyError(f"station {self.name!r} has no rig {rig_id!r}")
+
+    def view(self, view_id: int) -> ViewConfig:
+        for v in self.views:
+            if v.id == view_id:
+                return v
+        raise KeyError(f"station {self.name!r} has no view {view_id}")
+
+    def recipe(self, name: str | None = None) -> RecipeConfig:
+        name = name or self.default_recipe or self.recipes[0].name
+        for r in self.recipes:
+            if r.name == name:
+                return r
+        raise KeyError(f"station {self.name!r} has no recipe {name!r}")
+
+    def rig_of(self, camera_id: str) -> RigConfig:
+        for r in self.rigs:
+            if any(rc.camera == camera_id for rc in r.cameras):
+                return r
+        raise KeyError(f"camera {camera_id!r} is in no rig")
+
+    def view_camera_ids(self, view_id: int) -> list[str]:
+        """Cameras that take a picture in a view, in rig order."""
+        return [rc.camera for rid in self.view(view_id).rigs for rc in self.rig(rid).cameras]
+
+    @property
+    def robot_mounted(self) -> bool:
+        return any(r.mount == "robot" for r in self.rigs)
+
+    def iter_view_cameras(self) -> Iterator[tuple[int, str]]:
+        for v in self.views:
+            for cid in self.view_camera_ids(v.id):
+                yield v.id, cid
+
+
+def _unique(ids: list[str], what: str) -> set[str]:
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ValueError(f"{what} ids must be unique, repeated: {dup}")
+    return set(ids)
+
+
+# ------------------------------------------------------------------------------- loading
+
+
+def _format_loc(loc: tuple[Any, ...], data: Any) -> str:
+    """Turn a pydantic location into a readable path, with ids instead of list indices."""
+    parts: list[str] = []
+    node = data
+    for item in loc:
+        if isinstance(item, int) and isinstance(node, list) and 0 <= item < len(node):
+            node = node[item]
+            label = node.get("id", node.get("name")) if isinstance(node, dict) else None
+            parts.append(f"[{item}]" + (f"({label})" if label is not None else ""))
+        else:
+            node = node.get(item) if isinstance(node, dict) else None
+            parts.append(("." if parts else "") + str(item))
+    return "".join(parts) or "<top level>"
+
+
+def parse_station(data: Any, source: str = "<memory>") -> StationConfig:
+    """Validate a station description; errors name the source, the field and the value."""
+    if not isinstance(data, dict):
+        raise StationFileError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return StationConfig.model_validate(data)
+    except ValidationError as err:
+        lines = []
+        for e in err.errors():
+            where = _format_loc(tuple(e["loc"]), data)
+            value = e.get("input")
+            shown = repr(value) if not isinstance(value, dict) else "{…}"
+            if len(shown) > 80:
+                shown = shown[:77] + "..."
+            lines.append(f"{source}: {where}: {e['msg']} (value: {shown})")
+        raise StationFileError("\n".join(lines)) from None
+
+
+def load_station(path: str | Path) -> StationConfig:
+    """Read and validate a station YAML file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise StationFileError(f"{path}: cannot read station file: {err.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise StationFileError(f"{path}: not valid YAML: {err}") from None
+    return parse_station(data, str(path))
+
+
+def dump_station(station: StationConfig) -> str:
+    """YAML text of a station (round-trips through :func:`parse_station`)."""
+    return yaml.safe_dump(station.model_dump(mode="json", exclude_defaults=False), sort_keys=False)
