@@ -181,8 +181,10 @@ def matrix_to_quat_wxyz(R: ArrayLike) -> Array:
 def rotation_angle_deg(R: ArrayLike) -> float:
     """Angle of a rotation matrix in degrees (the geodesic distance from identity)."""
     R = np.asarray(R, dtype=float)
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
+    # atan2 of sine and cosine parts: arccos alone loses half the digits near 0° (1e-6° floor).
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))
 
 
 def transform_error(T_est: ArrayLike, T_true: ArrayLike) -> tuple[float, float]:
