@@ -29,6 +29,9 @@ class ViewCamera:
     camera_id: str
     model: CameraModel
     T_rf_from_cf: Array
+    rig_id: str = ""
+    #: position of the camera in its rig (0 = the rig's first, "left", camera)
+    rig_position: int = 0
 
     @property
     def key(self) -> str:
@@ -60,13 +63,15 @@ def view_cameras(
             else:
                 assert rig.T_rf_from_rig is not None  # validated
                 T_rf_from_rig = rig.T_rf_from_rig.matrix
-            for rc in rig.cameras:
+            for pos, rc in enumerate(rig.cameras):
                 out.append(
                     ViewCamera(
                         view=v.id,
                         camera_id=rc.camera,
                         model=station.camera(rc.camera).model,
                         T_rf_from_cf=compose(T_rf_from_rig, rc.T_rig_from_cf.matrix),
+                        rig_id=rid,
+                        rig_position=pos,
                     )
                 )
     return out
