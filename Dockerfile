@@ -1,0 +1,40 @@
+# One container per station: `mvpose serve` on the station file mounted at /etc/mvpose/station.yaml.
+# tests/test_dockerfile.py runs this file's `pip install` commands in a fresh virtual environment,
+# because no Docker engine runs on our build machines; keep every install step a RUN line below.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    MVPOSE_STATION=/etc/mvpose/station.yaml \
+    MVPOSE_DATA_DIR=/var/lib/mvpose \
+    MVPOSE_HOST=0.0.0.0 \
+    MVPOSE_PORT=8000 \
+    MVPOSE_PLC_HOST=0.0.0.0 \
+    MVPOSE_PLC_PORT=5020
+
+# A fixed uid so the named volume for the store and the image archive has a known owner.
+RUN groupadd --system --gid 10001 mvpose \
+    && useradd --system --uid 10001 --gid mvpose --home-dir /var/lib/mvpose --create-home mvpose
+
+WORKDIR /opt/mvpose
+COPY pyproject.toml README.md ./
+COPY mvpose_core ./mvpose_core
+COPY drivers ./drivers
+COPY server ./server
+# postgres: the psycopg driver for plants that collect every station in one PostgreSQL database.
+RUN python -m pip install --no-cache-dir ".[postgres]"
+COPY deploy/stations /etc/mvpose/examples
+
+USER mvpose
+VOLUME ["/var/lib/mvpose"]
+# 8000 REST API; 5020 Modbus/TCP (an unprivileged port: the compose file maps the PLC's 502 onto it).
+EXPOSE 8000 5020
+
+# Liveness only: readiness (cameras, PLC link) is for the line's monitoring, not for restarts.
+HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
+    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/v1/health/live' % os.environ.get('MVPOSE_PORT', '8000'), timeout=2)"]
+
+ENTRYPOINT ["mvpose", "serve"]
+CMD ["--station", "/etc/mvpose/station.yaml"]
