@@ -84,6 +84,11 @@ class DriverConfig(_Model):
     latency_ms: float = Field(0.0, ge=0, description="sim only: delay before a frame is ready")
     image_noise: float = Field(2.0, ge=0, description="sim only: read noise, grey levels")
     fault: SimFault = SimFault()
+    features: dict[str, str | int | float | bool] = Field(
+        default_factory=dict,
+        description="GenICam features set after configure (genicam, pylon), in order; "
+        "e.g. pylon emulation's ImageFilename, ImageFileMode, TestImageSelector",
+    )
 
     @model_validator(mode="after")
     def _check_kind(self) -> DriverConfig:
