@@ -1,0 +1,334 @@
+"""The trigger/result handshake as a state machine over register images, knowing nothing of sockets.
+
+Inputs are PLC writes (``write``), clock ticks (``tick``) and completions (``measured``,
+``command_done``); outputs are the input-register image (``image``, read by the PLC) and effects
+(``Measure``, ``RunCommand``, ``ResetPipeline``) that the caller runs. Every method updates the
+image in one synchronous step, so a reader never sees half of an update.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from mvpose_core.transforms import RobotConvention
+
+from . import codecs
+from . import registers as r
+from .registers import Command, Control, ErrorCode, ResultCode, State, Status
+from .seam import PlcConfig, TriggerOutcome, TriggerRequest
+
+
+@dataclass(frozen=True)
+class Measure:
+    request: TriggerRequest
+
+
+@dataclass(frozen=True)
+class RunCommand:
+    command: Command
+    argument: int
+
+
+@dataclass(frozen=True)
+class ResetPipeline:
+    pass
+
+
+Effect = Measure | RunCommand | ResetPipeline
+
+
+@dataclass
+class HandshakeStats:
+    triggers: int = 0
+    results: int = 0
+    views: int = 0
+    missed_triggers: int = 0
+    watchdog_trips: int = 0
+    held_triggers: int = 0
+    commands: int = 0
+    commands_failed: int = 0
+    invalid_outcomes: int = 0
+
+
+class Handshake:
+    """The server side of the PLC handshake (see docs/plc-interface.md for the timing)."""
+
+    def __init__(self, config: PlcConfig, convention_code: int, now: float) -> None:
+        self.config = config
+        self.order = config.word_order
+        self.image = [0] * r.IR_COUNT
+        self.holding = [0] * r.HR_WRITABLE_COUNT
+        self.stats = HandshakeStats()
+        self._convention = codecs.convention_from_code(convention_code)
+        self._flags = Status(0)
+        self._busy = False
+        self._awaiting_ack = False
+        self._command_busy = False
+        self._error = ErrorCode.NONE
+        self._link_seen = config.watchdog_s == 0
+        self._last_beat = now
+        self._trigger_since: float | None = None
+        self._result_id = 0
+        self._recipe = 0
+        self._heartbeat = 0
+        if config.watchdog_s == 0:
+            self._flags |= Status.ONLINE  # no watchdog: the link counts as up from the start
+        img = self.image
+        img[r.IR_CONVENTION] = convention_code
+        img[r.IR_WORD_ORDER] = int(self.order)
+        img[r.IR_TEST_FLOAT : r.IR_TEST_FLOAT + 2] = codecs.encode_float32(r.TEST_FLOAT, self.order)
+        img[r.IR_TEST_INT : r.IR_TEST_INT + 2] = codecs.encode_int32(r.TEST_INT, self.order)
+        self._publish()
+
+    # ------------------------------------------------------------------ derived values
+
+    @property
+    def state(self) -> State:
+        if self._error:
+            return State.ERROR
+        if self._busy:
+            return State.SINGLE_EXECUTION
+        if not self._link_seen:
+            return State.PREOPERATIONAL
+        if not self.holding[r.HR_CONTROL] & Control.TRIGGER_ENABLE:
+            return State.HALTED
+        if self._recipe == 0:
+            return State.INITIALIZED
+        return State.READY
+
+    @property
+    def error(self) -> ErrorCode:
+        return self._error
+
+    @property
+    def recipe(self) -> int:
+        return self._recipe
+
+    @property
+    def result_id(self) -> int:
+        return self._result_id
+
+    def _ready(self) -> bool:
+        return self.state is State.READY and not self._awaiting_ack and not self._command_busy
+
+    def _online(self, now: float) -> bool:
+        wd = self.config.watchdog_s
+        return self._link_seen and (wd == 0 or now - self._last_beat <= wd)
+
+    def _publish(self) -> None:
+        flags = self._flags & ~(Status.READY | Status.ERROR | Status.BUSY | Status.COMMAND_BUSY)
+        if self._ready():
+            flags |= Status.READY
+        if self._error:
+            flags |= Status.ERROR
+        if self._busy:
+            flags |= Status.BUSY
+        if self._command_busy:
+            flags |= Status.COMMAND_BUSY
+        self._flags = flags
+        img = self.image
+        img[r.IR_STATUS] = int(flags)
+        img[r.IR_STATE] = int(self.state)
+        img[r.IR_ERROR_CODE] = int(self._error)
+        img[r.IR_RECIPE] = self._recipe
+
+    def set_convention(self, code: int) -> None:
+        """The active recipe's robot convention changed (after a recipe selection)."""
+        self._convention = codecs.convention_from_code(code)
+        self.image[r.IR_CONVENTION] = code
+
+    @property
+    def convention(self) -> RobotConvention:
+        return self._convention
+
+    def set_recipe(self, recipe: int) -> None:
+        self._recipe = recipe
+        self._publish()
+
+    # ------------------------------------------------------------------ inputs
+
+    def write(self, address: int, values: list[int], now: float) -> list[Effect]:
+        """The PLC wrote ``values`` at holding register ``address`` (already validated)."""
+        end = min(address + len(values), r.HR_WRITABLE_COUNT)
+        if address >= end:
+            return []
+        prev_control = self.holding[r.HR_CONTROL]
+        prev_beat = self.holding[r.HR_HEARTBEAT]
+        self.holding[address:end] = values[: end - address]
+        control = self.holding[r.HR_CONTROL]
+        rising = Control(control & ~prev_control)
+        falling = Control(prev_control & ~control)
+        effects: list[Effect] = []
+
+        if self.holding[r.HR_HEARTBEAT] != prev_beat:
+            self._last_beat = now
+            self._link_seen = True
+            self._flags |= Status.ONLINE
+        if rising & Control.RESULT_ACK and self._awaiting_ack:
+            self._awaiting_ack = False
+            self._flags &= ~(Status.RESULT_VALID | Status.VIEW_DONE)
+        if rising & Control.ERROR_RESET:
+            effects += self._error_reset(now, control)
+        if falling & Control.EXECUTE_COMMAND and not self._command_busy:
+            self._flags &= ~(Status.COMMAND_DONE | Status.COMMAND_FAILED)
+        if rising & Control.EXECUTE_COMMAND:
+            effects += self._command()
+        if falling & Control.TRIGGER:
+            self._flags &= ~Status.TRIGGER_ACK
+            self._trigger_since = None
+        if rising & Control.TRIGGER:
+            effects += self._trigger(now, control)
+        self._publish()
+        return effects
+
+    def _error_reset(self, now: float, control: int) -> list[Effect]:
+        self._flags &= ~Status.MISSED_TRIGGER
+        if self._error is ErrorCode.NONE:
+            return []
+        if self._error is ErrorCode.WATCHDOG and not self._online(now):
+            return []
+        if self._error is ErrorCode.TRIGGER_HELD and control & Control.TRIGGER:
+            return []
+        self._error = ErrorCode.NONE
+        return [ResetPipeline()]
+
+    def _command(self) -> list[Effect]:
+        self._flags &= ~(Status.COMMAND_DONE | Status.COMMAND_FAILED)
+        self.stats.commands += 1
+        code, arg = self.holding[r.HR_COMMAND], self.holding[r.HR_COMMAND_ARG]
+        if self._busy or self._command_busy:
+            return self._command_failed(ResultCode.BUSY)
+        try:
+            command = Command(code)
+        except ValueError:
+            return self._command_failed(ResultCode.UNKNOWN_COMMAND)
+        if command is Command.SELECT_RECIPE and arg == 0:
+            return self._command_failed(ResultCode.BAD_ARGUMENT)
+        self._command_busy = True
+        self.image[r.IR_COMMAND_RESULT] = 0
+        return [RunCommand(command, arg)]
+
+    def _command_failed(self, code: ResultCode) -> list[Effect]:
+        self.stats.commands_failed += 1
+        self._flags |= Status.COMMAND_FAILED
+        self.image[r.IR_COMMAND_RESULT] = int(code)
+        return []
+
+    def _trigger(self, now: float, control: int) -> list[Effect]:
+        if not self._ready():
+            self.stats.missed_triggers += 1
+            self._flags |= Status.MISSED_TRIGGER
+            return []
+        h = self.holding
+        trigger_id = codecs.decode_uint32(h[r.HR_TRIGGER_ID : r.HR_TRIGGER_ID + 2], self.order)
+        pose = None
+        if control & Control.ROBOT_POSE_VALID:
+            pose_regs = h[r.HR_ROBOT_POSE : r.HR_ROBOT_POSE + 12]
+            pose = codecs.decode_pose_int(pose_regs, self._convention, self.order)
+        part_id = codecs.decode_ascii(h[r.HR_PART_ID : r.HR_PART_ID + r.PART_ID_CHARS // 2])
+        request = TriggerRequest(trigger_id, h[r.HR_VIEW_INDEX], pose, part_id, self._recipe)
+        self.stats.triggers += 1
+        self._busy = True
+        self._trigger_since = now
+        self._flags &= ~(Status.MISSED_TRIGGER | Status.RESULT_VALID | Status.RESULT_OK)
+        self._flags |= Status.TRIGGER_ACK
+        self.image[r.IR_TRIGGER_ID : r.IR_TRIGGER_ID + 2] = codecs.encode_uint32(
+            trigger_id, self.order
+        )
+        return [Measure(request)]
+
+    def tick(self, now: float) -> None:
+        """Advance the server heartbeat and run the watchdog and the held-trigger watch."""
+        self._heartbeat = (self._heartbeat + 1) & 0xFFFF
+        self.image[r.IR_HEARTBEAT] = self._heartbeat
+        if self._link_seen and not self._online(now) and self._flags & Status.ONLINE:
+            self._flags &= ~Status.ONLINE
+            self.stats.watchdog_trips += 1
+            if not self._error:
+                self._error = ErrorCode.WATCHDOG
+        hold = self.config.trigger_hold_s
+        if (
+            hold > 0
+            and self._trigger_since is not None
+            and self.holding[r.HR_CONTROL] & Control.TRIGGER
+            and now - self._trigger_since > hold
+        ):
+            # Forced reset of the trigger handshake: drop the acknowledgement so the PLC sees it,
+            # and refuse triggers until the bit falls and ERROR_RESET is given.
+            self._trigger_since = None
+            self._flags &= ~Status.TRIGGER_ACK
+            self.stats.held_triggers += 1
+            if not self._error:
+                self._error = ErrorCode.TRIGGER_HELD
+        self._publish()
+
+    def measured(self, outcome: TriggerOutcome) -> None:
+        """Publish the answer to the running trigger: a result block or VIEW_DONE, in one step."""
+        img = self.image
+        order = self.order
+        offset = tuple(outcome.offset)
+        code = outcome.result_code
+        numbers = (*offset, outcome.sigma_trans_mm, outcome.sigma_rot_deg, outcome.processing_ms)
+        if (
+            len(offset) != 6
+            or not 0 <= code <= 0xFFFF
+            or not all(math.isfinite(x) for x in numbers)
+            or not codecs.fits_int32(offset, self._convention)
+        ):
+            self.stats.invalid_outcomes += 1
+            offset, code = (0.0,) * 6, int(ResultCode.INVALID_OUTCOME)
+            outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done)
+        views = max(0, min(int(outcome.views_done), 0xFFFF))
+        img[r.IR_VIEWS_DONE] = views
+        if outcome.final:
+            self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
+            img[r.IR_RESULT_ID : r.IR_RESULT_ID + 2] = codecs.encode_uint32(self._result_id, order)
+            img[r.IR_RESULT_CODE] = code
+            img[r.IR_PROCESSING_TIME] = min(round(max(outcome.processing_ms, 0.0) * 10), 0xFFFF)
+            img[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12] = codecs.encode_pose_int(
+                offset, self._convention, order
+            )
+            img[r.IR_OFFSET_FLOAT : r.IR_OFFSET_FLOAT + 12] = codecs.encode_pose_float(
+                offset, order
+            )
+            img[r.IR_SIGMA_TRANS : r.IR_SIGMA_TRANS + 2] = codecs.encode_int32(
+                _clamp_int32(outcome.sigma_trans_mm * 1e3), order
+            )
+            img[r.IR_SIGMA_ROT : r.IR_SIGMA_ROT + 2] = codecs.encode_int32(
+                _clamp_int32(outcome.sigma_rot_deg * 1e4), order
+            )
+            self._flags |= Status.RESULT_VALID
+            if code == ResultCode.OK:
+                self._flags |= Status.RESULT_OK
+            self.stats.results += 1
+        else:
+            self._flags |= Status.VIEW_DONE
+            self.stats.views += 1
+        self._flags ^= Status.DONE_TOGGLE
+        self._busy = False
+        self._awaiting_ack = True
+        self._publish()
+
+    def command_done(self, command: Command, argument: int, result: int) -> None:
+        """Publish a command's end: COMMAND_DONE when ``result`` is 0, else COMMAND_FAILED."""
+        self._command_busy = False
+        result = max(0, min(int(result), 0xFFFF))
+        self.image[r.IR_COMMAND_RESULT] = result
+        if result == 0:
+            if command is Command.SELECT_RECIPE:
+                self._recipe = argument
+            self._flags |= Status.COMMAND_DONE
+        else:
+            self.stats.commands_failed += 1
+            self._flags |= Status.COMMAND_FAILED
+        self._publish()
+
+    def pipeline_reset_failed(self) -> None:
+        if not self._error:
+            self._error = ErrorCode.INTERNAL
+        self._publish()
+
+
+def _clamp_int32(x: float) -> int:
+    return max(-(2**31), min(2**31 - 1, round(x)))

@@ -1,0 +1,292 @@
+"""The Modbus/TCP server of the PLC link: pymodbus 3.x inside the caller's asyncio loop.
+
+pymodbus calls the device ``action`` on every register access, before a write is committed, so
+the action only validates, copies the handshake's image into the registers being read, and
+enqueues writes; one consumer task feeds them to the Handshake in order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from . import registers as r
+from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
+from .registers import CONTROL_DEFINED, Command, ResultCode, State
+from .seam import PlcConfig, PlcHandler, TriggerOutcome
+
+log = logging.getLogger(__name__)
+
+_READ_FCS = frozenset({3, 4})
+_WRITE_FCS = frozenset({6, 16, 23})
+
+
+@dataclass
+class PlcStats:
+    """Counters of the PLC link (the handshake's own plus the transport's)."""
+
+    handshake: HandshakeStats
+    connections: int = 0
+    rejected_connections: int = 0
+    rejected_requests: int = 0
+    timeouts: int = 0
+    handler_errors: int = 0
+    writes: int = 0
+    last_errors: list[str] = field(default_factory=list)
+
+
+class _Listener(ModbusTcpServer):
+    """ModbusTcpServer whose connections are checked against the allowlist."""
+
+    def __init__(self, owner: PlcServer, device: SimDevice, host: str, port: int) -> None:
+        super().__init__(device, address=(host, port), trace_connect=owner._on_connect)
+        self.owner = owner
+
+    def callback_new_connection(self) -> ServerRequestHandler:
+        return _Connection(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+class _Connection(ServerRequestHandler):
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        peer = transport.get_extra_info("peername")
+        host = str(peer[0]) if peer else ""
+        owner: PlcServer = self.server.owner
+        if not owner.config.allows(host):
+            owner.stats.rejected_connections += 1
+            log.warning("PLC link: connection from %s refused (not in the allowlist)", host)
+            self.close()
+
+
+class PlcServer:
+    """The PLC link: Modbus/TCP server + handshake + calls into the measurement pipeline."""
+
+    def __init__(
+        self,
+        handler: PlcHandler,
+        config: PlcConfig | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.handler = handler
+        self.config = config or PlcConfig()
+        self.clock = clock
+        self._machine: Handshake | None = None
+        self._listener: _Listener | None = None
+        self._inbox: asyncio.Queue[tuple[int, list[int]]] = asyncio.Queue()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._workers: list[asyncio.Task[None]] = []
+        self.stats = PlcStats(HandshakeStats())
+
+    # ------------------------------------------------------------------ life cycle
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> None:
+        """Listen on ``host:port`` (0 = any free port, see ``.port``) and start the handshake."""
+        if self._listener is not None:
+            raise RuntimeError("PlcServer already started")
+        machine = Handshake(self.config, self.handler.convention_code(), self.clock())
+        self._machine = machine
+        self.stats.handshake = machine.stats
+        if self.config.initial_recipe:
+            rc = await self.handler.select_recipe(self.config.initial_recipe)
+            if rc == 0:
+                machine.set_recipe(self.config.initial_recipe)
+                machine.set_convention(self.handler.convention_code())
+            else:
+                log.warning(
+                    "PLC link: initial recipe %d refused (%d)", self.config.initial_recipe, rc
+                )
+        self._listener = _Listener(self, self._device(), host, port)
+        await self._listener.serve_forever(background=True)
+        self._workers = [
+            asyncio.create_task(self._consume(), name="plc-consume"),
+            asyncio.create_task(self._ticker(), name="plc-tick"),
+        ]
+
+    @property
+    def port(self) -> int:
+        if self._listener is None or self._listener.transport is None:
+            raise RuntimeError("PlcServer not started")
+        server: asyncio.Server = self._listener.transport  # type: ignore[assignment]
+        return int(server.sockets[0].getsockname()[1])
+
+    async def stop(self) -> None:
+        """Close every connection, stop the workers and cancel running measurements."""
+        if self._listener is not None:
+            await self._listener.shutdown()
+            self._listener = None
+        pending = [*self._workers, *self._tasks]
+        for task in pending:
+            task.cancel()
+        for task in pending:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._workers = []
+        self._tasks.clear()
+
+    async def __aenter__(self) -> PlcServer:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    @property
+    def machine(self) -> Handshake:
+        if self._machine is None:
+            raise RuntimeError("PlcServer not started")
+        return self._machine
+
+    @property
+    def state(self) -> State:
+        return self.machine.state
+
+    def input_registers(self) -> list[int]:
+        """A copy of the input-register image (what the PLC reads now)."""
+        return list(self.machine.image)
+
+    # ------------------------------------------------------------------ pymodbus side
+
+    def _device(self) -> SimDevice:
+        bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
+        holding = [
+            SimData(0, count=r.HR_WRITABLE_COUNT, values=0, datatype=DataType.REGISTERS),
+            SimData(
+                r.HR_MIRROR, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS, readonly=True
+            ),
+        ]
+        inputs = [SimData(0, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS)]
+        # id 0: answer every unit id, as a PLC may address us with 0, 1 or 255.
+        return SimDevice(0, simdata=(bits, list(bits), holding, inputs), action=self._action)
+
+    async def _action(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        regs: list[int],
+        values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        # Runs before pymodbus commits a write and on every read: validate and copy, never work.
+        if values is None:
+            if fc not in _READ_FCS and fc != 23:
+                return self._reject(ExcCodes.ILLEGAL_FUNCTION)
+            image = self.machine.image
+            if fc == 4:
+                regs[address - start : address - start + count] = image[address : address + count]
+            else:
+                lo, hi = max(address, r.HR_MIRROR), min(address + count, r.HR_MIRROR + r.IR_COUNT)
+                if lo < hi:
+                    regs[lo - start : hi - start] = image[lo - r.HR_MIRROR : hi - r.HR_MIRROR]
+            return None
+        if fc not in _WRITE_FCS:
+            return self._reject(ExcCodes.ILLEGAL_FUNCTION)
+        if address < 0 or address + len(values) > r.HR_WRITABLE_COUNT:
+            return self._reject(ExcCodes.ILLEGAL_ADDRESS)
+        words = [int(v) for v in values]
+        if address == r.HR_CONTROL and words[0] & ~CONTROL_DEFINED:
+            return self._reject(ExcCodes.ILLEGAL_VALUE)
+        self._inbox.put_nowait((address, words))
+        return None
+
+    def _reject(self, code: ExcCodes) -> ExcCodes:
+        self.stats.rejected_requests += 1
+        return code
+
+    def _on_connect(self, connected: bool) -> None:
+        if connected:
+            self.stats.connections += 1
+
+    # ------------------------------------------------------------------ workers
+
+    async def _consume(self) -> None:
+        while True:
+            address, words = await self._inbox.get()
+            self.stats.writes += 1
+            for effect in self.machine.write(address, words, self.clock()):
+                self._spawn(effect)
+
+    async def _ticker(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.tick_s)
+            self.machine.tick(self.clock())
+
+    def _spawn(self, effect: Effect) -> None:
+        if isinstance(effect, Measure):
+            coro = self._measure(effect)
+        elif isinstance(effect, RunCommand):
+            coro = self._command(effect)
+        else:
+            coro = self._reset(effect)
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _note(self, text: str) -> None:
+        log.warning("PLC link: %s", text)
+        self.stats.last_errors = [*self.stats.last_errors[-9:], text]
+
+    async def _measure(self, effect: Measure) -> None:
+        req = effect.request
+        t0 = self.clock()
+        timeout = self.config.measure_timeout_s or None
+        try:
+            outcome = await asyncio.wait_for(self.handler.measure(req), timeout)
+            if not isinstance(outcome, TriggerOutcome):
+                raise TypeError(f"measure() returned {type(outcome).__name__}, not TriggerOutcome")
+        except TimeoutError:
+            self.stats.timeouts += 1
+            self._note(f"trigger {req.trigger_id}: measurement exceeded {timeout} s")
+            outcome = await self._failed(ResultCode.TIMEOUT, t0)
+        except Exception as err:  # noqa: BLE001 — any pipeline failure becomes a result code
+            self.stats.handler_errors += 1
+            self._note(f"trigger {req.trigger_id}: measurement raised {err!r}")
+            outcome = await self._failed(ResultCode.INTERNAL_ERROR, t0)
+        self.machine.measured(outcome)
+
+    async def _failed(self, code: ResultCode, t0: float) -> TriggerOutcome:
+        # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.
+        await self._reset(ResetPipeline())
+        return TriggerOutcome(int(code), processing_ms=(self.clock() - t0) * 1e3, views_done=0)
+
+    async def _command(self, effect: RunCommand) -> None:
+        timeout = self.config.command_timeout_s or None
+        h = self.handler
+        try:
+            if effect.command is Command.SELECT_RECIPE:
+                result = await asyncio.wait_for(h.select_recipe(effect.argument), timeout)
+            elif effect.command is Command.TEACH_REFERENCE:
+                result = await asyncio.wait_for(h.teach_reference(), timeout)
+            else:
+                await asyncio.wait_for(h.reset(), timeout)
+                result = 0
+            if not isinstance(result, int):
+                raise TypeError(f"{effect.command.name} returned {result!r}, not an int")
+            if result == 0 and effect.command is Command.SELECT_RECIPE:
+                self.machine.set_convention(h.convention_code())
+        except TimeoutError:
+            self.stats.timeouts += 1
+            self._note(f"command {effect.command.name} exceeded {timeout} s")
+            result = int(ResultCode.TIMEOUT)
+        except Exception as err:  # noqa: BLE001 — any handler failure becomes a command result
+            self.stats.handler_errors += 1
+            self._note(f"command {effect.command.name} raised {err!r}")
+            result = int(ResultCode.INTERNAL_ERROR)
+        self.machine.command_done(effect.command, effect.argument, result)
+
+    async def _reset(self, _effect: ResetPipeline) -> None:
+        try:
+            await asyncio.wait_for(self.handler.reset(), self.config.command_timeout_s or None)
+        except Exception as err:  # noqa: BLE001
+            self.stats.handler_errors += 1
+            self._note(f"pipeline reset raised {err!r}")
+            self.machine.pipeline_reset_failed()
