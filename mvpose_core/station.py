@@ -67,6 +67,7 @@ class SimFault(_Model):
 
     kind: Literal["none", "timeout", "disconnect", "corrupt"] = "none"
     every_n: int = Field(0, ge=0, description="inject on every n-th grab (0 = never)")
+    down_ms: float = Field(0.0, ge=0, description="disconnect: how long the camera cannot be reopened")
 
 
 class DriverConfig(_Model):
