@@ -1,0 +1,273 @@
+"""Measurements endpoints: filtered cursor paging, CSV/JSON export, one record, images, chain."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Iterator
+from datetime import datetime
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import BaseModel
+
+from server.api.deps import ReadUser, ServicesDep, StoreDep
+from server.errors import NotFoundError
+from server.store.chain import canonical_json
+from server.store.schemas import (
+    ChainReport,
+    ImageStatus,
+    MeasurementDetail,
+    MeasurementFilter,
+    Offset,
+    Residuals,
+    StoredMeasurement,
+    Uncertainty,
+)
+
+router = APIRouter(prefix="/measurements", tags=["measurements"])
+
+
+class MeasurementSummary(BaseModel):
+    """A list row: the result without detections (fetch one measurement for those)."""
+
+    id: int
+    seq: int
+    stored_at: datetime
+    triggered_at: datetime
+    trigger_id: int
+    part_id: str | None
+    recipe: str
+    recipe_version: int
+    result: Literal["OK", "NOK"]
+    reason_code: int
+    reason: str
+    offset: Offset | None
+    uncertainty: Uncertainty | None
+    residuals: Residuals | None
+    total_ms: float | None
+    hash: str
+
+    @classmethod
+    def of(cls, m: StoredMeasurement) -> MeasurementSummary:
+        r = m.record
+        return cls(
+            id=m.id,
+            seq=m.seq,
+            stored_at=m.stored_at,
+            triggered_at=r.triggered_at,
+            trigger_id=r.trigger_id,
+            part_id=r.part_id,
+            recipe=r.recipe,
+            recipe_version=r.recipe_version,
+            result=r.result,
+            reason_code=r.reason_code,
+            reason=r.reason,
+            offset=r.offset,
+            uncertainty=r.uncertainty,
+            residuals=r.residuals,
+            total_ms=r.timings_ms.get("total"),
+            hash=m.hash,
+        )
+
+
+class MeasurementPage(BaseModel):
+    items: list[MeasurementSummary]
+    next_cursor: str | None
+
+
+def measurement_filter(
+    since: Annotated[
+        datetime | None, Query(description="triggered at or after (ISO 8601, with zone)")
+    ] = None,
+    until: Annotated[
+        datetime | None, Query(description="triggered before (ISO 8601, with zone)")
+    ] = None,
+    result: Literal["OK", "NOK"] | None = None,
+    reason_code: Annotated[int | None, Query(ge=0, le=65535)] = None,
+    recipe: Annotated[str | None, Query(max_length=64)] = None,
+    part_id: Annotated[str | None, Query(max_length=64)] = None,
+) -> MeasurementFilter:
+    return MeasurementFilter(
+        since=since,
+        until=until,
+        result=result,
+        reason_code=reason_code,
+        recipe=recipe,
+        part_id=part_id,
+    )
+
+
+FilterDep = Annotated[MeasurementFilter, Depends(measurement_filter)]
+
+
+@router.get("", response_model=MeasurementPage)
+def list_measurements(
+    _: ReadUser,
+    store: StoreDep,
+    filters: FilterDep,
+    cursor: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> MeasurementPage:
+    """Measurements, newest first; pass next_cursor back as cursor for the next page."""
+    items, next_cursor = store.measurements.page(filters, cursor, limit)
+    return MeasurementPage(items=[MeasurementSummary.of(m) for m in items], next_cursor=next_cursor)
+
+
+CSV_COLUMNS = [
+    "id",
+    "seq",
+    "triggered_at",
+    "stored_at",
+    "trigger_id",
+    "part_id",
+    "recipe",
+    "recipe_version",
+    "result",
+    "reason_code",
+    "reason",
+    "convention",
+    "o1",
+    "o2",
+    "o3",
+    "o4",
+    "o5",
+    "o6",
+    "o7",
+    "sigma_mm",
+    "sigma_deg",
+    "rms_px",
+    "max_px",
+    "total_ms",
+    "calibration_id",
+    "calibration_hash",
+    "timings_ms",
+    "hash",
+]
+
+
+def _csv_row(m: StoredMeasurement) -> list[object]:
+    r = m.record
+    values: list[object] = list(r.offset.values) if r.offset else []
+    values += [""] * (7 - len(values))
+    return [
+        m.id,
+        m.seq,
+        r.triggered_at.isoformat(),
+        m.stored_at.isoformat(),
+        r.trigger_id,
+        r.part_id or "",
+        r.recipe,
+        r.recipe_version,
+        r.result,
+        r.reason_code,
+        r.reason,
+        r.offset.convention.value if r.offset else "",
+        *values,
+        r.uncertainty.sigma_mm if r.uncertainty else "",
+        r.uncertainty.sigma_deg if r.uncertainty else "",
+        r.residuals.rms_px if r.residuals else "",
+        r.residuals.max_px if r.residuals else "",
+        r.timings_ms.get("total", ""),
+        r.calibration_id or "",
+        r.calibration_hash or "",
+        canonical_json(r.timings_ms),
+        m.hash,
+    ]
+
+
+def _csv_stream(rows: Iterator[StoredMeasurement]) -> Iterator[str]:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for m in rows:
+        writer.writerow(_csv_row(m))
+        if buf.tell() > 65536:
+            yield buf.getvalue()
+            buf.seek(0)
+            buf.truncate()
+    yield buf.getvalue()
+
+
+def _json_stream(rows: Iterator[StoredMeasurement]) -> Iterator[str]:
+    yield "["
+    for i, m in enumerate(rows):
+        yield ("," if i else "") + "\n" + m.model_dump_json()
+    yield "\n]\n"
+
+
+@router.get(
+    "/export",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/csv": {}, "application/json": {}}}},
+)
+def export_measurements(
+    _: ReadUser,
+    store: StoreDep,
+    filters: FilterDep,
+    format: Literal["csv", "json"] = "csv",  # noqa: A002
+) -> StreamingResponse:
+    """Every matching measurement, oldest first, as CSV (one row each) or a JSON array."""
+    rows = store.measurements.iterate(filters)
+    # A sync generator: Starlette pulls it in the threadpool, so export never blocks the loop.
+    if format == "csv":
+        body, media = _csv_stream(rows), "text/csv; charset=utf-8"
+    else:
+        body, media = _json_stream(rows), "application/json"
+    name = f"measurements-{store.station}.{format}"
+    return StreamingResponse(
+        body, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'}
+    )
+
+
+@router.get("/chain", response_model=ChainReport)
+def verify_chain(_: ReadUser, store: StoreDep) -> ChainReport:
+    """Recompute the hash chain of this station's measurements and report the first bad link."""
+    return store.measurements.verify_chain()
+
+
+@router.get("/{measurement_id}", response_model=MeasurementDetail)
+def get_measurement(measurement_id: int, _: ReadUser, services: ServicesDep) -> MeasurementDetail:
+    """One measurement with its detections per camera and the state of its images."""
+    m = services.store.measurements.get(measurement_id)
+    rows = {(i.view, i.camera_id): i for i in services.store.images.for_measurement(m.id)}
+    status = []
+    for ref in m.record.images:
+        row = rows.get((ref.view, ref.camera_id))
+        state: Literal["stored", "evicted", "pending"] = (
+            "pending" if row is None else ("evicted" if row.evicted_at else "stored")
+        )
+        status.append(
+            ImageStatus(
+                view=ref.view,
+                camera_id=ref.camera_id,
+                path=ref.path,
+                state=state,
+                bytes=row.bytes if row else None,
+            )
+        )
+    return MeasurementDetail(**m.model_dump(), image_status=status)
+
+
+@router.get(
+    "/{measurement_id}/images/{view}/{camera_id}",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}}}},
+)
+def get_image(
+    measurement_id: int, view: int, camera_id: str, _: ReadUser, services: ServicesDep
+) -> FileResponse:
+    """An archived frame as PNG (404 once it has been evicted; the record stays)."""
+    m = services.store.measurements.get(measurement_id)
+    for i in services.store.images.for_measurement(m.id):
+        if i.view == view and i.camera_id == camera_id:
+            if i.evicted_at is not None:
+                raise NotFoundError(
+                    f"image of measurement {m.id} view {view} camera {camera_id!r} "
+                    f"was evicted at {i.evicted_at.isoformat()}"
+                )
+            return FileResponse(services.images.resolve(i.path), media_type="image/png")
+    raise NotFoundError(
+        f"measurement {m.id} has no archived image for view {view} camera {camera_id!r}"
+    )

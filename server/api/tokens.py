@@ -1,0 +1,45 @@
+"""Token endpoints (engineer only): create (the secret is shown once), list, revoke."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path
+from pydantic import BaseModel, Field
+
+from server.api.deps import EngineerUser, StoreDep
+from server.auth import Role, create_token
+from server.store.tokens import TokenInfo
+
+router = APIRouter(prefix="/tokens", tags=["tokens"])
+
+
+class TokenRequest(BaseModel):
+    name: str = Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=64)
+    role: Role
+
+
+class NewToken(BaseModel):
+    info: TokenInfo
+    token: str = Field(description="the secret; shown only in this response")
+
+
+@router.post("", response_model=NewToken, status_code=201)
+def create(request: TokenRequest, _: EngineerUser, store: StoreDep) -> NewToken:
+    """Create a token with a role; store the returned secret, it cannot be shown again."""
+    secret, info = create_token(store.tokens, request.name, request.role)
+    return NewToken(info=info, token=secret)
+
+
+@router.get("", response_model=list[TokenInfo])
+def list_tokens(_: EngineerUser, store: StoreDep) -> list[TokenInfo]:
+    """Every token (names and roles, never secrets)."""
+    return store.tokens.list()
+
+
+@router.delete("/{name}", response_model=TokenInfo)
+def revoke(
+    name: Annotated[str, Path(max_length=64)], _: EngineerUser, store: StoreDep
+) -> TokenInfo:
+    """Revoke a token; requests with it fail from now on."""
+    return store.tokens.revoke(name)

@@ -1,0 +1,139 @@
+"""Recipes and calibrations endpoints: list, versions, one version, upload, activate."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Path
+from pydantic import BaseModel, Field, ValidationError
+
+from mvpose_core.station import RecipeConfig, StationConfig, parse_station
+from server.api.deps import EngineerUser, ReadUser, ServicesDep
+from server.errors import InvalidInputError
+from server.state import recipe_content
+from server.store.versions import Kind, VersionInfo, VersionSummary
+
+NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
+VersionPath = Annotated[int, Path(ge=1)]
+
+
+class VersionContent(BaseModel):
+    info: VersionInfo
+    content: dict[str, Any]
+
+
+class VersionUpload(BaseModel):
+    content: dict[str, Any] = Field(description="the recipe (station-file schema) or calibration")
+    comment: str = Field("", max_length=400)
+    activate: bool = Field(False, description="make the new version active at once")
+
+
+def check_recipe(
+    name: str, content: dict[str, Any], station: StationConfig | None
+) -> dict[str, Any]:
+    """Validate a recipe upload against the station-file schema and, if known, the station."""
+    data = {**content, "name": content.get("name", name)}
+    if data["name"] != name:
+        raise InvalidInputError(f"recipe content names {data['name']!r} but the URL names {name!r}")
+    data.pop("version", None)  # the store numbers versions
+    try:
+        recipe = RecipeConfig.model_validate(data)
+    except ValidationError as err:
+        raise InvalidInputError(
+            f"recipe {name!r} is not valid: {_first(err)}",
+            errors=[{"loc": [str(x) for x in e["loc"]], "msg": e["msg"]} for e in err.errors()],
+        ) from None
+    if station is not None:
+        # The recipe must fit this station's cameras and views: re-check the whole station.
+        others = [r.model_dump(mode="json") for r in station.recipes if r.name != name]
+        whole = station.model_dump(mode="json") | {
+            "recipes": [*others, recipe.model_dump(mode="json")]
+        }
+        parse_station(whole, f"recipe upload {name!r}")
+    return recipe_content(recipe)
+
+
+def check_calibration(
+    name: str, content: dict[str, Any], station: StationConfig | None
+) -> dict[str, Any]:
+    """A calibration is stored as uploaded (a JSON object); its sha256 identifies it."""
+    if not content:
+        raise InvalidInputError(f"calibration {name!r}: empty content")
+    return content
+
+
+def _first(err: ValidationError) -> str:
+    e = err.errors()[0]
+    return f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}"
+
+
+def version_router(
+    kind: Kind, check: Callable[[str, dict[str, Any], StationConfig | None], dict[str, Any]]
+) -> APIRouter:
+    plural = f"{kind}s"
+    router = APIRouter(prefix=f"/{plural}", tags=[plural])
+
+    @router.get("", response_model=list[VersionSummary], summary=f"List {plural}")
+    def list_names(_: ReadUser, services: ServicesDep) -> list[VersionSummary]:
+        """Every name with its newest and its active version."""
+        return services.store.versions.names(kind)
+
+    @router.get(
+        "/{name}/versions", response_model=list[VersionInfo], summary=f"Versions of a {kind}"
+    )
+    def list_versions(name: NamePath, _: ReadUser, services: ServicesDep) -> list[VersionInfo]:
+        """All versions, oldest first, with who made them and which is active."""
+        return services.store.versions.versions(kind, name)
+
+    @router.get("/{name}/active", response_model=VersionContent, summary=f"Active {kind}")
+    def get_active(name: NamePath, _: ReadUser, services: ServicesDep) -> VersionContent:
+        """The active version and its content."""
+        info, content = services.store.versions.content(kind, name)
+        return VersionContent(info=info, content=content)
+
+    @router.get(
+        "/{name}/versions/{version}", response_model=VersionContent, summary=f"One {kind} version"
+    )
+    def get_version(
+        name: NamePath, version: VersionPath, _: ReadUser, services: ServicesDep
+    ) -> VersionContent:
+        """One version and its content."""
+        info, content = services.store.versions.content(kind, name, version)
+        return VersionContent(info=info, content=content)
+
+    @router.post(
+        "/{name}/versions",
+        response_model=VersionInfo,
+        status_code=201,
+        summary=f"Upload a {kind} version",
+    )
+    def upload(
+        name: NamePath,
+        upload: Annotated[VersionUpload, Body()],
+        user: EngineerUser,
+        services: ServicesDep,
+    ) -> VersionInfo:
+        """Store a new version (engineer); optionally activate it."""
+        content = check(name, upload.content, services.station)
+        info = services.store.versions.add(kind, name, content, user.name, upload.comment)
+        if upload.activate:
+            info = services.store.versions.activate(kind, name, info.version, user.name)
+        return info
+
+    @router.post(
+        "/{name}/versions/{version}/activate",
+        response_model=VersionInfo,
+        summary=f"Activate a {kind} version",
+    )
+    def activate(
+        name: NamePath, version: VersionPath, user: EngineerUser, services: ServicesDep
+    ) -> VersionInfo:
+        """Make this version the one the station uses from the next trigger on (engineer)."""
+        return services.store.versions.activate(kind, name, version, user.name)
+
+    return router
+
+
+recipes_router = version_router("recipe", check_recipe)
+calibrations_router = version_router("calibration", check_calibration)

@@ -1,0 +1,66 @@
+"""Domain errors of the server layer; server/api/problems.py renders each as RFC 7807."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+
+class DomainError(Exception):
+    """Base of every error the service reports to a client; ``status`` is the HTTP status."""
+
+    status: ClassVar[int] = 400
+    title: ClassVar[str] = "Bad request"
+    slug: ClassVar[str] = "bad-request"
+
+    def __init__(self, detail: str, **extra: Any) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.extra = extra
+
+
+class InvalidInputError(DomainError):
+    status = 400
+    title = "Invalid input"
+    slug = "invalid-input"
+
+
+class UnauthenticatedError(DomainError):
+    status = 401
+    title = "Authentication required"
+    slug = "unauthenticated"
+
+
+class ForbiddenError(DomainError):
+    status = 403
+    title = "ForbiddenError"
+    slug = "forbidden"
+
+
+class NotFoundError(DomainError):
+    status = 404
+    title = "Not found"
+    slug = "not-found"
+
+
+class ConflictError(DomainError):
+    status = 409
+    title = "ConflictError"
+    slug = "conflict"
+
+
+class PayloadTooLargeError(DomainError):
+    status = 413
+    title = "Payload too large"
+    slug = "payload-too-large"
+
+
+class StoreUnavailableError(DomainError):
+    status = 503
+    title = "Store unavailable"
+    slug = "store-unavailable"
+
+
+class NotReadyError(DomainError):
+    status = 503
+    title = "Not ready"
+    slug = "not-ready"

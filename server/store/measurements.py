@@ -1,0 +1,264 @@
+"""Measurement repository: the append-only chained insert, filtered keyset paging, chain check."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import threading
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from typing import Any, cast
+
+from sqlalchemy import Engine, Select, Table, func, insert, select
+from sqlalchemy.exc import IntegrityError
+
+from server.errors import ConflictError, InvalidInputError, NotFoundError
+from server.store.chain import GENESIS, canonical_json, seal
+from server.store.models import MeasurementRow
+from server.store.schemas import (
+    ChainReport,
+    MeasurementFilter,
+    MeasurementRecord,
+    StoredMeasurement,
+)
+
+M = cast(Table, MeasurementRow.__table__)
+_INDEXED = ("trigger_id", "part_id", "recipe", "recipe_version", "result", "reason_code", "reason")
+
+
+def encode_cursor(last_id: int) -> str:
+    return base64.urlsafe_b64encode(f"m:{last_id}".encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str) -> int:
+    """The id a page continues below; an unreadable cursor is the client's error, not ours."""
+    try:
+        raw = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)).decode()
+        tag, value = raw.split(":", 1)
+        last_id = int(value)
+        if tag != "m" or last_id < 1:
+            raise ValueError(raw)
+    except (ValueError, UnicodeDecodeError, binascii.Error):
+        raise InvalidInputError(
+            f"cursor {cursor[:80]!r} is not a cursor this API returned"
+        ) from None
+    return last_id
+
+
+class MeasurementRepository:
+    """Every query on the measurements table of one station."""
+
+    def __init__(self, engine: Engine, station: str) -> None:
+        self._engine = engine
+        self.station = station
+        # One writer per process: seq and prev_hash are read and written in one transaction, and
+        # the unique (station, seq) constraint catches a second process writing the same chain.
+        self._write_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ writing
+    def insert(self, record: MeasurementRecord) -> StoredMeasurement:
+        """Append a record to the chain and commit it durably; returns it with seq and hash."""
+        if record.station != self.station:
+            raise InvalidInputError(
+                f"record of station {record.station!r} given to the store of {self.station!r}"
+            )
+        record = record.model_copy(update={"triggered_at": record.triggered_at.astimezone(UTC)})
+        record_json = record.model_dump(mode="json")
+        for attempt in range(3):
+            try:
+                with self._write_lock:
+                    return self._append(record, record_json)
+            except IntegrityError as err:
+                if attempt == 2:
+                    raise ConflictError(
+                        f"station {self.station!r}: another writer extends the same chain "
+                        f"({err.orig})"
+                    ) from err
+        raise AssertionError("unreachable")
+
+    def _append(self, record: MeasurementRecord, record_json: dict[str, Any]) -> StoredMeasurement:
+        stored_at = datetime.now(UTC)
+        with self._engine.begin() as conn:
+            last = conn.execute(
+                select(M.c.seq, M.c.hash)
+                .where(M.c.station == self.station)
+                .order_by(M.c.seq.desc())
+                .limit(1)
+            ).first()
+            seq = last.seq + 1 if last else 1
+            prev = last.hash if last else GENESIS
+            body = canonical_json(
+                {
+                    "station": self.station,
+                    "seq": seq,
+                    "stored_at": stored_at.isoformat(),
+                    "record": record_json,
+                }
+            )
+            digest = seal(prev, body)
+            new_id = conn.execute(
+                insert(M)
+                .values(
+                    station=self.station,
+                    seq=seq,
+                    stored_at=stored_at,
+                    triggered_at=record.triggered_at,
+                    body=body,
+                    prev_hash=prev,
+                    hash=digest,
+                    **{k: getattr(record, k) for k in _INDEXED},
+                )
+                .returning(M.c.id)
+            ).scalar_one()
+        return StoredMeasurement(
+            id=new_id, seq=seq, stored_at=stored_at, prev_hash=prev, hash=digest, record=record
+        )
+
+    # ------------------------------------------------------------------ reading
+    def get(self, measurement_id: int) -> StoredMeasurement:
+        with self._engine.connect() as conn:
+            row = conn.execute(
+                select(M).where(M.c.station == self.station, M.c.id == measurement_id)
+            ).first()
+        if row is None:
+            raise NotFoundError(
+                f"measurement {measurement_id} does not exist at station {self.station!r}"
+            )
+        return _stored(row)
+
+    def page(
+        self, filters: MeasurementFilter, cursor: str | None, limit: int
+    ) -> tuple[list[StoredMeasurement], str | None]:
+        """Newest first; ``next_cursor`` is None on the last page (keyset paging on id)."""
+        query = self._filtered(filters).order_by(M.c.id.desc()).limit(limit + 1)
+        if cursor is not None:
+            query = query.where(M.c.id < decode_cursor(cursor))
+        with self._engine.connect() as conn:
+            rows = conn.execute(query).all()
+        items = [_stored(r) for r in rows[:limit]]
+        more = len(rows) > limit
+        return items, (encode_cursor(items[-1].id) if more and items else None)
+
+    def iterate(self, filters: MeasurementFilter, batch: int = 500) -> Iterator[StoredMeasurement]:
+        """Every matching record, oldest first, fetched in batches (for exports)."""
+        last_id = 0
+        while True:
+            query = self._filtered(filters).where(M.c.id > last_id).order_by(M.c.id).limit(batch)
+            with self._engine.connect() as conn:
+                rows = conn.execute(query).all()
+            for r in rows:
+                yield _stored(r)
+            if len(rows) < batch:
+                return
+            last_id = rows[-1].id
+
+    def count(self, filters: MeasurementFilter | None = None) -> int:
+        query = self._filtered(filters or MeasurementFilter()).with_only_columns(func.count())
+        with self._engine.connect() as conn:
+            return int(conn.execute(query).scalar_one())
+
+    def _filtered(self, f: MeasurementFilter) -> Select[Any]:
+        q = select(M).where(M.c.station == self.station)
+        if f.since is not None:
+            q = q.where(M.c.triggered_at >= _aware(f.since, "since"))
+        if f.until is not None:
+            q = q.where(M.c.triggered_at < _aware(f.until, "until"))
+        if f.result is not None:
+            q = q.where(M.c.result == f.result)
+        if f.reason_code is not None:
+            q = q.where(M.c.reason_code == f.reason_code)
+        if f.recipe is not None:
+            q = q.where(M.c.recipe == f.recipe)
+        if f.part_id is not None:
+            q = q.where(M.c.part_id == f.part_id)
+        return q
+
+    # ------------------------------------------------------------------ audit
+    def verify_chain(self, batch: int = 1000) -> ChainReport:
+        """Recompute every link: seq continuity, prev_hash, hash of the body, columns = body."""
+        prev, expected_seq, checked = GENESIS, 1, 0
+        while True:
+            with self._engine.connect() as conn:
+                rows = conn.execute(
+                    select(M)
+                    .where(M.c.station == self.station, M.c.seq >= expected_seq)
+                    .order_by(M.c.seq)
+                    .limit(batch)
+                ).all()
+            for r in rows:
+                problem = _link_problem(r, prev, expected_seq, self.station)
+                if problem:
+                    return ChainReport(
+                        ok=False,
+                        station=self.station,
+                        checked=checked,
+                        head_seq=expected_seq - 1 if checked else None,
+                        head_hash=prev if checked else None,
+                        first_bad_seq=r.seq,
+                        problem=problem,
+                    )
+                prev, expected_seq, checked = r.hash, r.seq + 1, checked + 1
+            if len(rows) < batch:
+                break
+        return ChainReport(
+            ok=True,
+            station=self.station,
+            checked=checked,
+            head_seq=expected_seq - 1 if checked else None,
+            head_hash=prev if checked else None,
+        )
+
+
+def _link_problem(r: Any, prev: str, expected_seq: int, station: str) -> str | None:
+    if r.seq != expected_seq:
+        return f"seq {expected_seq} is missing (next stored is {r.seq})"
+    if r.prev_hash != prev:
+        return (
+            f"seq {r.seq}: prev_hash {r.prev_hash[:12]}… does not match "
+            f"hash {prev[:12]}… of seq {r.seq - 1}"
+        )
+    if seal(r.prev_hash, r.body) != r.hash:
+        return f"seq {r.seq}: body does not hash to the stored hash {r.hash[:12]}…"
+    try:
+        env = json.loads(r.body)
+        record = MeasurementRecord.model_validate(env["record"])
+    except (ValueError, KeyError) as err:
+        return f"seq {r.seq}: body is not a valid record ({str(err).splitlines()[0]})"
+    if env.get("station") != station or env.get("seq") != r.seq:
+        return f"seq {r.seq}: body names station {env.get('station')!r} seq {env.get('seq')!r}"
+    for key in _INDEXED:
+        if getattr(record, key) != getattr(r, key):
+            return (
+                f"seq {r.seq}: column {key} = {getattr(r, key)!r} "
+                f"but the record says {getattr(record, key)!r}"
+            )
+    if datetime.fromisoformat(env.get("stored_at", "")) != r.stored_at:
+        return (
+            f"seq {r.seq}: column stored_at = {r.stored_at} "
+            f"but the body says {env.get('stored_at')}"
+        )
+    if record.triggered_at != r.triggered_at:
+        return (
+            f"seq {r.seq}: column triggered_at = {r.triggered_at} "
+            f"but the record says {record.triggered_at}"
+        )
+    return None
+
+
+def _stored(r: Any) -> StoredMeasurement:
+    env = json.loads(r.body)
+    return StoredMeasurement(
+        id=r.id,
+        seq=r.seq,
+        stored_at=r.stored_at,
+        prev_hash=r.prev_hash,
+        hash=r.hash,
+        record=MeasurementRecord.model_validate(env["record"]),
+    )
+
+
+def _aware(t: datetime, name: str) -> datetime:
+    if t.tzinfo is None:
+        raise InvalidInputError(f"{name} = {t.isoformat()} has no time zone; add Z or +hh:mm")
+    return t

@@ -1,0 +1,135 @@
+"""SQLAlchemy 2 tables of the store; the Alembic migrations in ./migrations create exactly these."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    BigInteger,
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.types import TypeDecorator
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """Aware UTC datetimes in and out; SQLite keeps naive text, so normalise before comparing."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError(f"naive datetime {value.isoformat()} given to the store; use UTC")
+        value = value.astimezone(UTC)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class MeasurementRow(Base):
+    """One trigger's record. Append-only (database triggers refuse UPDATE and DELETE)."""
+
+    __tablename__ = "measurements"
+    __table_args__ = (
+        UniqueConstraint("station", "seq", name="uq_measurements_station_seq"),
+        Index("ix_measurements_station_time", "station", "triggered_at"),
+        Index("ix_measurements_station_part", "station", "part_id"),
+    )
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    stored_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    triggered_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    trigger_id: Mapped[int] = mapped_column(BigInteger)
+    part_id: Mapped[str | None] = mapped_column(String(64))
+    recipe: Mapped[str] = mapped_column(String(64))
+    recipe_version: Mapped[int] = mapped_column(Integer)
+    result: Mapped[str] = mapped_column(String(3))
+    reason_code: Mapped[int] = mapped_column(Integer)
+    reason: Mapped[str] = mapped_column(String(64))
+    # The canonical JSON envelope exactly as hashed: Text, not JSONB, which would re-format it.
+    body: Mapped[str] = mapped_column(Text)
+    prev_hash: Mapped[str] = mapped_column(String(64))
+    hash: Mapped[str] = mapped_column(String(64), unique=True)
+
+
+class ImageRow(Base):
+    """An archived frame; mutable (eviction), unlike the measurement that references it."""
+
+    __tablename__ = "images"
+    __table_args__ = (Index("ix_images_evict", "evicted_at", "ok", "id"),)
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    measurement_id: Mapped[int] = mapped_column(ForeignKey("measurements.id"), index=True)
+    view: Mapped[int] = mapped_column(Integer)
+    camera_id: Mapped[str] = mapped_column(String(64))
+    path: Mapped[str] = mapped_column(String(400), unique=True)
+    bytes: Mapped[int] = mapped_column(BigInteger)
+    ok: Mapped[bool] = mapped_column(Boolean)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    evicted_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class VersionRow(Base):
+    """One version of a recipe or a calibration; content is canonical JSON, sha256 its hash."""
+
+    __tablename__ = "config_versions"
+    __table_args__ = (
+        UniqueConstraint("station", "kind", "name", "version", name="uq_config_versions"),
+    )
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(16))
+    name: Mapped[str] = mapped_column(String(64))
+    version: Mapped[int] = mapped_column(Integer)
+    content: Mapped[str] = mapped_column(Text)
+    sha256: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    created_by: Mapped[str] = mapped_column(String(64))
+    comment: Mapped[str] = mapped_column(String(400))
+
+
+class ActiveVersionRow(Base):
+    """Which version of each recipe / calibration the station uses now."""
+
+    __tablename__ = "active_versions"
+
+    station: Mapped[str] = mapped_column(String(64), primary_key=True)
+    kind: Mapped[str] = mapped_column(String(16), primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    version_id: Mapped[int] = mapped_column(ForeignKey("config_versions.id"))
+    activated_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    activated_by: Mapped[str] = mapped_column(String(64))
+
+
+class TokenRow(Base):
+    """An API token, stored only as the sha256 of its secret."""
+
+    __tablename__ = "tokens"
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    role: Mapped[str] = mapped_column(String(16))
+    token_sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
