@@ -1,0 +1,235 @@
+"""Grab from every camera of a trigger in parallel, with one deadline and per-camera errors.
+
+Each camera has its own worker thread, so a slow or hung camera costs only its own result: a
+grab_all returns by the deadline (plus a small grace for the threads to report) with a Frame or
+a DriverError for every camera. A camera whose device is lost is closed and opened again by its
+worker in the background, with exponential backoff; until it is back its result is an immediate
+DeviceLost that says when the next attempt is due, and the trigger path never waits for it.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future, wait
+from dataclasses import dataclass
+
+from drivers.cameras.base import Camera, Frame, TriggerMode
+from drivers.errors import DeviceLost, DriverError, DriverOperationError, DriverTimeout
+
+log = logging.getLogger(__name__)
+
+Result = Frame | DriverError
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """Reconnect delays: ``first_s``, then times ``factor`` per failed attempt, at most ``max_s``."""
+
+    first_s: float = 0.1
+    factor: float = 2.0
+    max_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not (self.first_s > 0 and self.factor >= 1 and self.max_s >= self.first_s):
+            raise ValueError(f"backoff needs first_s > 0, factor >= 1, max_s >= first_s, got {self}")
+
+    def delay(self, failures: int) -> float:
+        """Seconds to wait before the next attempt after ``failures`` failed ones."""
+        return float(min(self.max_s, self.first_s * self.factor ** max(0, failures)))
+
+
+@dataclass
+class _Job:
+    t_end: float
+    trigger: bool
+    future: Future[Result]
+
+
+class _Worker:
+    """One camera's thread: brings the camera up, grabs on request, reconnects when lost."""
+
+    def __init__(self, cam: Camera, trigger: TriggerMode, backoff: Backoff) -> None:
+        self.cam = cam
+        self.trigger_mode = trigger
+        self.backoff = backoff
+        self.jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self.current: Future[Result] | None = None
+        self.ready = threading.Event()
+        self.down_reason: DriverError | None = None
+        self.failures = 0
+        self.next_attempt = 0.0  # monotonic time of the next bring-up attempt while down
+        self.reconnects = 0
+        self.thread = threading.Thread(target=self._run, name=f"camera-{cam.camera_id}", daemon=True)
+
+    # ------------------------------------------------------------------ thread
+    def _run(self) -> None:
+        self._bring_up()
+        while True:
+            timeout = None
+            if self.down_reason is not None:
+                timeout = max(0.0, self.next_attempt - time.monotonic())
+            try:
+                job = self.jobs.get(timeout=timeout)
+            except queue.Empty:
+                self._bring_up()
+                continue
+            if job is None:
+                return
+            if not job.future.set_running_or_notify_cancel():
+                continue
+            job.future.set_result(self._grab(job))
+
+    def _grab(self, job: _Job) -> Result:
+        if self.down_reason is not None:
+            wait_s = max(0.0, self.next_attempt - time.monotonic())
+            return DeviceLost(
+                f"camera {self.cam.camera_id!r}: reconnecting after: {self.down_reason} "
+                f"(attempt {self.failures + 1} in {wait_s:.2f} s)"
+            )
+        try:
+            if job.trigger and self.cam.armed == "software":
+                self.cam.trigger()
+            return self.cam.grab(max(0.0, job.t_end - time.monotonic()))
+        except DeviceLost as err:
+            self._went_down(err)
+            return err
+        except DriverError as err:
+            return err
+        except Exception as err:  # a bug must reach the caller as a result, not kill the thread
+            wrapped = DriverOperationError(f"camera {self.cam.camera_id!r}: grab failed: {err!r}")
+            wrapped.__cause__ = err
+            return wrapped
+
+    def _bring_up(self) -> None:
+        """Open, configure and arm the camera; on failure schedule the next attempt."""
+        cam = self.cam
+        try:
+            if self.down_reason is not None:
+                try:
+                    cam.close()
+                except DriverError:
+                    pass  # the old connection is gone either way
+            if not cam.is_open:
+                cam.open()
+            if cam.settings is None or self.down_reason is not None:
+                cam.configure(cam.settings)
+            if cam.armed != self.trigger_mode:
+                cam.arm(self.trigger_mode)
+        except DriverError as err:
+            self.failures += 1 if self.down_reason is not None else 0
+            self._went_down(err)
+            log.warning("camera %r: bring-up failed (%s); next attempt in %.2f s",
+                        cam.camera_id, err, self.next_attempt - time.monotonic())
+            return
+        if self.down_reason is not None:
+            self.reconnects += 1
+            log.info("camera %r: back after %d failed attempts", cam.camera_id, self.failures)
+        self.down_reason, self.failures = None, 0
+        self.ready.set()
+
+    def _went_down(self, err: DriverError) -> None:
+        self.ready.clear()
+        self.down_reason = err
+        self.next_attempt = time.monotonic() + self.backoff.delay(self.failures)
+
+
+class CaptureGroup:
+    """The cameras of a station, grabbed together; each camera runs in its own thread."""
+
+    def __init__(
+        self,
+        cameras: Sequence[Camera],
+        *,
+        trigger: TriggerMode = "software",
+        backoff: Backoff | None = None,
+        grace_s: float = 0.02,
+    ) -> None:
+        ids = [c.camera_id for c in cameras]
+        if len(set(ids)) != len(ids) or not ids:
+            raise ValueError(f"capture group needs cameras with unique ids, got {ids}")
+        self.grace_s = grace_s
+        self._workers = {c.camera_id: _Worker(c, trigger, backoff or Backoff()) for c in cameras}
+        self._closed = False
+        for w in self._workers.values():
+            w.thread.start()
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return list(self._workers)
+
+    def camera(self, camera_id: str) -> Camera:
+        return self._workers[camera_id].cam
+
+    def wait_ready(self, timeout_s: float) -> dict[str, DriverError | None]:
+        """Wait until every camera is up or ``timeout_s`` passed; the error of each camera down."""
+        t_end = time.monotonic() + timeout_s
+        for w in self._workers.values():
+            w.ready.wait(max(0.0, t_end - time.monotonic()))
+        return {cid: (None if w.ready.is_set() else w.down_reason or DriverTimeout(
+            f"camera {cid!r}: not up within {timeout_s} s")) for cid, w in self._workers.items()}
+
+    def status(self) -> dict[str, str]:
+        """One line per camera: up, or down with the reason and the reconnects so far."""
+        out = {}
+        for cid, w in self._workers.items():
+            if w.ready.is_set():
+                out[cid] = f"up ({w.reconnects} reconnects)"
+            else:
+                out[cid] = f"down: {w.down_reason}" if w.down_reason else "starting"
+        return out
+
+    def grab_all(self, deadline_s: float, *, trigger: bool = True) -> dict[str, Result]:
+        """Trigger (software-armed cameras) and grab every camera; never later than the deadline.
+
+        The result has every camera: a Frame, or the DriverError of that camera alone.
+        """
+        if self._closed:
+            raise DriverOperationError("capture group is closed")
+        t_end = time.monotonic() + deadline_s
+        results: dict[str, Result] = {}
+        pending: dict[str, Future[Result]] = {}
+        for cid, w in self._workers.items():
+            if w.current is not None and not w.current.done():
+                # The previous grab is stuck in a vendor call; queueing behind it would hang.
+                results[cid] = DriverOperationError(f"camera {cid!r}: still busy with the previous grab")
+                continue
+            fut: Future[Result] = Future()
+            w.current = fut
+            w.jobs.put(_Job(t_end, trigger, fut))
+            pending[cid] = fut
+        wait(pending.values(), timeout=max(0.0, t_end + self.grace_s - time.monotonic()))
+        for cid, fut in pending.items():
+            if fut.done():
+                results[cid] = fut.result()
+            else:
+                results[cid] = DriverTimeout(f"camera {cid!r}: no answer within {deadline_s:.3f} s")
+        return {cid: results[cid] for cid in self._workers}
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the workers and close every camera."""
+        if self._closed:
+            return
+        self._closed = True
+        for w in self._workers.values():
+            w.jobs.put(None)
+        t_end = time.monotonic() + timeout_s
+        for w in self._workers.values():
+            w.thread.join(max(0.0, t_end - time.monotonic()))
+            if w.thread.is_alive():
+                log.error("camera %r: worker still blocked in a vendor call after %.1f s",
+                          w.cam.camera_id, timeout_s)
+                continue
+            try:
+                w.cam.close()
+            except DriverError as err:
+                log.warning("camera %r: close failed: %s", w.cam.camera_id, err)
+
+    def __enter__(self) -> CaptureGroup:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,28 @@
+"""The error family every driver raises, so callers never see a vendor exception.
+
+Modelled on python-can: one base class, a class per failure phase, and a timeout that is also a
+built-in :class:`TimeoutError`. Backends re-raise vendor exceptions ``from err`` so the original
+traceback stays attached for the log while the caller handles one family.
+"""
+
+from __future__ import annotations
+
+
+class DriverError(Exception):
+    """Something went wrong in a driver (camera or PLC)."""
+
+
+class DriverInitError(DriverError):
+    """A device could not be found, opened or configured (unknown serial, bad setting)."""
+
+
+class DriverOperationError(DriverError):
+    """A device that was open failed while working (bad frame, lost link, wrong format)."""
+
+
+class DeviceLost(DriverOperationError):
+    """The device stopped answering; it must be closed and opened again."""
+
+
+class DriverTimeout(DriverError, TimeoutError):
+    """A device did not answer before the deadline."""
