@@ -1,0 +1,240 @@
+"""The handshake state machine on its own: register writes and clock values in, image out."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from drivers.plc import codecs as c
+from drivers.plc import registers as r
+from drivers.plc.machine import Handshake, Measure, ResetPipeline, RunCommand
+from drivers.plc.registers import Command, Control, ErrorCode, ResultCode, State, Status, WordOrder
+from drivers.plc.seam import PlcConfig, TriggerOutcome
+
+EN = Control.TRIGGER_ENABLE
+
+
+class Plc:
+    """Drives a Handshake the way the PLC program writes registers, with an explicit clock."""
+
+    def __init__(self, order: WordOrder = WordOrder.ABCD, **cfg: float) -> None:
+        self.order = order
+        self.m = Handshake(PlcConfig(word_order=order, **cfg), convention_code=1, now=0.0)  # type: ignore[arg-type]
+        self.beat = 0
+        self.t = 0.0
+
+    def ctl(self, control: Control | int, dt: float = 0.01, beat: bool = True) -> list:
+        self.t += dt
+        self.beat += beat
+        return self.m.write(r.HR_CONTROL, [int(control), self.beat], self.t)
+
+    def status(self) -> Status:
+        return Status(self.m.image[r.IR_STATUS])
+
+    def u32(self, address: int) -> int:
+        return c.decode_uint32(self.m.image[address : address + 2], self.order)
+
+    def ready(self) -> Plc:
+        self.ctl(EN)
+        self.m.set_recipe(1)
+        return self
+
+    def trigger(self, trigger_id: int, view: int = 0, extra: int = 0) -> list:
+        self.m.write(r.HR_TRIGGER_ID, [*c.encode_uint32(trigger_id, self.order), view], self.t)
+        return self.ctl(EN | Control.TRIGGER | extra)
+
+
+def test_states_from_start_to_ready() -> None:
+    p = Plc()
+    assert p.m.state is State.PREOPERATIONAL and not p.status() & Status.ONLINE
+    p.ctl(0)
+    assert p.m.state is State.HALTED and p.status() & Status.ONLINE
+    p.ctl(EN)
+    assert p.m.state is State.INITIALIZED and not p.status() & Status.READY
+    p.m.set_recipe(4)
+    assert p.m.state is State.READY and p.status() & Status.READY
+    assert p.m.image[r.IR_STATE] == State.READY and p.m.image[r.IR_RECIPE] == 4
+
+
+@pytest.mark.parametrize("order", [WordOrder.ABCD, WordOrder.CDAB])
+def test_trigger_result_ack_cycle(order: WordOrder) -> None:
+    p = Plc(order).ready()
+    pose = c.encode_pose_int((100.0, -20.5, 3.0, 0.5, -1.25, 179.9), "fanuc", order)
+    p.m.write(r.HR_ROBOT_POSE, pose, p.t)
+    p.m.write(r.HR_PART_ID, c.encode_ascii("VIN42", 20), p.t)
+    effects = p.trigger(0x0102_0304, view=2, extra=Control.ROBOT_POSE_VALID)
+    assert len(effects) == 1 and isinstance(effects[0], Measure)
+    req = effects[0].request
+    assert (req.trigger_id, req.view_index, req.part_id, req.recipe) == (0x01020304, 2, "VIN42", 1)
+    assert req.robot_pose is not None
+    assert all(
+        math.isclose(a, b)
+        for a, b in zip(req.robot_pose, (100, -20.5, 3, 0.5, -1.25, 179.9), strict=True)
+    )
+    s = p.status()
+    assert s & Status.TRIGGER_ACK and s & Status.BUSY and not s & Status.READY
+    assert p.m.state is State.SINGLE_EXECUTION and p.u32(r.IR_TRIGGER_ID) == 0x01020304
+    toggle = s & Status.DONE_TOGGLE
+
+    p.m.measured(TriggerOutcome(0, (1.0, 2.0, 3.0, 0.1, 0.2, 0.3), 0.05, 0.01, 12.34, 1))
+    s = p.status()
+    assert s & Status.RESULT_VALID and s & Status.RESULT_OK and (s & Status.DONE_TOGGLE) != toggle
+    assert not s & Status.READY  # not before the acknowledgement
+    assert p.u32(r.IR_RESULT_ID) == 1 and p.m.image[r.IR_PROCESSING_TIME] == 123
+    ints = c.decode_pose_int(p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12], "fanuc", order)
+    assert ints == (1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
+    assert c.decode_int32(p.m.image[r.IR_SIGMA_TRANS : r.IR_SIGMA_TRANS + 2], order) == 50
+
+    p.ctl(EN | Control.RESULT_ACK)  # trigger released and result acknowledged together
+    s = p.status()
+    assert not s & (Status.RESULT_VALID | Status.TRIGGER_ACK) and s & Status.READY
+    assert p.u32(r.IR_RESULT_ID) == 1  # the data stays readable after the acknowledgement
+
+
+def test_ack_is_an_edge_so_a_held_ack_never_swallows_the_next_result() -> None:
+    p = Plc().ready()
+    p.trigger(1)
+    p.m.measured(TriggerOutcome(0))
+    p.ctl(EN | Control.RESULT_ACK)
+    p.m.write(r.HR_TRIGGER_ID, c.encode_uint32(2, WordOrder.ABCD), p.t)
+    assert p.ctl(EN | Control.RESULT_ACK | Control.TRIGGER)  # ACK still high: trigger accepted
+    p.m.measured(TriggerOutcome(0))
+    p.ctl(EN | Control.RESULT_ACK)
+    assert p.status() & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 2
+
+
+def test_trigger_while_busy_is_missed_and_gives_no_second_result() -> None:
+    p = Plc().ready()
+    assert p.trigger(1)
+    p.ctl(EN)
+    assert p.trigger(2) == []
+    assert p.status() & Status.MISSED_TRIGGER and p.m.stats.missed_triggers == 1
+    assert p.u32(r.IR_TRIGGER_ID) == 1
+    p.m.measured(TriggerOutcome(0))
+    assert p.u32(r.IR_RESULT_ID) == 1
+    p.ctl(EN | Control.RESULT_ACK)
+    assert p.trigger(3)  # the next accepted trigger clears MISSED_TRIGGER
+    assert not p.status() & Status.MISSED_TRIGGER
+
+
+def test_unacknowledged_result_blocks_the_next_trigger() -> None:
+    p = Plc().ready()
+    p.trigger(1)
+    p.m.measured(TriggerOutcome(0))
+    p.ctl(EN)
+    assert p.trigger(2) == [] and p.status() & Status.MISSED_TRIGGER
+    assert p.u32(r.IR_RESULT_ID) == 1 and p.status() & Status.RESULT_VALID
+
+
+def test_intermediate_view_gives_view_done_not_a_result() -> None:
+    p = Plc().ready()
+    p.trigger(10, view=1)
+    p.m.measured(TriggerOutcome(0, views_done=1, final=False))
+    s = p.status()
+    assert s & Status.VIEW_DONE and not s & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 0
+    assert p.m.image[r.IR_VIEWS_DONE] == 1
+    p.ctl(EN | Control.RESULT_ACK)
+    p.trigger(11, view=2)
+    p.m.measured(TriggerOutcome(0, views_done=2))
+    assert p.status() & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 1
+    assert p.m.stats.views == 1 and p.m.stats.results == 1
+
+
+def test_watchdog_trips_and_needs_heartbeat_and_reset() -> None:
+    p = Plc(watchdog_s=0.5).ready()
+    p.m.tick(p.t + 0.4)
+    assert p.m.state is State.READY
+    p.m.tick(p.t + 0.6)
+    assert p.m.state is State.ERROR and p.m.error is ErrorCode.WATCHDOG
+    assert not p.status() & (Status.ONLINE | Status.READY) and p.status() & Status.ERROR
+    p.t += 1.0
+    assert p.ctl(EN | Control.ERROR_RESET, beat=False) == []  # still no heartbeat: stays
+    assert p.m.state is State.ERROR
+    p.ctl(EN)
+    effects = p.ctl(EN | Control.ERROR_RESET)
+    assert effects == [ResetPipeline()] and p.m.state is State.READY
+    assert p.m.stats.watchdog_trips == 1
+
+
+def test_held_trigger_forces_reset_and_still_delivers_the_result() -> None:
+    p = Plc(trigger_hold_s=0.3).ready()
+    p.trigger(5)
+    p.m.measured(TriggerOutcome(0))
+    p.m.tick(p.t + 0.2)
+    assert p.status() & Status.TRIGGER_ACK
+    p.m.tick(p.t + 0.4)
+    assert p.m.error is ErrorCode.TRIGGER_HELD and not p.status() & Status.TRIGGER_ACK
+    assert p.status() & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 1
+    p.ctl(EN | Control.TRIGGER | Control.ERROR_RESET)
+    assert p.m.state is State.ERROR  # reset refused while the trigger is still held
+    p.ctl(EN | Control.RESULT_ACK)
+    assert p.ctl(EN | Control.ERROR_RESET) == [ResetPipeline()]
+    assert p.m.state is State.READY and p.m.stats.held_triggers == 1
+
+
+def test_commands() -> None:
+    p = Plc().ready()
+    p.m.write(r.HR_COMMAND, [Command.SELECT_RECIPE, 7], p.t)
+    (effect,) = p.ctl(EN | Control.EXECUTE_COMMAND)
+    assert effect == RunCommand(Command.SELECT_RECIPE, 7)
+    assert p.status() & Status.COMMAND_BUSY and not p.status() & Status.READY
+    p.m.command_done(Command.SELECT_RECIPE, 7, 0)
+    assert p.status() & Status.COMMAND_DONE and p.m.image[r.IR_RECIPE] == 7
+    p.ctl(EN)
+    assert not p.status() & Status.COMMAND_DONE and p.status() & Status.READY
+
+    p.m.write(r.HR_COMMAND, [99, 0], p.t)
+    assert p.ctl(EN | Control.EXECUTE_COMMAND) == []
+    assert p.status() & Status.COMMAND_FAILED
+    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.UNKNOWN_COMMAND
+    p.ctl(EN)
+    p.m.write(r.HR_COMMAND, [Command.SELECT_RECIPE, 0], p.t)
+    p.ctl(EN | Control.EXECUTE_COMMAND)
+    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.BAD_ARGUMENT
+    p.ctl(EN)
+    p.m.write(r.HR_COMMAND, [Command.TEACH_REFERENCE, 0], p.t)
+    p.ctl(EN | Control.EXECUTE_COMMAND)
+    p.m.command_done(Command.TEACH_REFERENCE, 0, 12)
+    assert p.status() & Status.COMMAND_FAILED and p.m.image[r.IR_COMMAND_RESULT] == 12
+
+
+def test_command_while_busy_is_refused() -> None:
+    p = Plc().ready()
+    p.trigger(1)
+    p.m.write(r.HR_COMMAND, [Command.RESET, 0], p.t)
+    assert p.ctl(EN | Control.TRIGGER | Control.EXECUTE_COMMAND) == []
+    assert p.status() & Status.COMMAND_FAILED
+    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.BUSY
+
+
+@pytest.mark.parametrize(
+    "outcome",
+    [
+        TriggerOutcome(0, (1.0, 2.0, math.nan, 0, 0, 0)),
+        TriggerOutcome(0, (1.0, 2.0, 3.0)),
+        TriggerOutcome(0, (1e7, 0, 0, 0, 0, 0)),  # 10 km does not fit the int32 µm block
+        TriggerOutcome(70000),
+        TriggerOutcome(0, sigma_trans_mm=math.inf),
+    ],
+)
+def test_invalid_outcome_becomes_a_nok_result(outcome: TriggerOutcome) -> None:
+    p = Plc().ready()
+    p.trigger(1)
+    p.m.measured(outcome)
+    s = p.status()
+    assert s & Status.RESULT_VALID and not s & Status.RESULT_OK
+    assert p.m.image[r.IR_RESULT_CODE] == ResultCode.INVALID_OUTCOME
+    assert p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12] == [0] * 12
+
+
+def test_static_registers() -> None:
+    p = Plc(WordOrder.CDAB)
+    img = p.m.image
+    assert img[r.IR_TEST_FLOAT : r.IR_TEST_FLOAT + 2] == [0xE666, 0x42F6]
+    assert c.decode_int32(img[r.IR_TEST_INT : r.IR_TEST_INT + 2], WordOrder.CDAB) == r.TEST_INT
+    assert img[r.IR_WORD_ORDER] == 1 and img[r.IR_CONVENTION] == 1
+    hb = img[r.IR_HEARTBEAT]
+    p.m.tick(0.1)
+    p.m.tick(0.2)
+    assert img[r.IR_HEARTBEAT] == hb + 2

@@ -1,0 +1,319 @@
+"""The real Modbus/TCP server on loopback, driven by the PLC twin: flows and every error path."""
+
+# The `plc` fixture is imported from plc_peers (tests/drivers has no conftest of ours), so the
+# test arguments that use it look like redefinitions to ruff.
+# ruff: noqa: F811
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from plc_peers import ArithmeticHandler, ServerFactory, cfg, expected_outcome, plc  # noqa: F401
+from pymodbus.client import AsyncModbusTcpClient
+
+from drivers.plc import (
+    Command,
+    Control,
+    ErrorCode,
+    ResultCode,
+    State,
+    Status,
+    TriggerOutcome,
+    TriggerRequest,
+    WordOrder,
+)
+from drivers.plc import codecs as c
+from drivers.plc import registers as r
+from drivers.plc.twin import PlcStatus, PlcTwin
+from mvpose_core.transforms import (
+    RobotConvention,
+    compose,
+    from_robot,
+    invert,
+    make_transform,
+    rotvec_to_matrix,
+    to_robot,
+    transform_error,
+)
+
+
+async def until(predicate, timeout: float = 3.0) -> None:  # type: ignore[no-untyped-def]
+    """Poll a server-side condition with a deadline."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached before the deadline"
+        await asyncio.sleep(0.005)
+
+
+def check_result(answer: PlcStatus, trigger_id: int) -> None:
+    want = expected_outcome(trigger_id)
+    assert answer.trigger_id == trigger_id
+    assert answer.has(Status.RESULT_VALID)
+    assert answer.has(Status.RESULT_OK) == (want.result_code == 0)
+    assert answer.result_code == want.result_code
+    counts = [
+        round(v * s) for v, s in zip(want.offset, (1e3, 1e3, 1e3, 1e4, 1e4, 1e4), strict=True)
+    ]
+    assert list(answer.offset_counts) == counts
+    assert np.allclose(answer.offset_float, want.offset, rtol=1e-6, atol=1e-5)
+    assert answer.sigma_counts == (
+        round(want.sigma_trans_mm * 1e3),
+        round(want.sigma_rot_deg * 1e4),
+    )
+
+
+@pytest.mark.parametrize(
+    ("order", "mirror"), [(WordOrder.ABCD, False), (WordOrder.CDAB, False), (WordOrder.CDAB, True)]
+)
+async def test_fixed_station_flow(plc: ServerFactory, order: WordOrder, mirror: bool) -> None:
+    handler = ArithmeticHandler()
+    server, twin = await plc(handler, cfg(word_order=order), use_mirror=mirror)
+    status = await twin.read_status()
+    assert status.state is State.READY and status.recipe == 1
+    assert status.test_float == pytest.approx(123.45, abs=1e-5) and status.test_int == r.TEST_INT
+    assert status.convention_code == RobotConvention.FANUC.code
+    ids = [7, 26, 0xFFFF_FFFE]  # 26: a NOK result; the last one needs both words
+    for n, tid in enumerate(ids, start=1):
+        answer = await twin.cycle(tid, part_id=f"VIN{tid}")
+        check_result(answer, tid)
+        assert answer.result_id == n
+    assert [q.trigger_id for q in handler.requests] == ids
+    assert handler.requests[0].part_id == "VIN7" and handler.requests[0].view_index == 0
+    assert server.stats.handshake.results == 3 and server.stats.handshake.missed_triggers == 0
+
+
+class ViewHandler:
+    """A robot-mounted rig's pipeline on real mvpose_core transforms: each view reports the part
+    pose seen from the flange pose the PLC sent; after the last view the offset is the mean
+    part displacement against the reference, written in the recipe's convention (ABB)."""
+
+    def __init__(self, T_rf_from_pf: np.ndarray, T_rf_from_pf0: np.ndarray, n_views: int) -> None:
+        self.T_rf_from_pf = T_rf_from_pf
+        self.T_rf_from_pf0 = T_rf_from_pf0
+        self.n_views = n_views
+        self.seen: list[np.ndarray] = []
+        self.resets = 0
+
+    async def measure(self, req: TriggerRequest) -> TriggerOutcome:
+        assert req.robot_pose is not None
+        T_rf_from_gf = from_robot(c.plc_to_pose(req.robot_pose, "abb"), "abb")
+        T_gf_from_pf = compose(invert(T_rf_from_gf), self.T_rf_from_pf)  # what the rig "sees"
+        self.seen.append(compose(T_rf_from_gf, T_gf_from_pf))
+        if req.view_index < self.n_views:
+            return TriggerOutcome(0, views_done=len(self.seen), final=False)
+        T_pf0_from_pf = compose(invert(self.T_rf_from_pf0), self.seen[-1])
+        offset = c.pose_to_plc(to_robot(T_pf0_from_pf, "abb"), "abb")
+        views = len(self.seen)
+        self.seen = []
+        return TriggerOutcome(0, offset, 0.1, 0.01, 3.0, views_done=views)
+
+    async def select_recipe(self, recipe: int) -> int:
+        return 0
+
+    async def teach_reference(self) -> int:
+        return 0
+
+    async def reset(self) -> None:
+        self.resets += 1
+        self.seen = []
+
+    def convention_code(self) -> int:
+        return RobotConvention.ABB.code
+
+
+async def test_robot_mounted_flow_with_flange_poses(plc: ServerFactory) -> None:
+    rng = np.random.default_rng(11)
+    T_ref = make_transform(rotvec_to_matrix([0.0, 0.0, 0.3]), [1500.0, 200.0, 800.0])
+    T_true_offset = make_transform(rotvec_to_matrix(rng.normal(0, 0.01, 3)), rng.normal(0, 5, 3))
+    handler = ViewHandler(compose(T_ref, T_true_offset), T_ref, n_views=2)
+    _, twin = await plc(handler, cfg(word_order=WordOrder.CDAB))
+    flange = [
+        make_transform(rotvec_to_matrix([np.pi, 0, a]), [1200.0, y, 1400.0])
+        for a, y in ((0.1, -400), (-0.1, 400))
+    ]
+    for view, T in enumerate(flange, start=1):
+        plc_pose = c.pose_to_plc(to_robot(T, "abb"), "abb")
+        counts = [round(v * s) for v, s in zip(plc_pose, c.int_scales("abb"), strict=True)]
+        answer = await twin.cycle(100 + view, view_index=view, pose_counts=counts)
+        assert answer.views_done == view and answer.trigger_id == 100 + view
+        if view < len(flange):
+            assert answer.has(Status.VIEW_DONE) and not answer.has(Status.RESULT_VALID)
+            assert answer.result_id == 0
+    assert answer.has(Status.RESULT_VALID | Status.RESULT_OK) and answer.result_id == 1
+    assert answer.convention_code == RobotConvention.ABB.code
+    # Decode the way a PLC does (1e-6 quaternion counts, q1 recovered) and compare with truth.
+    scales = c.int_scales("abb")
+    from_ints = [n / s for n, s in zip(answer.offset_counts, scales, strict=True)]
+    for six in (from_ints, answer.offset_float):
+        T_got = from_robot(c.plc_to_pose(six, "abb"), "abb")
+        deg, mm = transform_error(T_got, T_true_offset)
+        assert deg < 1e-3 and mm < 2e-3  # flange pose on the wire: 1 µm and 1e-6 quaternion counts
+
+
+async def test_commands_select_recipe_teach_and_refusals(plc: ServerFactory) -> None:
+    handler = ArithmeticHandler()
+    server, twin = await plc(handler)
+    done = await twin.command(Command.SELECT_RECIPE, 2)
+    assert done.has(Status.COMMAND_DONE) and done.command_result == 0 and done.recipe == 2
+    assert (await twin.read_status()).convention_code == RobotConvention.ABB.code
+    failed = await twin.command(Command.SELECT_RECIPE, 9)
+    assert failed.has(Status.COMMAND_FAILED) and failed.command_result == 3 and failed.recipe == 2
+    done = await twin.command(Command.TEACH_REFERENCE)
+    assert done.has(Status.COMMAND_DONE) and handler.teach_requests == 1
+    failed = await twin.command(77)
+    assert failed.command_result == ResultCode.UNKNOWN_COMMAND
+
+    handler.gate = asyncio.Event()  # keep a measurement running
+    await twin.write_trigger(5)
+    await until(lambda: server.state is State.SINGLE_EXECUTION)
+    busy = await twin.command(Command.RESET)
+    assert busy.has(Status.COMMAND_FAILED) and busy.command_result == ResultCode.BUSY
+    handler.gate.set()
+    answer = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
+    assert answer.trigger_id == 5 and answer.result_id == 1
+
+
+async def test_missed_trigger_while_busy(plc: ServerFactory) -> None:
+    handler = ArithmeticHandler()
+    handler.gate = asyncio.Event()
+    server, twin = await plc(handler)
+    await twin.write_trigger(1)
+    await twin.wait_for(lambda s: s.has(Status.TRIGGER_ACK | Status.BUSY), what="ack")
+    await twin.set_control(twin.control & ~Control.TRIGGER)
+    await twin.write_trigger(2)
+    missed = await twin.wait_for(lambda s: s.has(Status.MISSED_TRIGGER), what="missed trigger")
+    assert missed.trigger_id == 1 and missed.has(Status.BUSY)
+    handler.gate.set()
+    answer = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
+    assert answer.trigger_id == 1 and answer.result_id == 1
+    await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)
+    check_result(await twin.cycle(3), 3)
+    assert [q.trigger_id for q in handler.requests] == [1, 3]
+    assert server.stats.handshake.missed_triggers == 1 and server.stats.handshake.results == 2
+
+
+async def test_held_trigger_forces_reset(plc: ServerFactory) -> None:
+    server, twin = await plc(config=cfg(trigger_hold_s=0.2))
+    await twin.write_trigger(8)
+    result = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
+    check_result(result, 8)
+    held = await twin.wait_for(lambda s: s.has(Status.ERROR), what="held-trigger error")
+    assert held.error_code == ErrorCode.TRIGGER_HELD and held.state is State.ERROR
+    assert not held.has(Status.TRIGGER_ACK) and held.has(Status.RESULT_VALID)
+    await twin.set_control(twin.control | Control.ERROR_RESET)
+    still = await twin.read_status()
+    assert still.has(Status.ERROR)  # the trigger is still high
+    await twin.set_control(Control.TRIGGER_ENABLE | Control.RESULT_ACK)
+    await twin.reset_error()
+    check_result(await twin.cycle(9), 9)
+    assert server.stats.handshake.held_triggers == 1
+
+
+async def test_watchdog_on_lost_heartbeat(plc: ServerFactory) -> None:
+    handler = ArithmeticHandler()
+    server, twin = await plc(handler, cfg(watchdog_s=0.2, tick_s=0.02))
+    tripped = await twin.wait_for(lambda s: s.has(Status.ERROR), timeout=3, what="watchdog")
+    assert tripped.error_code == ErrorCode.WATCHDOG and not tripped.has(
+        Status.ONLINE | Status.READY
+    )
+    beat = tripped.heartbeat
+    alive = await twin.wait_for(lambda s: s.heartbeat != beat, what="server heartbeat")
+    assert alive.has(Status.ERROR)  # the server keeps beating while in Error
+    await twin.reset_error()
+    assert handler.resets == 1
+    check_result(await twin.cycle(4), 4)
+
+
+async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) -> None:
+    handler = ArithmeticHandler()
+    server, twin = await plc(handler, cfg(measure_timeout_s=0.2))
+    handler.gate = asyncio.Event()  # never set: the measurement hangs
+    late = await twin.cycle(1)
+    assert late.result_code == ResultCode.TIMEOUT and not late.has(Status.RESULT_OK)
+    assert late.result_id == 1 and late.processing_ms >= 190
+    handler.gate, handler.fail = None, True
+    broken = await twin.cycle(2)
+    assert broken.result_code == ResultCode.INTERNAL_ERROR and broken.result_id == 2
+    handler.fail = False
+    check_result(await twin.cycle(3), 3)
+    assert handler.resets == 2  # each failure dropped any half-done view sequence
+    assert server.stats.timeouts == 1 and server.stats.handler_errors == 1
+
+
+async def test_disconnect_mid_handshake_loses_nothing(plc: ServerFactory) -> None:
+    handler = ArithmeticHandler()
+    handler.gate = asyncio.Event()
+    server, twin = await plc(handler)
+    await twin.write_trigger(41)
+    await until(lambda: server.state is State.SINGLE_EXECUTION)
+    twin.abort()  # PLC stop / pulled cable in the middle of the measurement
+    handler.gate.set()
+    await until(lambda: server.machine.result_id == 1)
+    again = await PlcTwin("127.0.0.1", server.port).connect()
+    try:
+        again.control = Control.TRIGGER_ENABLE | Control.TRIGGER  # what the PLC still drives
+        status = await again.read_status()
+        check_result(status, 41)
+        await again.set_control(Control.TRIGGER_ENABLE | Control.RESULT_ACK)
+        answer = await again.cycle(42)
+        check_result(answer, 42)
+        assert answer.result_id == 2
+    finally:
+        again.close()
+    assert [q.trigger_id for q in handler.requests] == [41, 42]
+
+
+async def test_exception_codes_for_requests_outside_the_map(plc: ServerFactory) -> None:
+    server, twin = await plc()
+    cl: AsyncModbusTcpClient = twin.client
+    cases = [
+        (cl.write_registers(r.HR_WRITABLE_COUNT, [1]), 2),  # past the PLC area
+        (cl.write_registers(38, [1, 2, 3]), 2),  # straddles the end
+        (cl.write_register(r.HR_MIRROR, 1), 2),  # the mirror is read-only
+        (cl.read_input_registers(r.IR_COUNT, count=1), 2),
+        (cl.read_holding_registers(60, count=2), 2),  # the gap between areas
+        (cl.read_coils(0, count=1), 1),
+        (cl.write_coil(0, True), 1),
+        (cl.write_register(r.HR_CONTROL, 0x8000 | Control.TRIGGER_ENABLE), 3),  # reserved bit
+    ]
+    for request, code in cases:
+        rr = await request
+        assert rr.isError() and rr.exception_code == code, rr
+    # pymodbus refuses unmapped addresses itself; the value check on the control word is ours.
+    assert server.stats.rejected_requests >= 1
+    assert (await twin.read_status()).state is State.READY  # nothing of it reached the handshake
+    check_result(await twin.cycle(1), 1)
+
+
+async def test_malformed_frames_and_abrupt_disconnects(plc: ServerFactory) -> None:
+    server, twin = await plc()
+    rng = np.random.default_rng(5)
+    frames = [
+        bytes(rng.integers(0, 256, 64, dtype=np.uint8)),
+        b"\x00\x01\x00\x00\x00\x06\x01",  # truncated header
+        b"\x00\x01\x00\x07\x00\x06\x01\x04\x00\x00\x00\x02",  # wrong protocol id
+        b"\x00\x01\x00\x00\x00\x02\x01\x63",  # unknown function code 0x63
+        b"\x00\x01\x00\x00\xff\xff\x01\x03" + b"\x00" * 16,  # length beyond the data
+    ]
+    for frame in frames:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(frame)
+        await writer.drain()
+        writer.transport.abort()
+    check_result(await twin.cycle(1), 1)  # the server still answers the PLC
+
+
+async def test_allowlist_refuses_other_addresses(plc: ServerFactory) -> None:
+    server, twin = await plc(config=cfg(allowlist=("127.0.0.0/8",)))
+    check_result(await twin.cycle(1), 1)
+
+    closed, _ = await plc(config=cfg(allowlist=("10.20.30.40",)), connect=False)
+    reader, writer = await asyncio.open_connection("127.0.0.1", closed.port)
+    writer.write(b"\x00\x01\x00\x00\x00\x06\x01\x04\x00\x00\x00\x02")
+    await writer.drain()
+    assert await asyncio.wait_for(reader.read(100), 3) == b""  # closed without an answer
+    writer.close()
+    assert closed.stats.rejected_connections >= 1
