@@ -12,6 +12,8 @@ from dataclasses import replace
 import numpy as np
 
 from mvpose_core.detect.geometry import Ellipse, MarkPrediction, perspective_correction, predict_marks
+from mvpose_core.detect.search import identify_marks, search_marks
+from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.detect.window import detect_marks
 from mvpose_core.scene import ViewCamera
@@ -21,13 +23,18 @@ from mvpose_core.transforms import Array
 __all__ = [
     "DetectOptions",
     "Ellipse",
+    "EpipolarFailure",
     "MarkDetection",
     "MarkPrediction",
     "check_image",
     "correct_centres",
     "detect_marks",
+    "epipolar_distance_px",
+    "identify_marks",
     "perspective_correction",
     "predict_marks",
+    "search_marks",
+    "stereo_check",
 ]
 
 

@@ -1,0 +1,144 @@
+"""Detector robustness: clutter, occlusion, bad images, and the stereo identity check."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mvpose_core.detect import (
+    MarkDetection,
+    detect_marks,
+    epipolar_distance_px,
+    search_marks,
+    stereo_check,
+)
+from mvpose_core.render import RenderOptions, render_view
+from mvpose_core.render_scene import plate_scene
+from mvpose_core.scene import view_cameras
+from mvpose_core.station import load_station
+
+LAB = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "lab.yaml"
+
+
+@pytest.fixture(scope="module")
+def lab():  # type: ignore[no-untyped-def]
+    station = load_station(LAB)
+    return view_cameras(station), station.recipe()
+
+
+def test_clutter_set_gives_no_false_marks_and_occluded_marks_are_missing(lab) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    rng = np.random.default_rng(11)
+    found = missing_ok = 0
+    for seed_round in range(3):
+        for cam in cams:
+            ids = [m for s in recipe.sightings if s.view == cam.view and s.camera == cam.camera_id for m in s.marks]
+            hidden = (ids[seed_round % len(ids)],)
+            r = render_view(cam, recipe, T0, rng, RenderOptions(clutter=True, occluded=hidden))
+            for d in detect_marks(r.image, cam, recipe, T0):
+                if d.mark_id in hidden:
+                    assert not d.found, f"occluded {d.mark_id} in {cam.key} accepted at {d.uv}"
+                    assert d.reason
+                    missing_ok += 1
+                else:
+                    assert d.found, f"{d.mark_id} in {cam.key}: {d.reason}"
+                    # Found means found right: never a clutter blob instead of the mark.
+                    assert np.linalg.norm(d.uv - r.centres[d.mark_id]) < 0.05
+                    found += 1
+    assert found == 12 and missing_ok == 12
+
+
+def test_pure_clutter_without_marks_yields_nothing() -> None:
+    cam, recipe = plate_scene(width=1024, height=768)
+    T0 = recipe.T_rf_from_pf0.matrix
+    far = T0.copy()
+    far[0, 3] += 5000.0  # the part is gone; only the clutter anchored anywhere remains
+    r = render_view(cam, recipe, far, np.random.default_rng(3), RenderOptions(clutter=True))
+    assert not any(d.found for d in detect_marks(r.image, cam, recipe, T0))
+
+
+@pytest.mark.parametrize(
+    "image,match",
+    [
+        (np.zeros((480, 640), np.float32), "dtype float32"),
+        (np.zeros((480, 640), np.uint16), "dtype uint16"),
+        (np.zeros((480, 640, 3), np.uint8), "2-D"),
+        (np.zeros((479, 640), np.uint8), "expected 640x480 mono8, got 640x479"),
+        (np.zeros((0, 640), np.uint8), "empty"),
+        ([[0, 1], [2, 3]], "numpy image"),
+    ],
+)
+def test_bad_images_give_a_clear_error(image, match) -> None:  # type: ignore[no-untyped-def]
+    cam, recipe = plate_scene()
+    with pytest.raises(ValueError, match=match) as err:
+        detect_marks(image, cam, recipe, recipe.T_rf_from_pf0.matrix)
+    assert "v1/cam" in str(err.value)
+    with pytest.raises(ValueError, match=match):
+        search_marks(image, cam, recipe)
+
+
+@pytest.mark.parametrize("fill", [0, 255, 128, "noise", "checker"])
+def test_degenerate_images_report_every_mark_missing(fill) -> None:  # type: ignore[no-untyped-def]
+    cam, recipe = plate_scene()
+    if fill == "noise":
+        image = np.random.default_rng(0).integers(0, 256, (480, 640), dtype=np.uint8)
+    elif fill == "checker":
+        image = ((np.indices((480, 640)).sum(axis=0) % 2) * 255).astype(np.uint8)
+    else:
+        image = np.full((480, 640), fill, np.uint8)
+    dets = detect_marks(image, cam, recipe, recipe.T_rf_from_pf0.matrix)
+    assert len(dets) == len(recipe.marks)
+    assert all(not d.found and d.reason for d in dets)
+    assert search_marks(image, cam, recipe) == []
+
+
+def test_marks_cut_by_the_image_border_are_missing_not_biased() -> None:
+    cam, recipe = plate_scene(grid=(3, 1), pitch_mm=105.0)  # outer marks at u ≈ 14, 625
+    T0 = recipe.T_rf_from_pf0.matrix
+    r = render_view(cam, recipe, T0, np.random.default_rng(8), RenderOptions())
+    dets = {d.mark_id: d for d in detect_marks(r.image, cam, recipe, T0)}
+    assert dets["M2"].found and np.linalg.norm(dets["M2"].uv - r.centres["M2"]) < 0.05
+    for mid in ("M1", "M3"):  # half outside the frame: a centre from half a rim would be biased
+        assert not dets[mid].found and "border" in str(dets[mid].reason)
+
+
+def test_stereo_check_keeps_consistent_marks_and_drops_a_wrong_blob(lab) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    rng = np.random.default_rng(12)
+    view1 = [c for c in cams if c.view == 1]
+    dets = {c.key: detect_marks(render_view(c, recipe, T0, rng).image, c, recipe, T0) for c in view1}
+    kept, failures = stereo_check(dets, view1)
+    assert failures == [] and kept == {k: list(v) for k, v in dets.items()}
+    # The left camera takes a blob 25 px below M2 for M2 (what a swap with clutter looks like).
+    left = dets["v1/left"]
+    bad = [replace(d, uv=d.uv + np.array([0.0, 25.0])) if d.mark_id == "M2" else d for d in left]
+    kept, failures = stereo_check({**dets, "v1/left": bad}, view1)
+    assert [(f.mark_id, f.camera_a, f.camera_b) for f in failures] == [("M2", "v1/left", "v1/right")]
+    assert failures[0].distance_px > 10
+    for key in ("v1/left", "v1/right"):
+        status = {d.mark_id: (d.found, d.reason) for d in kept[key]}
+        assert status["M3"] == (True, None)
+        assert status["M2"][0] is False and "epipolar" in status["M2"][1]
+
+
+def test_epipolar_distance_is_small_for_true_projections(lab) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = lab
+    from mvpose_core.scene import project_recipe_marks
+
+    left, right = cams[0], cams[1]
+    pl = {p.mark_id: p.uv for p in project_recipe_marks(left, recipe, recipe.T_rf_from_pf0.matrix)}
+    pr = {p.mark_id: p.uv for p in project_recipe_marks(right, recipe, recipe.T_rf_from_pf0.matrix)}
+    for mid in pl:
+        assert epipolar_distance_px(left, pl[mid], right, pr[mid]) < 1e-6
+        assert epipolar_distance_px(left, pl[mid], right, pr[mid] + [0.0, 3.0]) > 2.0
+
+
+def test_stereo_check_refuses_unknown_cameras(lab) -> None:  # type: ignore[no-untyped-def]
+    cams, _ = lab
+    with pytest.raises(ValueError, match="unknown cameras"):
+        stereo_check({"v9/nope": [MarkDetection.missing("M1", "x")]}, cams)
