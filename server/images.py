@@ -73,6 +73,8 @@ class ImageArchive:
     ) -> list[ImageInfo]:
         """Write the planned frames (keyed by (view, camera_id)), then enforce the quota."""
         written = []
+        with self._lock:
+            self._current()  # read the baseline before adding rows, so nothing counts twice
         for ref in refs:
             frame = frames.get((ref.view, ref.camera_id))
             if frame is None:
@@ -92,7 +94,7 @@ class ImageArchive:
                 self.repo.add(measurement_id, ref.view, ref.camera_id, ref.path, len(buf), ok)
             )
             with self._lock:
-                self._stored = self._current() + len(buf)
+                self._stored = self._current() + len(buf)  # baseline read above
         self.enforce_quota()
         return written
 

@@ -106,6 +106,7 @@ class MeasurementRecord(_Model):
     result: Literal["OK", "NOK"]
     reason_code: int = Field(ge=0, le=65535)
     reason: Name
+    message: str | None = Field(None, max_length=500, description="the gate's one-line why")
     detections: list[CameraDetections] = Field(default_factory=list)
     T_rf_from_pf: Matrix4 | None = Field(None, description="measured part pose, 4x4, mm")
     offset: Offset | None = None

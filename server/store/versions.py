@@ -105,15 +105,14 @@ class VersionRepository:
                 .group_by(V.c.name)
                 .order_by(V.c.name)
             ).all()
-            active = dict(
-                conn.execute(
+            active = {
+                r.name: r.version
+                for r in conn.execute(
                     select(A.c.name, V.c.version)
                     .join(V, V.c.id == A.c.version_id)
                     .where(A.c.station == self.station, A.c.kind == kind)
                 )
-                .tuples()
-                .all()
-            )
+            }
         return [
             VersionSummary(
                 kind=kind, name=r.name, latest_version=r.latest, active_version=active.get(r.name)
