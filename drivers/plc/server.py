@@ -26,8 +26,9 @@ from .seam import PlcConfig, PlcHandler, TriggerOutcome
 
 log = logging.getLogger(__name__)
 
-_READ_FCS = frozenset({3, 4})
 _WRITE_FCS = frozenset({6, 16, 23})
+# Reads: fc 3 and 4, plus the read-back that pymodbus does after a write with fc 6 and fc 23.
+_READ_FCS = frozenset({3, 4, 6, 23})
 
 
 @dataclass
@@ -178,7 +179,7 @@ class PlcServer:
     ) -> ExcCodes | None:
         # Runs before pymodbus commits a write and on every read: validate and copy, never work.
         if values is None:
-            if fc not in _READ_FCS and fc != 23:
+            if fc not in _READ_FCS:
                 return self._reject(ExcCodes.ILLEGAL_FUNCTION)
             image = self.machine.image
             if fc == 4:
