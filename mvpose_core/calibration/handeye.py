@@ -1,0 +1,381 @@
+"""Hand-eye calibration: the paper's eq. 10, AX = XB cross-checked, joint refinement, covariance.
+
+Three ways in: the paper's board-in-robot-frame method (eq. 10), OpenCV's five AX = XB solvers
+checked against each other, and a final refinement of the reprojection error over all samples.
+
+One problem shape covers both mounts. With ``M_i`` the robot chain of sample ``i``:
+
+    robot-mounted camera:  T_cf_from_bf = inv(X) · M_i · Y,  X = T_gf_from_cf, Y = T_rf_from_bf,
+                           M_i = T_gf_from_rf = inv(T_rf_from_gf)
+    fixed camera, board on the flange:
+                           T_cf_from_bf = inv(X) · M_i · Y,  X = T_rf_from_cf, Y = T_gf_from_bf,
+                           M_i = T_rf_from_gf
+
+X is the pose of the reference camera CF0; other cameras of a rig follow through their fixed
+``T_cfc_from_cf0`` (from stereo calibration) and add their observations to the refinement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from mvpose_core.calibration.boards import BoardSpec, Detection
+from mvpose_core.calibration.errors import CalibrationError
+from mvpose_core.calibration.intrinsics import board_pose, require_samples, split_detections
+from mvpose_core.calibration.robotposes import check_motion, match_ids
+from mvpose_core.camera import CameraModel
+from mvpose_core.transforms import (
+    Array,
+    apply,
+    compose,
+    invert,
+    make_transform,
+    rotvec_to_matrix,
+    transform_error,
+)
+
+Mount = Literal["robot", "fixed"]
+METHODS: dict[str, int] = {
+    "tsai": cv2.CALIB_HAND_EYE_TSAI,
+    "park": cv2.CALIB_HAND_EYE_PARK,
+    "horaud": cv2.CALIB_HAND_EYE_HORAUD,
+    "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
+    "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
+}
+
+
+@dataclass(frozen=True)
+class HandEyeOptions:
+    min_samples: int = 5
+    max_translation_mm: float = 3000.0  # a camera farther than this from the flange is implausible
+    agree_mm: float = 2.0  # methods further than this from the refined answer are flagged
+    agree_deg: float = 0.2
+
+
+@dataclass(frozen=True)
+class HandEyeProblem:
+    """Everything the solvers need; every mapping is keyed by sample id, then camera id."""
+
+    mount: Mount
+    board: BoardSpec
+    cameras: dict[str, CameraModel]  # first key is the reference camera CF0
+    T_cfc_from_cf0: dict[str, Array]
+    robot_poses: dict[str, Array]  # T_rf_from_gf per sample
+    detections: dict[str, dict[str, Detection]]  # sample → camera → detection (found only)
+
+    @property
+    def reference(self) -> str:
+        return next(iter(self.cameras))
+
+    def chain(self, sid: str) -> Array:
+        A = self.robot_poses[sid]
+        return invert(A) if self.mount == "robot" else A
+
+
+@dataclass(frozen=True)
+class MethodCheck:
+    """One solver's answer and how it compares with the refined result."""
+
+    T: Array | None
+    status: str  # "ok", "NaN", "implausible: ...", "disagrees: ..."
+    deg: float = float("nan")
+    mm: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Refined:
+    """Result of the joint reprojection refinement over a set of samples."""
+
+    X: Array
+    Y: Array
+    cov: Array  # 12x12: X (rotation rad about X's target axes, translation mm), then Y
+    sigma_px: float  # noise estimated from the residuals
+    residuals: dict[str, Array]  # sample → ["N", 2] px over all cameras
+    depth_mm: float  # mean distance camera–board
+
+
+@dataclass(frozen=True)
+class HandEyeResult:
+    """Hand-eye transform X, board pose Y, their uncertainty and every cross-check."""
+
+    mount: Mount
+    reference: str
+    X: Array  # T_gf_from_cf0 (robot) or T_rf_from_cf0 (fixed)
+    Y: Array  # T_rf_from_bf (robot) or T_gf_from_bf (fixed)
+    sigma_mm: float  # 1σ of X's translation (RSS over axes), from the covariance
+    sigma_deg: float  # 1σ of X's rotation angle
+    sigma_px: float
+    depth_mm: float
+    methods: dict[str, MethodCheck]
+    per_sample_rms_px: dict[str, float]
+    residuals: dict[str, Array]
+    cov: Array
+    rejected: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def rms_px(self) -> float:
+        r = np.concatenate(list(self.residuals.values()))
+        return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+
+# --------------------------------------------------------------------------- closed forms
+
+
+def board_pose_from_points(
+    board: BoardSpec, corner_ids: Sequence[int], p_rf: Array
+) -> tuple[Array, float]:
+    """``T_rf_from_bf`` from board corners measured in RF (e.g. touched with a pointer tool),
+    and the RMS fit residual in mm."""
+    p_rf = np.asarray(p_rf, dtype=float).reshape(-1, 3)
+    ids = np.asarray(corner_ids, dtype=int)
+    if ids.shape[0] != p_rf.shape[0] or ids.shape[0] < 3:
+        raise CalibrationError(
+            f"board pose from points: need >= 3 corners with one RF point each, got "
+            f"{ids.shape[0]} ids and {p_rf.shape[0]} points"
+        )
+    p_bf = board.object_points[ids]
+    if np.linalg.matrix_rank(p_bf - p_bf.mean(0), tol=1e-6) < 2:
+        raise CalibrationError(f"board pose from points: corners {ids.tolist()} are collinear")
+    cb, cr = p_bf.mean(0), p_rf.mean(0)
+    rot, _ = Rotation.align_vectors(p_rf - cr, p_bf - cb)
+    T = make_transform(rot.as_matrix(), cr - rot.apply(cb))
+    rms = float(np.sqrt(np.mean(np.sum((apply(T, p_bf) - p_rf) ** 2, axis=1))))
+    return T, rms
+
+
+def mean_transform(Ts: Sequence[Array]) -> Array:
+    """Chordal mean rotation and mean translation."""
+    R = Rotation.from_matrix(np.array([T[:3, :3] for T in Ts])).mean().as_matrix()
+    return make_transform(R, np.mean([T[:3, 3] for T in Ts], axis=0))
+
+
+def handeye_board_in_robot(
+    robot_poses: Mapping[str, Array], T_cf_from_bf: Mapping[str, Array], T_rf_from_bf: Array
+) -> tuple[Array, dict[str, Array]]:
+    """The paper's eq. 10 per sample and their mean:
+    ``T_gf_from_cf = inv(T_rf_from_gf) · T_rf_from_bf · inv(T_cf_from_bf)``."""
+    per = {
+        sid: compose(invert(robot_poses[sid]), T_rf_from_bf, invert(T_cf_from_bf[sid]))
+        for sid in sorted(T_cf_from_bf)
+    }
+    return mean_transform(list(per.values())), per
+
+
+def solve_axxb(chains: Sequence[Array], T_cf_from_bf: Sequence[Array], method: str) -> Array | None:
+    """X from one OpenCV hand-eye solver (None if it produced NaN)."""
+    inv_chain = [invert(M) for M in chains]
+    R, t = cv2.calibrateHandEye(
+        [T[:3, :3] for T in inv_chain],
+        [T[:3, 3] for T in inv_chain],
+        [T[:3, :3] for T in T_cf_from_bf],
+        [T[:3, 3] for T in T_cf_from_bf],
+        method=METHODS[method],
+    )
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        return None
+    # Some solvers return a slightly non-orthogonal matrix; project to the nearest rotation.
+    return make_transform(Rotation.from_matrix(R).as_matrix(), t.reshape(3))
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+def _perturb(T0: Array, p: Array) -> Array:
+    return make_transform(rotvec_to_matrix(p[:3]) @ T0[:3, :3], T0[:3, 3] + p[3:])
+
+
+def refine(
+    problem: HandEyeProblem, X0: Array, Y0: Array, ids: Sequence[str] | None = None
+) -> Refined:
+    """Minimise the reprojection error of every corner of every camera over X and Y jointly."""
+    ids = sorted(problem.detections) if ids is None else list(ids)
+    obs = [
+        (sid, cid, problem.detections[sid][cid])
+        for sid in ids
+        for cid in problem.cameras
+        if cid in problem.detections[sid]
+    ]
+    chains = {sid: problem.chain(sid) for sid in ids}
+    pts = {(sid, cid): d.object_points(problem.board) for sid, cid, d in obs}
+
+    def predict(p: Array) -> list[Array]:
+        X = _perturb(X0, p[:6])
+        Y = _perturb(Y0, p[6:])
+        iX = invert(X)
+        out = []
+        for sid, cid, _ in obs:
+            T = compose(problem.T_cfc_from_cf0[cid], iX, chains[sid], Y)
+            out.append(problem.cameras[cid].project(apply(T, pts[(sid, cid)])))
+        return out
+
+    def fun(p: Array) -> Array:
+        return np.concatenate(
+            [(uv - d.uv).ravel() for uv, (_, _, d) in zip(predict(p), obs, strict=True)]
+        )
+
+    sol = least_squares(
+        fun, np.zeros(12), method="lm", x_scale=np.tile(np.r_[[1e-3] * 3, [1.0] * 3], 2)
+    )
+    X = _perturb(X0, sol.x[:6])
+    Y = _perturb(Y0, sol.x[6:])
+    m = sol.fun.size
+    dof = max(m - 12, 1)
+    sigma2 = float(sol.fun @ sol.fun) / dof
+    J = sol.jac
+    cov = sigma2 * np.linalg.pinv(J.T @ J)
+    res: dict[str, list[Array]] = {}
+    for uv, (sid, _, d) in zip(predict(sol.x), obs, strict=True):
+        res.setdefault(sid, []).append(uv - d.uv)
+    depths = [
+        compose(problem.T_cfc_from_cf0[cid], invert(X), chains[sid], Y)[2, 3] for sid, cid, _ in obs
+    ]
+    return Refined(
+        X=X,
+        Y=Y,
+        cov=cov,
+        sigma_px=float(np.sqrt(sigma2)),
+        residuals={sid: np.concatenate(r) for sid, r in res.items()},
+        depth_mm=float(np.mean(depths)),
+    )
+
+
+def sigma_of_x(cov: Array) -> tuple[float, float]:
+    """1σ of X as (mm, deg): RSS of the translation and rotation standard deviations, which is the
+    expected RMS of the translation and angle errors."""
+    return float(np.sqrt(np.trace(cov[3:6, 3:6]))), float(
+        np.degrees(np.sqrt(np.trace(cov[:3, :3])))
+    )
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def calibrate_handeye(
+    problem: HandEyeProblem,
+    options: HandEyeOptions = HandEyeOptions(),
+    T_rf_from_bf: Array | None = None,
+    rejected: Mapping[str, str] | None = None,
+) -> HandEyeResult:
+    """Solve X and Y: closed forms (all five AX = XB solvers, plus the paper's eq. 10 when the
+    board pose in RF is known), cross-check them, then refine jointly over all samples."""
+    what = f"hand-eye ({problem.mount} camera {problem.reference!r})"
+    ref = problem.reference
+    ids = sorted(sid for sid, dets in problem.detections.items() if ref in dets)
+    require_samples(len(ids), options.min_samples, what, ids)
+    cam = problem.cameras[ref]
+    B = {sid: board_pose(cam, problem.detections[sid][ref], problem.board) for sid in ids}
+    check_motion({sid: problem.robot_poses[sid] for sid in ids}, B, what)
+    chains = [problem.chain(sid) for sid in ids]
+    candidates: dict[str, Array | None] = {
+        name: solve_axxb(chains, [B[s] for s in ids], name) for name in METHODS
+    }
+    if T_rf_from_bf is not None:
+        if problem.mount != "robot":
+            raise CalibrationError(
+                f"{what}: the board-in-robot-frame method is for robot-mounted cameras"
+            )
+        candidates["paper_eq10"], _ = handeye_board_in_robot(problem.robot_poses, B, T_rf_from_bf)
+    checks: dict[str, MethodCheck] = {}
+    plausible: dict[str, Array] = {}
+    for name, X in candidates.items():
+        if X is None:
+            checks[name] = MethodCheck(None, "NaN")
+        elif np.linalg.norm(X[:3, 3]) > options.max_translation_mm:
+            checks[name] = MethodCheck(
+                X,
+                f"implausible: camera {np.linalg.norm(X[:3, 3]):.0f} mm from the "
+                f"{'flange' if problem.mount == 'robot' else 'robot base'}",
+            )
+        else:
+            plausible[name] = X
+    if not plausible:
+        raise CalibrationError(
+            f"{what}: no solver gave a plausible answer: "
+            + "; ".join(f"{k}: {v.status}" for k, v in checks.items())
+        )
+
+    # Start from the medoid: the answer closest to all others, robust to one bad solver.
+    def spread(n: str) -> float:
+        return sum(sum(transform_error(plausible[n], plausible[o])[1:]) for o in plausible)
+
+    X0 = plausible[min(plausible, key=spread)]
+    if T_rf_from_bf is not None and problem.mount == "robot":
+        Y0 = T_rf_from_bf
+    else:
+        Y0 = mean_transform([compose(invert(problem.chain(s)), X0, B[s]) for s in ids])
+    r = refine(problem, X0, Y0)
+    for name, X in plausible.items():
+        deg, mm = transform_error(X, r.X)
+        ok = deg <= options.agree_deg and mm <= options.agree_mm
+        checks[name] = MethodCheck(X, "ok" if ok else f"disagrees: {deg:.3f}° {mm:.2f} mm", deg, mm)
+    s_mm, s_deg = sigma_of_x(r.cov)
+    return HandEyeResult(
+        mount=problem.mount,
+        reference=ref,
+        X=r.X,
+        Y=r.Y,
+        sigma_mm=s_mm,
+        sigma_deg=s_deg,
+        sigma_px=r.sigma_px,
+        depth_mm=r.depth_mm,
+        methods={k: checks[k] for k in candidates},
+        per_sample_rms_px={
+            sid: float(np.sqrt(np.mean(np.sum(v * v, axis=1)))) for sid, v in r.residuals.items()
+        },
+        residuals=r.residuals,
+        cov=r.cov,
+        rejected=dict(rejected or {}),
+    )
+
+
+def build_problem(
+    mount: Mount,
+    board: BoardSpec,
+    cameras: Mapping[str, CameraModel],
+    robot_poses: Mapping[str, Array],
+    detections: Mapping[str, Mapping[str, Detection | None]],
+    T_cfc_from_cf0: Mapping[str, Array] | None = None,
+    min_corners: int = 6,
+) -> tuple[HandEyeProblem, dict[str, str]]:
+    """Pair images with robot poses by sample id; samples without a usable board are left out and
+    reported (id → reason), never shifted onto a neighbour. ``detections`` is camera → sample."""
+    if list(cameras) != list(detections):
+        raise CalibrationError(
+            f"hand-eye: cameras {list(cameras)} but detections for {list(detections)}"
+        )
+    ref = next(iter(cameras))
+    rel = dict(T_cfc_from_cf0 or {})
+    rel.setdefault(ref, np.eye(4))
+    missing = [c for c in cameras if c not in rel]
+    if missing:
+        raise CalibrationError(f"hand-eye: no T_cfc_from_cf0 (stereo result) for cameras {missing}")
+    per_sample: dict[str, dict[str, Detection]] = {sid: {} for sid in robot_poses}
+    rejected: dict[str, str] = {}
+    for cid, dets in detections.items():
+        match_ids(robot_poses, dets, f"hand-eye camera {cid!r}")
+        used, rej = split_detections(dets, min_corners, f"hand-eye camera {cid!r}")
+        for sid, d in used.items():
+            per_sample[sid][cid] = d
+        for sid, why in rej.items():
+            rejected[sid] = (rejected[sid] + "; " if sid in rejected else "") + f"{cid}: {why}"
+    # A sample counts if any camera saw the board; the others' misses are still reported.
+    rejected = {
+        sid: why if not per_sample[sid] else f"{why} (other cameras used)"
+        for sid, why in rejected.items()
+    }
+    problem = HandEyeProblem(
+        mount=mount,
+        board=board,
+        cameras=dict(cameras),
+        T_cfc_from_cf0={c: rel[c] for c in cameras},
+        robot_poses={sid: robot_poses[sid] for sid in per_sample if per_sample[sid]},
+        detections={sid: d for sid, d in per_sample.items() if d},
+    )
+    return problem, rejected

@@ -1,0 +1,206 @@
+"""Robot poses for calibration: reading CSV/JSON in any robot convention, matching them to images
+by sample id, and the plausibility checks (unit, pure translations, single rotation axis)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Iterable, Mapping
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+
+from mvpose_core.calibration.errors import CalibrationError
+from mvpose_core.transforms import (
+    Array,
+    RobotConvention,
+    from_robot,
+    invert,
+    matrix_to_rotvec,
+)
+
+#: An industrial flange never works within this distance of the robot base origin (mm).
+_MIN_REACH_MM = 50.0
+
+
+def parse_robot_poses(
+    text: str, convention: RobotConvention | str | None, source: str = "<memory>"
+) -> dict[str, Array]:
+    """Robot flange poses ``T_rf_from_gf`` by sample id, from CSV or JSON text.
+
+    CSV: a header ``id,<labels of the convention>`` (e.g. ``id,X,Y,Z,W,P,R``), one row per pose.
+    JSON: ``{"convention": "kuka", "poses": {"007": [X, Y, Z, A, B, C], ...}}`` or a list of
+    ``{"id": ..., "pose": [...]}``. A convention given in the file must agree with ``convention``.
+    """
+    stripped = text.lstrip()
+    if stripped.startswith(("{", "[")):
+        rows, conv = _parse_json(stripped, convention, source)
+    else:
+        if convention is None:
+            raise CalibrationError(f"{source}: a CSV robot-pose file needs a robot convention")
+        rows, conv = (
+            _parse_csv(text, RobotConvention(convention), source),
+            RobotConvention(convention),
+        )
+    poses: dict[str, Array] = {}
+    for sid, values in rows:
+        if sid in poses:
+            raise CalibrationError(f"{source}: sample id {sid!r} appears twice")
+        try:
+            poses[sid] = from_robot(values, conv)
+        except ValueError as err:
+            raise CalibrationError(f"{source}: sample {sid!r}: {err}") from None
+    if not poses:
+        raise CalibrationError(f"{source}: no robot poses")
+    check_units(poses, conv, source)
+    return poses
+
+
+def load_robot_poses(
+    path: str | Path, convention: RobotConvention | str | None
+) -> dict[str, Array]:
+    """Read a robot-pose file (see :func:`parse_robot_poses`)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise CalibrationError(f"{path}: cannot read robot-pose file: {err.strerror}") from None
+    return parse_robot_poses(text, convention, str(path))
+
+
+def _parse_csv(text: str, conv: RobotConvention, source: str) -> list[tuple[str, list[float]]]:
+    reader = csv.reader(io.StringIO(text))
+    header = [h.strip() for h in next(reader, [])]
+    expected = ["id", *conv.labels]
+    if [h.lower() for h in header] != [h.lower() for h in expected]:
+        raise CalibrationError(
+            f"{source}: CSV header {header} does not match the {conv.value} convention; "
+            f"expected {expected}"
+        )
+    rows = []
+    for lineno, row in enumerate(reader, start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            rows.append((row[0].strip(), [float(c) for c in row[1:]]))
+        except ValueError:
+            raise CalibrationError(f"{source}: line {lineno}: not a number in {row}") from None
+    return rows
+
+
+def _parse_json(
+    text: str, convention: RobotConvention | str | None, source: str
+) -> tuple[list[tuple[str, list[float]]], RobotConvention]:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise CalibrationError(f"{source}: not valid JSON: {err}") from None
+    file_conv = data.get("convention") if isinstance(data, dict) else None
+    if (
+        file_conv is not None
+        and convention is not None
+        and RobotConvention(file_conv) != RobotConvention(convention)
+    ):
+        raise CalibrationError(
+            f"{source}: file says convention {file_conv!r} but "
+            f"{RobotConvention(convention).value!r} was given"
+        )
+    conv_value = file_conv or convention
+    if conv_value is None:
+        raise CalibrationError(f"{source}: no robot convention in the file or on the command line")
+    conv = RobotConvention(conv_value)
+    body = data.get("poses") if isinstance(data, dict) else data
+    if isinstance(body, dict):
+        return [(str(k), list(v)) for k, v in body.items()], conv
+    if isinstance(body, list):
+        try:
+            return [(str(e["id"]), list(e["pose"])) for e in body], conv
+        except (KeyError, TypeError):
+            raise CalibrationError(f"{source}: each pose needs 'id' and 'pose'") from None
+    raise CalibrationError(f"{source}: expected 'poses' as a mapping or a list")
+
+
+def check_units(poses: Mapping[str, Array], conv: RobotConvention, source: str) -> None:
+    """Flange positions all within a few cm of the base are metres written where mm belong."""
+    reach = max(float(np.linalg.norm(T[:3, 3])) for T in poses.values())
+    if reach < _MIN_REACH_MM:
+        unit = "m" if conv is not RobotConvention.UR else "km (UR poses are in metres)"
+        raise CalibrationError(
+            f"{source}: robot poses in the wrong unit? the farthest flange position is "
+            f"{reach:.3f} mm from the base in the {conv.value} convention, which expects "
+            f"{'metres' if conv is RobotConvention.UR else 'mm'}; the file looks like {unit}"
+        )
+
+
+# --------------------------------------------------------------------------- matching, geometry
+
+
+def match_ids(robot_poses: Mapping[str, Array], image_ids: Iterable[str], what: str) -> list[str]:
+    """The sample ids, which must be the same on both sides (never paired by position)."""
+    images = set(image_ids)
+    poses = set(robot_poses)
+    if images != poses:
+        raise CalibrationError(
+            f"{what}: images and robot poses do not match: {len(images)} images, {len(poses)} "
+            f"poses; images without a pose: {sorted(images - poses)}; poses without an image: "
+            f"{sorted(poses - images)}"
+        )
+    return sorted(images)
+
+
+def check_motion(
+    robot_poses: Mapping[str, Array],
+    relative_poses: Mapping[str, Array],
+    what: str,
+    min_rotation_deg: float = 5.0,
+    min_axis_spread_deg: float = 10.0,
+) -> None:
+    """Reject pose sets that cannot determine a hand-eye transform.
+
+    ``relative_poses`` are the camera-board poses of the same ids (``T_cf_from_bf``); their
+    translations are compared with the robot's to catch a unit mix-up that survived the
+    reach check (e.g. a robot near its base).
+    """
+    ids = sorted(robot_poses)
+    A = [robot_poses[i] for i in ids]
+    rot = []
+    axes = []
+    for a, b in combinations(A, 2):
+        rv = matrix_to_rotvec(a[:3, :3].T @ b[:3, :3])
+        ang = float(np.degrees(np.linalg.norm(rv)))
+        rot.append(ang)
+        if ang > min_rotation_deg:
+            axes.append(rv / np.linalg.norm(rv))
+    largest = max(rot) if rot else 0.0
+    if largest < min_rotation_deg:
+        raise CalibrationError(
+            f"{what}: the robot poses are (almost) pure translations: the largest rotation "
+            f"between two poses is {largest:.2f}°; the hand-eye rotation needs rotations of "
+            f"more than {min_rotation_deg:g}° about at least two different axes"
+        )
+    spread = (
+        max(
+            float(np.degrees(np.arccos(np.clip(abs(float(u @ v)), 0.0, 1.0))))
+            for u, v in combinations(axes, 2)
+        )
+        if len(axes) > 1
+        else 0.0
+    )
+    if spread < min_axis_spread_deg:
+        raise CalibrationError(
+            f"{what}: every robot rotation is about one axis (axes within {spread:.1f}°); the "
+            "hand-eye translation along that axis cannot be determined — tilt about two axes"
+        )
+    # Compare how far the robot and the camera-board relation move between samples.
+    rob = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in combinations(A, 2)]
+    B = [invert(relative_poses[i])[:3, 3] for i in ids]
+    cam = [np.linalg.norm(a - b) for a, b in combinations(B, 2)]
+    ratio = float(np.median(rob) / max(float(np.median(cam)), 1e-9))
+    if ratio < 0.05 or ratio > 20.0:
+        raise CalibrationError(
+            f"{what}: the robot moves {ratio:.4g}× as far as the camera sees the board move "
+            "(median over pose pairs); robot poses in the wrong unit (metres vs mm) or a wrong "
+            "board square size?"
+        )

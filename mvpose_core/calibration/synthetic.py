@@ -1,0 +1,139 @@
+"""Calibration scenes with known truth: robot poses around a board, exact and noisy detections."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mvpose_core.calibration.boards import BoardSpec, Detection
+from mvpose_core.camera import CameraModel
+from mvpose_core.transforms import Array, apply, compose, invert, make_transform, zyx_to_matrix
+
+
+@dataclass(frozen=True)
+class CalibScene:
+    """A rig of cameras (first = reference CF0), a board and robot poses, all with true values.
+
+    mount "robot": the rig is on the flange, X = T_gf_from_cf0, Y = T_rf_from_bf.
+    mount "fixed": the rig is fixed in the cell and the board on the flange,
+    X = T_rf_from_cf0, Y = T_gf_from_bf.
+    """
+
+    mount: str
+    board: BoardSpec
+    cameras: dict[str, CameraModel]
+    T_cfc_from_cf0: dict[str, Array]
+    X: Array
+    Y: Array
+    robot_poses: dict[str, Array]  # T_rf_from_gf by sample id
+
+    def T_cf_from_bf(self, camera_id: str, sid: str) -> Array:
+        A = self.robot_poses[sid]
+        M = invert(A) if self.mount == "robot" else A
+        return compose(self.T_cfc_from_cf0[camera_id], invert(self.X), M, self.Y)
+
+    def observe(
+        self, rng: np.random.Generator, noise_px: float, min_corners: int = 6
+    ) -> dict[str, dict[str, Detection | None]]:
+        """Detections camera → sample id (None where fewer than ``min_corners`` are in view),
+        with Gaussian pixel noise of ``noise_px`` per coordinate."""
+        out: dict[str, dict[str, Detection | None]] = {}
+        for cid, cam in self.cameras.items():
+            out[cid] = {}
+            for sid in self.robot_poses:
+                p = apply(self.T_cf_from_bf(cid, sid), self.board.object_points)
+                ok = p[:, 2] > 1.0
+                uv = np.full((p.shape[0], 2), -1e9)
+                uv[ok] = cam.project(p[ok])
+                ok &= cam.in_image(uv, margin=5.0)
+                ids = np.flatnonzero(ok)
+                if self.board.kind != "charuco" and ids.size != self.board.n_corners:
+                    out[cid][sid] = (
+                        None  # chessboard and circle grids are found whole or not at all
+                    )
+                elif ids.size < min_corners:
+                    out[cid][sid] = None
+                else:
+                    noisy = uv[ids] + rng.normal(0.0, noise_px, (ids.size, 2))
+                    out[cid][sid] = Detection(ids.astype(np.int64), noisy)
+        return out
+
+
+def lab_camera(width: int = 2048, height: int = 2048, f: float = 2909.1) -> CameraModel:
+    """A camera like the paper's (16 mm lens, 5.5 µm pixels) with mild distortion."""
+    return CameraModel(
+        f,
+        f,
+        (width - 1) / 2 + 3.2,
+        (height - 1) / 2 - 2.7,
+        width,
+        height,
+        (-0.08, 0.12, 0.0002, -0.0001, 0.0),
+    )
+
+
+def make_scene(
+    rng: np.random.Generator,
+    n_poses: int = 15,
+    mount: str = "robot",
+    stereo: bool = True,
+    board: BoardSpec | None = None,
+    camera: CameraModel | None = None,
+    distance_mm: tuple[float, float] = (650.0, 900.0),
+    max_tilt_deg: float = 35.0,
+) -> CalibScene:
+    """Views of the board from a cone of directions (tilt ≤ ``max_tilt_deg``) and random roll,
+    at distances in ``distance_mm``, aimed at the board centre with a little scatter."""
+    board = board or BoardSpec("chessboard", 11, 8, 35.0)
+    cam = camera or lab_camera()
+    cameras = {"left": cam}
+    rel = {"left": np.eye(4)}
+    if stereo:
+        cameras["right"] = cam
+        # 300 mm baseline, the right camera toed in to cross the left axis at 1 m (lab rig).
+        rel["right"] = invert(make_transform(zyx_to_matrix(0, -16.7, 0), [300.0, 0, 0]))
+    centre = board.object_points.mean(axis=0)
+    if mount == "robot":
+        X = make_transform(zyx_to_matrix(90.0, 0.5, -1.0), [12.0, 118.0, 176.0])  # T_gf_from_cf0
+        # Board flat on a table in front of the robot, printed face up (BF z points down).
+        Y = make_transform(zyx_to_matrix(30.0, 180.0, 0.0), [1300.0, 150.0, -50.0])
+    else:
+        X = make_transform(
+            zyx_to_matrix(180.0, 20.0, 180.0), [2200.0, 300.0, 900.0]
+        )  # T_rf_from_cf0
+        Y = make_transform(zyx_to_matrix(0.0, 0.0, 180.0), [-100.0, -80.0, 120.0])  # T_gf_from_bf
+    poses: dict[str, Array] = {}
+    k = 0
+    while len(poses) < n_poses:
+        k += 1
+        if k > 200 * n_poses:
+            raise ValueError(
+                f"make_scene: could not place {n_poses} views with the board in every camera"
+            )
+        tilt = np.radians(rng.uniform(0.0, max_tilt_deg))
+        az = rng.uniform(0.0, 2 * np.pi)
+        d = rng.uniform(*distance_mm)
+        # Camera looks along -view_dir at the board centre (+ scatter), from the board's front side.
+        view_dir = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
+        aim = centre + np.r_[rng.normal(0.0, 15.0, 2), 0.0]
+        c_bf = aim + d * view_dir
+        z = aim - c_bf
+        z /= np.linalg.norm(z)
+        roll = rng.uniform(-np.pi, np.pi)
+        up = np.array([np.cos(roll), np.sin(roll), 0.0])
+        x = np.cross(up, z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        T_bf_from_cf0 = make_transform(np.stack([x, y, z], axis=1), c_bf)
+        T_cf0_from_bf = invert(T_bf_from_cf0)
+        if mount == "robot":
+            A = compose(Y, T_bf_from_cf0, invert(X))  # T_rf_from_gf
+        else:
+            A = compose(X, T_cf0_from_bf, invert(Y))
+        sid = f"{len(poses) + 1:03d}"
+        scene = CalibScene(mount, board, cameras, rel, X, Y, {sid: A})
+        seen = scene.observe(np.random.default_rng(0), 0.0)
+        if all(seen[c][sid] is not None for c in cameras):
+            poses[sid] = A
+    return CalibScene(mount, board, cameras, rel, X, Y, poses)

@@ -1,0 +1,212 @@
+"""Intrinsics, stereo and hand-eye on synthetic detections with known truth (issue 5 acceptance)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mvpose_core.calibration.errors import CalibrationError
+from mvpose_core.calibration.handeye import (
+    board_pose_from_points,
+    build_problem,
+    calibrate_handeye,
+    refine,
+)
+from mvpose_core.calibration.intrinsics import calibrate_intrinsics
+from mvpose_core.calibration.stereo import calibrate_stereo
+from mvpose_core.calibration.synthetic import make_scene
+from mvpose_core.transforms import (
+    apply,
+    compose,
+    invert,
+    make_transform,
+    transform_error,
+    zyx_to_matrix,
+)
+
+
+@pytest.fixture(scope="module")
+def lab() -> tuple:
+    """15 robot poses, stereo rig on the flange, 0.1 px detector noise."""
+    rng = np.random.default_rng(2024)
+    scene = make_scene(rng, n_poses=15, mount="robot", stereo=True)
+    return scene, scene.observe(rng, 0.1)
+
+
+def test_chain_intrinsics_stereo_handeye_meets_acceptance(lab) -> None:
+    scene, det = lab
+    true = scene.cameras["left"]
+    size = (true.width, true.height)
+    left = calibrate_intrinsics("left", det["left"], scene.board, size)
+    right = calibrate_intrinsics("right", det["right"], scene.board, size)
+    for res in (left, right):
+        assert abs(res.camera.fx / true.fx - 1) < 1e-3
+        assert abs(res.camera.fy / true.fy - 1) < 1e-3
+        assert sorted(res.per_sample_rms_px) == sorted(scene.robot_poses)
+    st = calibrate_stereo(
+        "left", "right", det["left"], det["right"], scene.board, left.camera, right.camera
+    )
+    true_baseline = float(np.linalg.norm(scene.T_cfc_from_cf0["right"][:3, 3]))
+    assert abs(st.baseline_mm - true_baseline) < 0.1
+    for m in (st.model1, st.model2):
+        assert abs(m.fx / true.fx - 1) < 1e-3
+    cams = {"left": st.model1, "right": st.model2}
+    problem, rejected = build_problem(
+        "robot", scene.board, cams, scene.robot_poses, det, {"right": st.T_cf2_from_cf1}
+    )
+    assert rejected == {}
+    he = calibrate_handeye(problem)
+    deg, mm = transform_error(he.X, scene.X)
+    assert mm < 0.2 and deg < 0.02, (deg, mm)
+    assert all(c.status == "ok" for c in he.methods.values()), he.methods
+    assert 0.07 < he.sigma_px < 0.13  # 0.1 px per coordinate, estimated from the residuals
+
+
+def test_reported_sigma_matches_spread_over_trials() -> None:
+    rng = np.random.default_rng(99)
+    scene = make_scene(rng, n_poses=15, mount="robot", stereo=False)
+    errs, sig = [], []
+    for _ in range(25):
+        det = scene.observe(rng, 0.1)
+        problem, _ = build_problem("robot", scene.board, scene.cameras, scene.robot_poses, det)
+        he = calibrate_handeye(problem)
+        errs.append(transform_error(he.X, scene.X))
+        sig.append((he.sigma_deg, he.sigma_mm))
+    rms = np.sqrt(np.mean(np.square(errs), axis=0))
+    reported = np.mean(sig, axis=0)
+    ratio = rms / reported
+    assert np.all(ratio > 1 / 1.5) and np.all(ratio < 1.5), (rms, reported)
+
+
+def test_fixed_camera_with_board_on_flange() -> None:
+    rng = np.random.default_rng(5)
+    scene = make_scene(rng, n_poses=12, mount="fixed", stereo=False)
+    det = scene.observe(rng, 0.1)
+    problem, _ = build_problem("fixed", scene.board, scene.cameras, scene.robot_poses, det)
+    he = calibrate_handeye(problem)
+    deg, mm = transform_error(he.X, scene.X)
+    assert mm < 0.2 and deg < 0.02
+    assert transform_error(he.Y, scene.Y)[1] < 0.3
+
+
+def test_refinement_sits_at_truth_without_noise_and_converges_from_offsets() -> None:
+    rng = np.random.default_rng(3)
+    scene = make_scene(rng, n_poses=8, mount="robot", stereo=False)
+    det = scene.observe(rng, 0.0)
+    problem, _ = build_problem("robot", scene.board, scene.cameras, scene.robot_poses, det)
+    at_truth = refine(problem, scene.X, scene.Y)
+    assert max(np.abs(r).max() for r in at_truth.residuals.values()) < 1e-6
+    off = compose(scene.X, make_transform(zyx_to_matrix(0.5, -0.4, 0.3), [3.0, -2.0, 4.0]))
+    r = refine(problem, off, scene.Y)
+    deg, mm = transform_error(r.X, scene.X)
+    assert deg < 1e-6 and mm < 1e-5
+
+
+def test_paper_method_board_measured_in_robot_frame() -> None:
+    rng = np.random.default_rng(8)
+    scene = make_scene(rng, n_poses=8, mount="robot", stereo=False)
+    det = scene.observe(rng, 0.1)
+    # Touch four board corners with a pointer: 0.05 mm measurement noise.
+    ids = [
+        0,
+        scene.board.cols - 1,
+        scene.board.n_corners - scene.board.cols,
+        scene.board.n_corners - 1,
+    ]
+    p_rf = apply(scene.Y, scene.board.object_points[ids]) + rng.normal(0, 0.05, (4, 3))
+    T_rf_from_bf, rms = board_pose_from_points(scene.board, ids, p_rf)
+    assert rms < 0.2
+    problem, _ = build_problem("robot", scene.board, scene.cameras, scene.robot_poses, det)
+    he = calibrate_handeye(problem, T_rf_from_bf=T_rf_from_bf)
+    paper = he.methods["paper_eq10"]
+    assert paper.T is not None
+    assert transform_error(paper.T, scene.X)[1] < 1.0
+    assert transform_error(he.X, scene.X)[1] < 0.2
+
+
+def test_missing_board_is_left_out_by_id_not_shifted(lab) -> None:
+    scene, det = lab
+    det = {c: dict(d) for c, d in det.items()}
+    det["left"]["005"] = None
+    det["right"]["005"] = None
+    problem, rejected = build_problem(
+        "robot", scene.board, scene.cameras, scene.robot_poses, det, scene.T_cfc_from_cf0
+    )
+    assert rejected == {"005": "left: board not found; right: board not found"}
+    assert "005" not in problem.detections
+    he = calibrate_handeye(problem)
+    assert "005" not in he.per_sample_rms_px
+    # Every other sample keeps its own robot pose: a shift would blow the residuals up.
+    assert max(he.per_sample_rms_px.values()) < 0.3
+    assert transform_error(he.X, scene.X)[1] < 0.2
+
+
+# --------------------------------------------------------------------------- degenerate input
+
+
+def _problem(scene, det, poses=None):
+    return build_problem("robot", scene.board, scene.cameras, poses or scene.robot_poses, det)[0]
+
+
+def test_too_few_poses() -> None:
+    rng = np.random.default_rng(1)
+    scene = make_scene(rng, n_poses=3, stereo=False)
+    with pytest.raises(CalibrationError, match="too few usable samples: 3"):
+        calibrate_handeye(_problem(scene, scene.observe(rng, 0.1)))
+
+
+def test_pure_translations() -> None:
+    rng = np.random.default_rng(1)
+    scene = make_scene(rng, n_poses=6, stereo=False)
+    first = next(iter(scene.robot_poses.values()))
+    poses = {
+        sid: make_transform(first[:3, :3], first[:3, 3] + rng.normal(0, 40, 3))
+        for sid in scene.robot_poses
+    }
+    moved = type(scene)(
+        scene.mount, scene.board, scene.cameras, scene.T_cfc_from_cf0, scene.X, scene.Y, poses
+    )
+    det = moved.observe(rng, 0.1)
+    with pytest.raises(CalibrationError, match="pure translations"):
+        calibrate_handeye(_problem(moved, det))
+
+
+def test_mismatched_counts_name_the_ids(lab) -> None:
+    scene, det = lab
+    poses = dict(scene.robot_poses)
+    del poses["003"]
+    with pytest.raises(CalibrationError, match=r"images without a pose: \['003'\]"):
+        build_problem("robot", scene.board, scene.cameras, poses, det, scene.T_cfc_from_cf0)
+
+
+def test_board_never_found(lab) -> None:
+    scene, det = lab
+    det = {c: dict.fromkeys(d) for c, d in det.items()}
+    with pytest.raises(CalibrationError, match="board was not found in any of the 15 images"):
+        build_problem(
+            "robot", scene.board, scene.cameras, scene.robot_poses, det, scene.T_cfc_from_cf0
+        )
+
+
+def test_robot_poses_in_metres() -> None:
+    rng = np.random.default_rng(4)
+    scene = make_scene(rng, n_poses=8, stereo=False)
+    det = scene.observe(rng, 0.1)
+    metres = {
+        sid: make_transform(A[:3, :3], A[:3, 3] / 1000.0) for sid, A in scene.robot_poses.items()
+    }
+    with pytest.raises(CalibrationError, match="wrong unit"):
+        calibrate_handeye(_problem(scene, det, metres))
+
+
+def test_inverted_robot_poses_are_caught_by_the_cross_check() -> None:
+    """Poses exported as T_gf_from_rf by mistake: the solvers disagree or the fit is poor."""
+    rng = np.random.default_rng(6)
+    scene = make_scene(rng, n_poses=10, stereo=False)
+    det = scene.observe(rng, 0.1)
+    wrong = {sid: invert(A) for sid, A in scene.robot_poses.items()}
+    try:
+        he = calibrate_handeye(_problem(scene, det, wrong))
+    except CalibrationError:
+        return
+    assert he.rms_px > 5.0 or any(c.status != "ok" for c in he.methods.values())
