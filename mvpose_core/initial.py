@@ -1,0 +1,86 @@
+"""Initial pose: 3D alignment to triangulated marks, or a linear generalised-camera DLT on rays.
+
+Two starts, chosen by what the layout offers (see :func:`mvpose_core.estimate.estimate_pose`):
+
+* **alignment** — three or more non-collinear marks triangulated: the rotation and translation
+  that best map the CAD positions onto the triangulated points (Kabsch/Umeyama without scale,
+  SVD with the determinant fixed to +1).
+* **generalised DLT** — marks seen by one camera only (fixed stations without overlap): each
+  ray (centre c, direction d in RF) of a mark at p in PF gives ``d × (R p + t − c) = 0``, linear in
+  the 12 entries of (R, t). With six or more rays in general position the 3N×12 system has a
+  unique least-squares solution (not homogeneous, because the rays do not share one centre);
+  R is then projected onto SO(3) and t re-solved with R fixed. It needs cameras with distinct
+  centres and marks not all in one plane through a degenerate configuration; callers check the
+  result's reprojection error.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mvpose_core.refine import Array
+
+#: second singular value / first of centred positions below this counts as collinear
+COLLINEAR_RATIO = 1e-3
+
+
+def collinearity(points: Array) -> float:
+    """Ratio of the second to the first singular value of centred points (0 = on one line)."""
+    c = points - points.mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    return float(s[1] / s[0]) if s[0] > 0 else 0.0
+
+
+def _nearest_rotation(M: Array) -> Array:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def align_points(p_pf: Array, p_rf: Array) -> tuple[Array, Array]:
+    """(R, t) minimising Σ‖R p_pf + t − p_rf‖² for ``[K, 3]`` pairs, K ≥ 3 non-collinear."""
+    if p_pf.shape[0] < 3:
+        raise ValueError(f"3D alignment needs at least 3 points, got {p_pf.shape[0]}")
+    mu_pf = p_pf.mean(axis=0)
+    mu_rf = p_rf.mean(axis=0)
+    H = (p_pf - mu_pf).T @ (p_rf - mu_rf)
+    R = _nearest_rotation(H.T)
+    return R, mu_rf - R @ mu_pf
+
+
+def generalized_dlt(centres: Array, directions: Array, p_pf: Array) -> tuple[Array, Array] | None:
+    """Linear pose from N ≥ 6 rays (RF) of marks at ``p_pf``; None when the system is degenerate."""
+    n = p_pf.shape[0]
+    if n < 6:
+        return None
+    # Normalise for conditioning: marks about their centroid and size, rays about their centre.
+    mu_p = p_pf.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((p_pf - mu_p) ** 2, axis=1)))) or 1.0
+    q = (p_pf - mu_p) / scale
+    mu_c = centres.mean(axis=0)
+    c = centres - mu_c
+    d = directions
+    # [d]× as [N, 3, 3]
+    Dx = np.zeros((n, 3, 3))
+    Dx[:, 0, 1], Dx[:, 0, 2] = -d[:, 2], d[:, 1]
+    Dx[:, 1, 0], Dx[:, 1, 2] = d[:, 2], -d[:, 0]
+    Dx[:, 2, 0], Dx[:, 2, 1] = -d[:, 1], d[:, 0]
+    # unknowns: M = scale·R (row-major, 9) and s = R mu_p + t − mu_c (3): [d]× (M q + s) = [d]× c
+    A = np.zeros((n, 3, 12))
+    for j in range(3):  # (M q)_i = Σ_j M_ij q_j → column 3 i + j carries q_j in row i
+        A[:, :, j::3][:, :, :3] += Dx * q[:, j][:, None, None]
+    A[:, :, 9:] = Dx
+    A = A.reshape(3 * n, 12)
+    b = np.einsum("nij,nj->ni", Dx, c).reshape(-1)
+    U, S, Vt = np.linalg.svd(A, full_matrices=False)
+    if S[-1] < 1e-9 * S[0]:
+        return None
+    x = Vt.T @ ((U.T @ b) / S)
+    M = x[:9].reshape(3, 3)
+    if not np.all(np.isfinite(M)) or np.linalg.norm(M) < 1e-12:
+        return None
+    R = _nearest_rotation(M)
+    # Re-solve the translation with the rotation fixed: [d]× s = [d]× (c − scale·R q)
+    rhs = np.einsum("nij,nj->ni", Dx, c - scale * q @ R.T).reshape(-1)
+    s = np.linalg.lstsq(Dx.reshape(3 * n, 3), rhs, rcond=None)[0]
+    return R, s + mu_c - R @ mu_p

@@ -1,0 +1,265 @@
+"""The hot loop of pose estimation: packed observations, projection with Jacobian, Levenberg–Marquardt.
+
+Everything here works on a :class:`Packed` problem — one row per observation, every camera's
+pose and intrinsics gathered per row — so one refinement iteration is a fixed, small number of
+vectorised numpy calls whatever the number of cameras (no per-camera or per-point Python).
+
+Parametrisation (used for the Jacobian and every covariance in mvpose_core): a pose
+``T_rf_from_pf = (R, t)`` is perturbed on the right, in the part frame::
+
+    T(δ) = T_rf_from_pf · Exp(δ),   δ = (ω [rad], v [mm]),   p_rf ≈ R (p + ω × p + v) + t
+
+so ω is the rotation error about the part frame's axes and v the error of the part origin,
+written in the part frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Packed:
+    """N observations with everything the residual needs, gathered per row."""
+
+    R_cf_from_rf: Array  # [N, 3, 3]
+    t_cf_from_rf: Array  # [N, 3]
+    p_pf: Array  # [N, 3] mark centre in PF
+    uv: Array  # [N, 2] observed distorted pixel
+    weight: Array  # [N] 1 / σ (px⁻¹) of each observation
+    f: Array  # [N, 2] fx, fy
+    c: Array  # [N, 2] cx, cy
+    k: Array  # [N, 8] k1 k2 p1 p2 k3 k4 k5 k6
+    #: any of k4 k5 k6 non-zero (OpenCV's rational model); without them the denominator is 1
+    rational: bool = True
+
+    @property
+    def n(self) -> int:
+        return int(self.uv.shape[0])
+
+    def subset(self, rows: NDArray[np.intp] | NDArray[np.bool_]) -> Packed:
+        arrays = (getattr(self, name)[rows] for name in _ARRAY_FIELDS)
+        return Packed(*arrays, rational=self.rational)
+
+
+_ARRAY_FIELDS = ("R_cf_from_rf", "t_cf_from_rf", "p_pf", "uv", "weight", "f", "c", "k")
+
+
+def so3_exp(w: Array) -> Array:
+    """Rotation matrix of a rotation vector (Rodrigues); scalar math, cheaper than scipy for one."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    # I + a [w]× + b [w]×²
+    return np.array([
+        [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
+        [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
+        [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
+    ])
+
+
+def project(pk: Packed, R: Array, t: Array) -> tuple[Array, Array]:
+    """Predicted pixels ``[N, 2]`` and points in their camera frames ``[N, 3]``."""
+    p_rf = pk.p_pf @ R.T + t
+    p_cf = np.einsum("nij,nj->ni", pk.R_cf_from_rf, p_rf) + pk.t_cf_from_rf
+    xy = p_cf[:, :2] / p_cf[:, 2:3]
+    return _distort(pk, xy), p_cf
+
+
+def _distort(pk: Packed, xy: Array) -> Array:
+    k = pk.k
+    x = xy[:, 0]
+    y = xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k[:, 0] + r2 * (k[:, 1] + r2 * k[:, 4]))
+    if pk.rational:
+        radial = radial / (1.0 + r2 * (k[:, 5] + r2 * (k[:, 6] + r2 * k[:, 7])))
+    p1 = k[:, 2]
+    p2 = k[:, 3]
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([xd, yd], axis=1) * pk.f + pk.c
+
+
+def residuals_and_jacobian(pk: Packed, R: Array, t: Array) -> tuple[Array, Array, Array]:
+    """Residuals ``observed − predicted`` ``[N, 2]`` px, their Jacobian ``[N, 2, 6]``, depths ``[N]``.
+
+    The Jacobian is of the *predicted* pixels with respect to δ = (ω, v) (see the module
+    docstring); the residual's Jacobian is its negative. Written for few numpy calls: this
+    function is most of the solver's time.
+    """
+    A = pk.R_cf_from_rf @ R  # [N, 3, 3] R_cf_from_pf
+    p_cf = (pk.R_cf_from_rf @ (pk.p_pf @ R.T + t)[:, :, None])[:, :, 0] + pk.t_cf_from_rf
+    Z = p_cf[:, 2]
+    iz = 1.0 / Z
+    xy = p_cf[:, :2] * iz[:, None]
+    x = xy[:, 0]
+    y = xy[:, 1]
+    k = pk.k
+    xx = x * x
+    yy = y * y
+    xy2 = 2.0 * x * y
+    r2 = xx + yy
+    num = 1.0 + r2 * (k[:, 0] + r2 * (k[:, 1] + r2 * k[:, 4]))
+    dnum = k[:, 0] + r2 * (2.0 * k[:, 1] + 3.0 * k[:, 4] * r2)
+    if pk.rational:
+        den = 1.0 + r2 * (k[:, 5] + r2 * (k[:, 6] + r2 * k[:, 7]))
+        dden = k[:, 5] + r2 * (2.0 * k[:, 6] + 3.0 * k[:, 7] * r2)
+        iden = 1.0 / den
+        radial = num * iden
+        drad2 = 2.0 * (dnum - radial * dden) * iden  # 2 · d radial / d r2
+    else:
+        radial = num
+        drad2 = 2.0 * dnum
+    p1 = k[:, 2]
+    p2 = k[:, 3]
+    pred = np.empty((pk.n, 2))
+    pred[:, 0] = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * xx)
+    pred[:, 1] = y * radial + p1 * (r2 + 2.0 * yy) + p2 * xy2
+    res = pk.uv - (pred * pk.f + pk.c)
+    # D = d(xd, yd)/d(x, y); the off-diagonal terms are equal.
+    off = 0.5 * xy2 * drad2 + 2.0 * (p1 * x + p2 * y)
+    D = np.empty((pk.n, 2, 2))
+    D[:, 0, 0] = radial + xx * drad2 + 2.0 * p1 * y + 6.0 * p2 * x
+    D[:, 0, 1] = off
+    D[:, 1, 0] = off
+    D[:, 1, 1] = radial + yy * drad2 + 6.0 * p1 * y + 2.0 * p2 * x
+    D *= (pk.f * iz[:, None])[:, :, None]
+    # d(x, y)/d p_cf = [I2 | -xy] / Z, so d uv / d p_cf = [D | -D·xy]
+    B = D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :])
+    J = np.empty((pk.n, 2, 6))
+    # d p_cf/dω = -A [p]×; a row b times -[p]× is p × b.
+    p = pk.p_pf[:, None, :]
+    J[:, :, 0] = p[:, :, 1] * B[:, :, 2] - p[:, :, 2] * B[:, :, 1]
+    J[:, :, 1] = p[:, :, 2] * B[:, :, 0] - p[:, :, 0] * B[:, :, 2]
+    J[:, :, 2] = p[:, :, 0] * B[:, :, 1] - p[:, :, 1] * B[:, :, 0]
+    J[:, :, 3:] = B
+    return res, J, Z
+
+
+@dataclass(frozen=True)
+class LMResult:
+    R: Array
+    t: Array
+    iterations: int
+    initial_cost: float
+    final_cost: float
+    termination: str
+    converged: bool
+    residuals: Array  # [N, 2] observed − predicted at (R, t), px
+    jacobian: Array  # [N, 2, 6] of the predicted pixels at (R, t), unweighted
+
+
+def robust_weights(norm_px: Array, loss: str, huber_px: float) -> Array:
+    """IRLS weight per observation from its residual length in px (Huber: 1 inside, h/s outside)."""
+    if loss == "linear":
+        return np.ones_like(norm_px)
+    return np.minimum(1.0, huber_px / np.maximum(norm_px, 1e-300))
+
+
+def robust_rho(norm_px: Array, loss: str, huber_px: float) -> Array:
+    """ρ(s) per observation: s²/2, or Huber's h·s − h²/2 beyond h (s in px)."""
+    if loss == "linear":
+        return 0.5 * norm_px * norm_px
+    return np.where(
+        norm_px <= huber_px, 0.5 * norm_px * norm_px, huber_px * norm_px - 0.5 * huber_px**2
+    )
+
+
+def levenberg_marquardt(
+    pk: Packed,
+    R: Array,
+    t: Array,
+    *,
+    loss: str = "linear",
+    huber_px: float = 2.0,
+    max_iterations: int = 50,
+    step_tol: float = 1e-4,
+    cost_tol: float = 1e-12,
+) -> LMResult:
+    """Minimise Σ w² ρ(‖observed − predicted‖) over the pose, starting at (R, t).
+
+    Each iteration solves (H + λ·diag H) δ = g with H = JᵀJ, g = Jᵀr (whitened by the weights;
+    IRLS weights for Huber). Step sizes are measured statistically, as √(δᵀHδ) in units of the
+    estimate's own standard deviation. Converged ("step") when a proposed step is below
+    ``step_tol`` σ (decided before spending an evaluation on it) or an accepted one below
+    √``step_tol`` σ (the next would be below step_tol σ, quadratic convergence); when an accepted
+    step lowers the cost by less than ``cost_tol`` relative ("cost"); or when no step lowers it
+    at all ("no_decrease": a minimum to machine precision). Otherwise "max_iterations".
+    """
+    w = pk.weight
+    w2 = w * w
+    robust = loss != "linear"
+    # Equal weights (the usual case) factor out of H and g: skip the per-row products.
+    w0 = float(w[0]) if bool(np.all(w == w[0])) and not robust else None
+
+    def evaluate(R_: Array, t_: Array) -> tuple[float, Array, Array, Array, Array]:
+        res, J, _ = residuals_and_jacobian(pk, R_, t_)
+        if w0 is not None:
+            r = res.reshape(-1)
+            return 0.5 * w0 * w0 * float(r @ r), r, J.reshape(-1, 6), res, J
+        s = np.sqrt(np.einsum("ni,ni->n", res, res))
+        cost = float(w2 @ robust_rho(s, loss, huber_px))
+        # cost Σ w² ρ(|r|): its IRLS form weights each row by w·√(ψ(s)/s)
+        iw = w * np.sqrt(robust_weights(s, loss, huber_px))
+        return cost, (res * iw[:, None]).reshape(-1), (J * iw[:, None, None]).reshape(-1, 6), res, J
+
+    cost, r, Jw, res, J = evaluate(R, t)
+    initial = cost
+    lam = 1e-6
+    termination = "max_iterations"
+    converged = False
+    it = 0
+    while it < max_iterations:
+        it += 1
+        # residual = observed − predicted and J is of predicted, so −∇cost = Jᵀr.
+        H = Jw.T @ Jw
+        g = Jw.T @ r
+        dH = np.diag(np.diag(H))
+        accepted = False
+        while lam < 1e10:
+            try:
+                delta = np.linalg.solve(H + lam * dH, g)
+            except np.linalg.LinAlgError:
+                lam = max(lam * 10.0, 1e-9)
+                continue
+            # δᵀHδ is the step's length in units of the estimate's own 1σ ellipsoid (χ²).
+            step2 = float(delta @ H @ delta)
+            if step2 < step_tol * step_tol:
+                termination, converged = "step", True
+                break
+            R_new = R @ so3_exp(delta[:3])
+            t_new = t + R @ delta[3:]
+            new = evaluate(R_new, t_new)
+            if new[0] <= cost:  # NaN compares False: rejected
+                accepted = True
+                break
+            lam *= 10.0
+        if converged:
+            break
+        if not accepted:
+            termination, converged = "no_decrease", True
+            break
+        decrease = cost - new[0]
+        R, t = R_new, t_new
+        cost, r, Jw, res, J = new
+        lam = max(lam * 0.1, 1e-9)
+        # Gauss–Newton converges quadratically near the minimum: after a step of s σ the
+        # remaining error is O(s²·nonlinearity), so a step below √step_tol σ is the last one.
+        if step2 < step_tol:
+            termination, converged = "step", True
+            break
+        if decrease <= cost_tol * max(cost, 1e-300):
+            termination, converged = "cost", True
+            break
+    return LMResult(R, t, it, initial, cost, termination, converged, res, J)
