@@ -20,9 +20,9 @@ class DriverOperationError(DriverError):
     """A device that was open failed while working (bad frame, lost link, wrong format)."""
 
 
-class DeviceLost(DriverOperationError):
+class DeviceLostError(DriverOperationError):
     """The device stopped answering; it must be closed and opened again."""
 
 
-class DriverTimeout(DriverError, TimeoutError):
+class DriverTimeout(DriverError, TimeoutError):  # noqa: N818 - the name the project chose
     """A device did not answer before the deadline."""

@@ -20,7 +20,7 @@ from drivers.cameras.base import (
 )
 from drivers.cameras.capture import Backoff, CaptureGroup
 from drivers.errors import (
-    DeviceLost,
+    DeviceLostError,
     DriverError,
     DriverInitError,
     DriverOperationError,
@@ -45,7 +45,9 @@ def backend_class(kind: str) -> type[Camera]:
     try:
         module_name, class_name = BACKENDS[kind]
     except KeyError:
-        raise DriverInitError(f"unknown camera driver kind {kind!r}; known: {sorted(BACKENDS)}") from None
+        raise DriverInitError(
+            f"unknown camera driver kind {kind!r}; known: {sorted(BACKENDS)}"
+        ) from None
     try:
         module = importlib.import_module(module_name)
     except ImportError as err:
@@ -88,7 +90,7 @@ __all__ = [
     "Camera",
     "CameraSettings",
     "CaptureGroup",
-    "DeviceLost",
+    "DeviceLostError",
     "DriverError",
     "DriverInitError",
     "DriverOperationError",

@@ -18,20 +18,23 @@ longer than that (plus the time one vendor call takes to return, which the backe
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, TypeVar
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.errors import DeviceLost, DriverError, DriverInitError, DriverOperationError
+from drivers.errors import DeviceLostError, DriverError, DriverInitError, DriverOperationError
 from mvpose_core.station import CameraConfig
 
+T = TypeVar("T")
 TriggerMode = Literal["software", "hardware", "free_run"]
 TRIGGER_MODES: tuple[str, ...] = ("software", "hardware", "free_run")
 Image = NDArray[np.uint8]
@@ -114,7 +117,9 @@ class Camera(ABC):
             self._call("open", self._open_device, init=True)
             self._open = True
 
-    def configure(self, settings: CameraSettings | None = None, **changes: object) -> CameraSettings:
+    def configure(
+        self, settings: CameraSettings | None = None, **changes: object
+    ) -> CameraSettings:
         """Apply ``settings`` (default: from the station file) with ``changes``; return them."""
         base = settings or self.default_settings()
         unknown = sorted(set(changes) - set(CameraSettings.__dataclass_fields__))
@@ -129,7 +134,9 @@ class Camera(ABC):
         with self._lock:
             self._require_open("configure")
             if self._armed is not None:
-                raise DriverOperationError(f"camera {self.camera_id!r}: configure while armed; disarm first")
+                raise DriverOperationError(
+                    f"camera {self.camera_id!r}: configure while armed; disarm first"
+                )
             self._call("configure", lambda: self._configure(s), init=True)
             self._settings = s
         return s
@@ -138,7 +145,8 @@ class Camera(ABC):
         """Start acquisition: wait for software or hardware triggers, or run free."""
         if trigger not in TRIGGER_MODES:
             raise DriverInitError(
-                f"camera {self.camera_id!r}: trigger must be one of {TRIGGER_MODES}, got {trigger!r}"
+                f"camera {self.camera_id!r}: trigger must be one of {TRIGGER_MODES}, "
+                f"got {trigger!r}"
             )
         with self._lock:
             self._require_open("arm")
@@ -166,7 +174,8 @@ class Camera(ABC):
             self._require_open("trigger")
             if self._armed != "software":
                 raise DriverOperationError(
-                    f"camera {self.camera_id!r}: trigger() needs arm('software'), armed is {self._armed!r}"
+                    f"camera {self.camera_id!r}: trigger() needs arm('software'), "
+                    f"armed is {self._armed!r}"
                 )
             # Frames already queued are from before this trigger: dropping them here is the
             # defence against the stale-frame reports (harvesters #383, see docs/cameras.md).
@@ -179,7 +188,9 @@ class Camera(ABC):
     def grab(self, deadline_s: float) -> Frame:
         """The next frame, or :class:`DriverTimeout` once ``deadline_s`` seconds have passed."""
         if not (deadline_s >= 0 and math.isfinite(deadline_s)):
-            raise ValueError(f"camera {self.camera_id!r}: deadline_s must be finite and >= 0, got {deadline_s}")
+            raise ValueError(
+                f"camera {self.camera_id!r}: deadline_s must be finite and >= 0, got {deadline_s}"
+            )
         t_end = time.monotonic() + deadline_s
         with self._lock:
             self._require_open("grab")
@@ -206,10 +217,9 @@ class Camera(ABC):
         """Close (ignoring errors of a lost device), open, configure and arm as before."""
         with self._lock:
             settings, armed = self._settings, self._armed
-            try:
+            # The old connection is gone either way; opening again is what matters.
+            with contextlib.suppress(DriverError):
                 self.close()
-            except DriverError:
-                pass  # the old connection is gone either way; opening again is what matters
             self.open()
             self.configure(settings)
             if armed is not None:
@@ -263,7 +273,7 @@ class Camera(ABC):
         if not self._open:
             raise DriverOperationError(f"camera {self.camera_id!r}: {what}() on a closed camera")
 
-    def _call(self, what: str, fn, init: bool = False):  # type: ignore[no-untyped-def]
+    def _call(self, what: str, fn: Callable[[], T], init: bool = False) -> T:
         """Run a hook; a stray non-driver exception becomes one of ours, chained."""
         try:
             return fn()
@@ -311,9 +321,10 @@ def to_mono8(data: np.ndarray, pixel_format: str, width: int, height: int, camer
         "rgb8": cv2.COLOR_RGB2GRAY,
         "bgr8": cv2.COLOR_BGR2GRAY,
     }[fmt]
-    return cv2.cvtColor(np.ascontiguousarray(a), code)
+    grey: Image = cv2.cvtColor(np.ascontiguousarray(a), code).astype(np.uint8, copy=False)
+    return grey
 
 
-def lost(camera_id: str, kind: str, what: str, err: BaseException) -> DeviceLost:
-    """A :class:`DeviceLost` with a message in the family's shape."""
-    return DeviceLost(f"camera {camera_id!r} ({kind}): device lost during {what}: {err}")
+def lost(camera_id: str, kind: str, what: str, err: BaseException) -> DeviceLostError:
+    """A :class:`DeviceLostError` with a message in the family's shape."""
+    return DeviceLostError(f"camera {camera_id!r} ({kind}): device lost during {what}: {err}")

@@ -4,11 +4,12 @@ Each camera has its own worker thread, so a slow or hung camera costs only its o
 grab_all returns by the deadline (plus a small grace for the threads to report) with a Frame or
 a DriverError for every camera. A camera whose device is lost is closed and opened again by its
 worker in the background, with exponential backoff; until it is back its result is an immediate
-DeviceLost that says when the next attempt is due, and the trigger path never waits for it.
+DeviceLostError that says when the next attempt is due, and the trigger path never waits for it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -18,7 +19,7 @@ from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 from drivers.cameras.base import Camera, Frame, TriggerMode
-from drivers.errors import DeviceLost, DriverError, DriverOperationError, DriverTimeout
+from drivers.errors import DeviceLostError, DriverError, DriverOperationError, DriverTimeout
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +28,7 @@ Result = Frame | DriverError
 
 @dataclass(frozen=True)
 class Backoff:
-    """Reconnect delays: ``first_s``, then times ``factor`` per failed attempt, at most ``max_s``."""
+    """Reconnect delays: ``first_s``, times ``factor`` per failed attempt, at most ``max_s``."""
 
     first_s: float = 0.1
     factor: float = 2.0
@@ -35,7 +36,9 @@ class Backoff:
 
     def __post_init__(self) -> None:
         if not (self.first_s > 0 and self.factor >= 1 and self.max_s >= self.first_s):
-            raise ValueError(f"backoff needs first_s > 0, factor >= 1, max_s >= first_s, got {self}")
+            raise ValueError(
+                f"backoff needs first_s > 0, factor >= 1, max_s >= first_s, got {self}"
+            )
 
     def delay(self, failures: int) -> float:
         """Seconds to wait before the next attempt after ``failures`` failed ones."""
@@ -63,7 +66,9 @@ class _Worker:
         self.failures = 0
         self.next_attempt = 0.0  # monotonic time of the next bring-up attempt while down
         self.reconnects = 0
-        self.thread = threading.Thread(target=self._run, name=f"camera-{cam.camera_id}", daemon=True)
+        self.thread = threading.Thread(
+            target=self._run, name=f"camera-{cam.camera_id}", daemon=True
+        )
 
     # ------------------------------------------------------------------ thread
     def _run(self) -> None:
@@ -86,7 +91,7 @@ class _Worker:
     def _grab(self, job: _Job) -> Result:
         if self.down_reason is not None:
             wait_s = max(0.0, self.next_attempt - time.monotonic())
-            return DeviceLost(
+            return DeviceLostError(
                 f"camera {self.cam.camera_id!r}: reconnecting after: {self.down_reason} "
                 f"(attempt {self.failures + 1} in {wait_s:.2f} s)"
             )
@@ -94,7 +99,7 @@ class _Worker:
             if job.trigger and self.cam.armed == "software":
                 self.cam.trigger()
             return self.cam.grab(max(0.0, job.t_end - time.monotonic()))
-        except DeviceLost as err:
+        except DeviceLostError as err:
             self._went_down(err)
             return err
         except DriverError as err:
@@ -109,10 +114,8 @@ class _Worker:
         cam = self.cam
         try:
             if self.down_reason is not None:
-                try:
+                with contextlib.suppress(DriverError):  # the old connection is gone either way
                     cam.close()
-                except DriverError:
-                    pass  # the old connection is gone either way
             if not cam.is_open:
                 cam.open()
             if cam.settings is None or self.down_reason is not None:
@@ -122,8 +125,12 @@ class _Worker:
         except DriverError as err:
             self.failures += 1 if self.down_reason is not None else 0
             self._went_down(err)
-            log.warning("camera %r: bring-up failed (%s); next attempt in %.2f s",
-                        cam.camera_id, err, self.next_attempt - time.monotonic())
+            log.warning(
+                "camera %r: bring-up failed (%s); next attempt in %.2f s",
+                cam.camera_id,
+                err,
+                self.next_attempt - time.monotonic(),
+            )
             return
         if self.down_reason is not None:
             self.reconnects += 1
@@ -169,8 +176,14 @@ class CaptureGroup:
         t_end = time.monotonic() + timeout_s
         for w in self._workers.values():
             w.ready.wait(max(0.0, t_end - time.monotonic()))
-        return {cid: (None if w.ready.is_set() else w.down_reason or DriverTimeout(
-            f"camera {cid!r}: not up within {timeout_s} s")) for cid, w in self._workers.items()}
+        return {
+            cid: (
+                None
+                if w.ready.is_set()
+                else w.down_reason or DriverTimeout(f"camera {cid!r}: not up within {timeout_s} s")
+            )
+            for cid, w in self._workers.items()
+        }
 
     def status(self) -> dict[str, str]:
         """One line per camera: up, or down with the reason and the reconnects so far."""
@@ -195,7 +208,9 @@ class CaptureGroup:
         for cid, w in self._workers.items():
             if w.current is not None and not w.current.done():
                 # The previous grab is stuck in a vendor call; queueing behind it would hang.
-                results[cid] = DriverOperationError(f"camera {cid!r}: still busy with the previous grab")
+                results[cid] = DriverOperationError(
+                    f"camera {cid!r}: still busy with the previous grab"
+                )
                 continue
             fut: Future[Result] = Future()
             w.current = fut
@@ -220,8 +235,11 @@ class CaptureGroup:
         for w in self._workers.values():
             w.thread.join(max(0.0, t_end - time.monotonic()))
             if w.thread.is_alive():
-                log.error("camera %r: worker still blocked in a vendor call after %.1f s",
-                          w.cam.camera_id, timeout_s)
+                log.error(
+                    "camera %r: worker still blocked in a vendor call after %.1f s",
+                    w.cam.camera_id,
+                    timeout_s,
+                )
                 continue
             try:
                 w.cam.close()

@@ -43,11 +43,14 @@ class FilesCamera(Camera):
     def _open_device(self) -> None:
         folder = Path(self.config.driver.folder or "")
         if not folder.is_dir():
-            raise DriverInitError(f"camera {self.camera_id!r} (files): folder {str(folder)!r} does not exist")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (files): folder {str(folder)!r} does not exist"
+            )
         files = list_images(folder)
         if not files:
             raise DriverInitError(
-                f"camera {self.camera_id!r} (files): no images {list(IMAGE_SUFFIXES)} in {str(folder)!r}"
+                f"camera {self.camera_id!r} (files): no images {list(IMAGE_SUFFIXES)} "
+                f"in {str(folder)!r}"
             )
         self._files = files
         self._next = 0
@@ -57,7 +60,9 @@ class FilesCamera(Camera):
 
     def _arm(self, trigger: TriggerMode) -> None:
         if trigger == "hardware":
-            raise DriverInitError(f"camera {self.camera_id!r} (files): no hardware trigger; use software")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (files): no hardware trigger; use software"
+            )
         self._trigger_mode = trigger
         self._pending = []
 
@@ -76,18 +81,23 @@ class FilesCamera(Camera):
             if not self._pending:
                 # No trigger, no frame: wait out the deadline as a real triggered camera would.
                 time.sleep(max(0.0, t_end - time.monotonic()))
-                raise DriverTimeout(f"camera {self.camera_id!r} (files): no trigger before the deadline")
+                raise DriverTimeout(
+                    f"camera {self.camera_id!r} (files): no trigger before the deadline"
+                )
             index = self._pending.pop(0)
         else:
             index, self._next = self._next, self._next + 1
         if index >= len(self._files):
             raise DriverOperationError(
-                f"camera {self.camera_id!r} (files): folder exhausted after {len(self._files)} images"
+                f"camera {self.camera_id!r} (files): folder exhausted after "
+                f"{len(self._files)} images"
             )
         path = self._files[index]
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
-            raise DriverOperationError(f"camera {self.camera_id!r} (files): cannot read {str(path)!r}")
+            raise DriverOperationError(
+                f"camera {self.camera_id!r} (files): cannot read {str(path)!r}"
+            )
         image = self._to_mono(raw, path)
         return self._crop(image, path), index + 1, None
 

@@ -117,14 +117,20 @@ class GenICamCamera(Camera):
     def _open_device(self) -> None:
         d = self.config.driver
         if not d.cti:
-            raise DriverInitError(f"camera {self.camera_id!r} (genicam): driver.cti (the GenTL producer) is not set")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (genicam): driver.cti (the GenTL producer) is not set"
+            )
         cti = str(Path(d.cti).resolve())
         if not Path(cti).is_file():
-            raise DriverInitError(f"camera {self.camera_id!r} (genicam): GenTL producer {d.cti!r} not found")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (genicam): GenTL producer {d.cti!r} not found"
+            )
         try:
             h = _acquire_producer(cti)
         except Exception as err:
-            raise DriverInitError(f"camera {self.camera_id!r} (genicam): cannot load {d.cti!r}: {err}") from err
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (genicam): cannot load {d.cti!r}: {err}"
+            ) from err
         self._cti = cti
         try:
             self._ia = self._create(h)
@@ -148,28 +154,31 @@ class GenICamCamera(Camera):
             return h.create(key)
         except Exception as err:
             raise DriverInitError(
-                f"camera {self.camera_id!r} (genicam): cannot open {key}: {type(err).__name__}: {err}"
+                f"camera {self.camera_id!r} (genicam): cannot open {key}: "
+                f"{type(err).__name__}: {err}"
             ) from err
 
     def _configure(self, s: CameraSettings) -> None:
         nm = self.node_map
         self.unsupported = []
         self._set_enum(nm, "PixelFormat", s.pixel_format, required=True)
-        for name, value in (("OffsetX", 0), ("OffsetY", 0)):
-            self._set_number(nm, name, value)  # zero first so a larger region fits
-        for name, value in (("Width", s.width), ("Height", s.height)):
-            if value is not None:
-                self._set_number(nm, name, value, required=True)
-        for name, value in (("OffsetX", s.offset_x), ("OffsetY", s.offset_y)):
-            if value:
-                self._set_number(nm, name, value, required=True)
+        for name in ("OffsetX", "OffsetY"):
+            self._set_number(nm, name, 0)  # zero first so a larger region fits
+        for name, size in (("Width", s.width), ("Height", s.height)):
+            if size is not None:
+                self._set_number(nm, name, size, required=True)
+        for name, offset in (("OffsetX", s.offset_x), ("OffsetY", s.offset_y)):
+            if offset:
+                self._set_number(nm, name, offset, required=True)
         if s.exposure_us is not None:
             self._set_number(nm, "ExposureTime", s.exposure_us)
         if s.gain_db is not None:
             self._set_number(nm, "Gain", s.gain_db)
         for name, value in self.config.driver.features.items():
             if not nm.has_node(name):
-                raise DriverInitError(f"camera {self.camera_id!r} (genicam): device has no feature {name!r}")
+                raise DriverInitError(
+                    f"camera {self.camera_id!r} (genicam): device has no feature {name!r}"
+                )
             self._write(nm.get_node(name), name, value)
 
     def _arm(self, trigger: TriggerMode) -> None:
@@ -181,7 +190,9 @@ class GenICamCamera(Camera):
         if nm.has_node("TriggerMode"):
             if nm.has_node("TriggerSelector"):
                 self._set_enum(nm, "TriggerSelector", "FrameStart")
-            self._set_enum(nm, "TriggerMode", "Off" if trigger == "free_run" else "On", required=True)
+            self._set_enum(
+                nm, "TriggerMode", "Off" if trigger == "free_run" else "On", required=True
+            )
             if trigger != "free_run":
                 source = "Software" if trigger == "software" else "Line1"
                 self._set_enum(nm, "TriggerSource", source, required=True)
@@ -215,11 +226,15 @@ class GenICamCamera(Camera):
         if self._emulated_trigger and self._emulated_pending == 0:
             # Same contract as a triggered device: no trigger, no frame.
             time.sleep(max(0.0, t_end - time.monotonic()))
-            raise DriverTimeout(f"camera {self.camera_id!r} (genicam): no trigger before the deadline")
+            raise DriverTimeout(
+                f"camera {self.camera_id!r} (genicam): no trigger before the deadline"
+            )
         while True:
             remaining = t_end - time.monotonic()
             if remaining <= 0:
-                raise DriverTimeout(f"camera {self.camera_id!r} (genicam): no frame before the deadline")
+                raise DriverTimeout(
+                    f"camera {self.camera_id!r} (genicam): no frame before the deadline"
+                )
             try:
                 buf = self._ia.try_fetch(timeout=min(remaining, _FETCH_SLICE_S))
             except GenTLError as err:
@@ -262,7 +277,8 @@ class GenICamCamera(Camera):
         match = [o for o in options if o.lower().replace("packed", "") == value.lower()]
         if not match:
             raise DriverInitError(
-                f"camera {self.camera_id!r} (genicam): {name} {value!r} not offered; device has {options}"
+                f"camera {self.camera_id!r} (genicam): {name} {value!r} not offered; "
+                f"device has {options}"
             )
         self._write(node, name, match[0])
 
@@ -290,7 +306,9 @@ class GenICamCamera(Camera):
 
     def _missing(self, name: str, value: object, required: bool) -> None:
         if required:
-            raise DriverInitError(f"camera {self.camera_id!r} (genicam): device has no {name} feature")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (genicam): device has no {name} feature"
+            )
         if value:  # asking for a non-default value the device cannot take is worth a warning
             log.warning("camera %r: device has no %s; %r not applied", self.camera_id, name, value)
             self.unsupported.append(name)

@@ -62,14 +62,16 @@ class PylonCamera(Camera):
         if not match:
             found = [(i.GetSerialNumber(), i.GetUserDefinedName()) for i in infos]
             raise DriverInitError(
-                f"camera {self.camera_id!r} (pylon): no device with {what}; found (serial, user id) "
-                f"{found} (set PYLON_CAMEMU=N for emulated cameras)"
+                f"camera {self.camera_id!r} (pylon): no device with {what}; "
+                f"found (serial, user id) {found} (set PYLON_CAMEMU=N for emulated cameras)"
             )
         try:
             cam = pylon.InstantCamera(tlf.CreateDevice(match[0]))
             cam.Open()
         except Exception as err:
-            raise DriverInitError(f"camera {self.camera_id!r} (pylon): cannot open {what}: {err}") from err
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (pylon): cannot open {what}: {err}"
+            ) from err
         self._cam = cam
 
     def _configure(self, s: CameraSettings) -> None:
@@ -87,17 +89,23 @@ class PylonCamera(Camera):
             self._set("ExposureTime", s.exposure_us)
         if s.gain_db is not None:
             self._set("Gain", s.gain_db)
-        for name, value in self.config.driver.features.items():
-            self._set(name, value, required=True, exact=True)
+        for feature, setting in self.config.driver.features.items():
+            self._set(feature, setting, required=True, exact=True)
 
     def _arm(self, trigger: TriggerMode) -> None:
         pylon, _ = _pylon()
         self._set("TriggerSelector", "FrameStart")
         self._set("TriggerMode", "Off" if trigger == "free_run" else "On", required=True)
         if trigger != "free_run":
-            self._set("TriggerSource", "Software" if trigger == "software" else "Line1", required=True)
+            self._set(
+                "TriggerSource", "Software" if trigger == "software" else "Line1", required=True
+            )
         # Free running: only the newest frame matters. Triggered: every frame, in order.
-        strategy = pylon.GrabStrategy_LatestImageOnly if trigger == "free_run" else pylon.GrabStrategy_OneByOne
+        strategy = (
+            pylon.GrabStrategy_LatestImageOnly
+            if trigger == "free_run"
+            else pylon.GrabStrategy_OneByOne
+        )
         self._cam.StartGrabbing(strategy)
 
     def _disarm(self) -> None:
@@ -115,7 +123,9 @@ class PylonCamera(Camera):
         pylon, _ = _pylon()
         wait_ms = int(self.config.driver.grab_timeout_ms)
         if not self._cam.WaitForFrameTriggerReady(wait_ms, pylon.TimeoutHandling_Return):
-            raise DriverTimeout(f"camera {self.camera_id!r} (pylon): not ready for a trigger within {wait_ms} ms")
+            raise DriverTimeout(
+                f"camera {self.camera_id!r} (pylon): not ready for a trigger within {wait_ms} ms"
+            )
         self._cam.ExecuteSoftwareTrigger()
 
     def _grab(self, t_end: float) -> tuple[Image, int, int | None]:
@@ -123,13 +133,19 @@ class PylonCamera(Camera):
         while True:
             remaining_ms = int((t_end - time.monotonic()) * 1000)
             if remaining_ms <= 0:
-                raise DriverTimeout(f"camera {self.camera_id!r} (pylon): no frame before the deadline")
+                raise DriverTimeout(
+                    f"camera {self.camera_id!r} (pylon): no frame before the deadline"
+                )
             try:
-                r = self._cam.RetrieveResult(min(remaining_ms, _RETRIEVE_SLICE_MS), pylon.TimeoutHandling_Return)
+                r = self._cam.RetrieveResult(
+                    min(remaining_ms, _RETRIEVE_SLICE_MS), pylon.TimeoutHandling_Return
+                )
             except genicam.GenericException as err:
                 if self._cam.IsCameraDeviceRemoved():
                     raise lost(self.camera_id, self.kind, "grab", err) from err
-                raise DriverOperationError(f"camera {self.camera_id!r} (pylon): grab failed: {err}") from err
+                raise DriverOperationError(
+                    f"camera {self.camera_id!r} (pylon): grab failed: {err}"
+                ) from err
             if r is None or not r.IsValid():
                 if self._cam.IsCameraDeviceRemoved():
                     raise lost(self.camera_id, self.kind, "grab", RuntimeError("device removed"))
@@ -172,34 +188,47 @@ class PylonCamera(Camera):
         node = self._cam.GetNodeMap().GetNode(name)
         if node is None or not genicam.IsWritable(node):
             if required:
-                raise DriverInitError(f"camera {self.camera_id!r} (pylon): no writable feature {name!r}")
+                raise DriverInitError(
+                    f"camera {self.camera_id!r} (pylon): no writable feature {name!r}"
+                )
             if value:
-                log.warning("camera %r: device has no %s; %r not applied", self.camera_id, name, value)
+                log.warning(
+                    "camera %r: device has no %s; %r not applied", self.camera_id, name, value
+                )
                 self.unsupported.append(name)
             return
         try:
             if isinstance(node, genicam.IEnumeration):
                 options = list(node.Symbolics)
                 want = str(value)
-                match = [o for o in options if o == want or (not exact and
-                         o.lower().replace("packed", "") == want.lower())]
+                match = [
+                    o
+                    for o in options
+                    if o == want or (not exact and o.lower().replace("packed", "") == want.lower())
+                ]
                 if not match:
                     raise DriverInitError(
-                        f"camera {self.camera_id!r} (pylon): {name} {want!r} not offered; device has {options}"
+                        f"camera {self.camera_id!r} (pylon): {name} {want!r} not offered; "
+                        f"device has {options}"
                     )
                 node.Value = match[0]
             elif isinstance(node, genicam.IInteger | genicam.IFloat):
                 lo, hi = node.Min, node.Max
-                if not lo <= float(value) <= hi:  # type: ignore[arg-type]
+                number = float(value)  # type: ignore[arg-type]
+                if not lo <= number <= hi:
                     raise DriverInitError(
                         f"camera {self.camera_id!r} (pylon): {name} = {value} outside [{lo}, {hi}]"
                     )
-                node.Value = int(value) if isinstance(node, genicam.IInteger) else float(value)  # type: ignore[call-overload]
+                node.Value = int(number) if isinstance(node, genicam.IInteger) else number
             elif isinstance(node, genicam.ICommand):
                 node.Execute()
             else:
-                node.FromString(str(value)) if not isinstance(value, bool) else setattr(node, "Value", value)
+                node.FromString(str(value)) if not isinstance(value, bool) else setattr(
+                    node, "Value", value
+                )
         except DriverError:
             raise
         except Exception as err:
-            raise DriverInitError(f"camera {self.camera_id!r} (pylon): cannot set {name} = {value!r}: {err}") from err
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (pylon): cannot set {name} = {value!r}: {err}"
+            ) from err

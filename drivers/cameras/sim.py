@@ -8,7 +8,7 @@ Frames are shared read-only arrays, so a grab costs no copy (benchmarks use ``se
 with pre-rendered images). Image noise is drawn once per pose, not per grab.
 
 Faults come from ``driver.fault`` (every n-th grab): ``timeout`` (no frame before the deadline),
-``disconnect`` (:class:`DeviceLost`; the camera cannot be opened for ``fault.down_ms``) and
+``disconnect`` (:class:`DeviceLostError`; the camera cannot be opened for ``fault.down_ms``) and
 ``corrupt`` (a frame the transport flags as incomplete, as pylon's ``GrabSucceeded()`` does).
 """
 
@@ -22,9 +22,9 @@ from dataclasses import replace
 import numpy as np
 
 from drivers.cameras.base import Camera, CameraSettings, Image, TriggerMode
-from drivers.errors import DeviceLost, DriverInitError, DriverOperationError, DriverTimeout
+from drivers.errors import DeviceLostError, DriverInitError, DriverOperationError, DriverTimeout
 from mvpose_core.render import RenderedImage, RenderOptions, render_view
-from mvpose_core.scene import view_cameras
+from mvpose_core.scene import ViewCamera, view_cameras
 from mvpose_core.station import CameraConfig, RecipeConfig, StationConfig
 from mvpose_core.transforms import Array
 
@@ -138,7 +138,7 @@ class SimScene:
         with self._lock:
             return self._hw_count
 
-    def _render(self, T: Array, cams: list) -> dict[tuple[int, str], RenderedImage]:  # type: ignore[type-arg]
+    def _render(self, T: Array, cams: list[ViewCamera]) -> dict[tuple[int, str], RenderedImage]:
         out = {}
         for vc in cams:
             cfg = self.station.camera(vc.camera_id)
@@ -166,7 +166,9 @@ class SimCamera(Camera):
     def _open_device(self) -> None:
         wait = self._down_until - time.monotonic()
         if wait > 0:
-            raise DriverInitError(f"camera {self.camera_id!r} (sim): device not reachable (back in {wait:.2f} s)")
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (sim): device not reachable (back in {wait:.2f} s)"
+            )
         d = self.config.driver
         known = {c.id: c.driver for c in self.scene.station.cameras}
         if self.camera_id not in known or (d.serial and known[self.camera_id].serial != d.serial):
@@ -179,12 +181,16 @@ class SimCamera(Camera):
 
     def _configure(self, settings: CameraSettings) -> None:
         w, h = self.config.image_size
-        if settings.width is not None and settings.height is not None:
-            if settings.offset_x + settings.width > w or settings.offset_y + settings.height > h:
-                raise DriverInitError(
-                    f"camera {self.camera_id!r} (sim): region {settings.width}x{settings.height} at "
-                    f"({settings.offset_x}, {settings.offset_y}) outside the {w}x{h} sensor"
-                )
+        s = settings
+        if (
+            s.width is not None
+            and s.height is not None
+            and (s.offset_x + s.width > w or s.offset_y + s.height > h)
+        ):
+            raise DriverInitError(
+                f"camera {self.camera_id!r} (sim): region {s.width}x{s.height} at "
+                f"({s.offset_x}, {s.offset_y}) outside the {w}x{h} sensor"
+            )
         self._roi = settings
 
     def _arm(self, trigger: TriggerMode) -> None:
@@ -210,7 +216,9 @@ class SimCamera(Camera):
         elif self._trigger_mode == "hardware":
             count = self.scene.wait_hardware_trigger(self._hw_seen, t_end)
             if count is None:
-                raise DriverTimeout(f"camera {self.camera_id!r} (sim): no hardware trigger before the deadline")
+                raise DriverTimeout(
+                    f"camera {self.camera_id!r} (sim): no hardware trigger before the deadline"
+                )
             self._hw_seen = count
             t_ready = time.monotonic() + latency
         else:
@@ -236,10 +244,13 @@ class SimCamera(Camera):
             self._time_out(t_end, "simulated timeout")
         if kind == "disconnect":
             self._down_until = time.monotonic() + down_s
-            raise DeviceLost(f"camera {self.camera_id!r} (sim): device lost during grab (simulated)")
+            raise DeviceLostError(
+                f"camera {self.camera_id!r} (sim): device lost during grab (simulated)"
+            )
         self._frame_id += 1
         raise DriverOperationError(
-            f"camera {self.camera_id!r} (sim): frame {self._frame_id} incomplete (simulated corruption)"
+            f"camera {self.camera_id!r} (sim): frame {self._frame_id} incomplete "
+            "(simulated corruption)"
         )
 
     def _time_out(self, t_end: float, why: str) -> tuple[Image, int, int | None]:

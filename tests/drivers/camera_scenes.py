@@ -6,10 +6,10 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import genicam
 import numpy as np
 import yaml
 
-import genicam
 from mvpose_core.station import CameraConfig, StationConfig, parse_station
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -15,7 +15,7 @@ from drivers.cameras import (
     Camera,
     CameraSettings,
     CaptureGroup,
-    DeviceLost,
+    DeviceLostError,
     DriverInitError,
     DriverOperationError,
     DriverTimeout,
@@ -71,7 +71,11 @@ def scene() -> SimScene:
 def sim_cameras(scene: SimScene, **driver: Any) -> list[Camera]:
     out = []
     for cfg in scene.station.cameras:
-        out.append(make_camera(cfg.model_copy(update={"driver": cfg.driver.model_copy(update=driver)}), scene))
+        out.append(
+            make_camera(
+                cfg.model_copy(update={"driver": cfg.driver.model_copy(update=driver)}), scene
+            )
+        )
     return out
 
 
@@ -94,7 +98,8 @@ def test_all_cameras_of_a_fixed_station_in_one_call(scene: SimScene) -> None:
 def test_slow_camera_times_out_alone(scene: SimScene) -> None:
     cams = sim_cameras(scene)
     slow_cfg = cams[0].config.model_copy(
-        update={"driver": cams[0].config.driver.model_copy(update={"latency_ms": 3000.0})})
+        update={"driver": cams[0].config.driver.model_copy(update={"latency_ms": 3000.0})}
+    )
     cams[0] = make_camera(slow_cfg, scene)
     with CaptureGroup(cams) as group:
         group.wait_ready(5.0)
@@ -114,27 +119,36 @@ def test_hung_vendor_call_never_hangs_the_group(scene: SimScene) -> None:
         assert time.monotonic() - t0 < 0.1 + SLACK_S
         assert isinstance(first["stuck"], DriverTimeout)
         second = group.grab_all(0.1)  # still inside the vendor call: refused at once
-        assert isinstance(second["stuck"], DriverOperationError) and "still busy" in str(second["stuck"])
+        assert isinstance(second["stuck"], DriverOperationError) and "still busy" in str(
+            second["stuck"]
+        )
         assert sum(isinstance(r, Frame) for r in second.values()) == len(scene.station.cameras)
         stuck.release.set()  # the device answers at last; the worker is free again
         assert _poll(lambda: isinstance(group.grab_all(0.5)["stuck"], Frame), 5.0)
 
 
 def test_camera_that_never_opens_is_retried_with_backoff(scene: SimScene) -> None:
-    ghost_cfg = scene.station.cameras[0].model_copy(update={
-        "id": "ghost", "driver": scene.station.cameras[0].driver.model_copy(update={"serial": "SIM-GONE"})})
+    ghost_cfg = scene.station.cameras[0].model_copy(
+        update={
+            "id": "ghost",
+            "driver": scene.station.cameras[0].driver.model_copy(update={"serial": "SIM-GONE"}),
+        }
+    )
     ghost = make_camera(ghost_cfg, scene)
     with CaptureGroup([ghost, *sim_cameras(scene)], backoff=Backoff(0.02, 2.0, 0.1)) as group:
         ready = group.wait_ready(2.0)
         assert isinstance(ready["ghost"], DriverInitError) and "SIM-GONE" in str(ready["ghost"])
         res = group.grab_all(0.5)
-        assert isinstance(res["ghost"], DeviceLost) and "reconnecting" in str(res["ghost"])
+        assert isinstance(res["ghost"], DeviceLostError) and "reconnecting" in str(res["ghost"])
         assert sum(isinstance(r, Frame) for r in res.values()) == len(scene.station.cameras)
         assert group.status()["ghost"].startswith("down:")
 
 
 def test_three_viky_devices_share_one_producer() -> None:
-    cams = [make_camera(camera_config(f"viky{s}", kind="genicam", serial=s, cti=VIKY_CTI)) for s in "012"]
+    cams = [
+        make_camera(camera_config(f"viky{s}", kind="genicam", serial=s, cti=VIKY_CTI))
+        for s in "012"
+    ]
     with CaptureGroup(cams) as group:
         assert all(e is None for e in group.wait_ready(10.0).values()), group.status()
         for _ in range(2):

@@ -18,7 +18,7 @@ from drivers.cameras import (
     Backoff,
     Camera,
     CaptureGroup,
-    DeviceLost,
+    DeviceLostError,
     DriverInitError,
     DriverOperationError,
     DriverTimeout,
@@ -42,7 +42,9 @@ def sim_camera(scene: SimScene, camera_id: str, **driver: Any) -> Camera:
     cfg = scene.station.camera(camera_id)
     if "fault" in driver:
         driver["fault"] = cfg.driver.fault.model_copy(update=driver["fault"])
-    return make_camera(cfg.model_copy(update={"driver": cfg.driver.model_copy(update=driver)}), scene)
+    return make_camera(
+        cfg.model_copy(update={"driver": cfg.driver.model_copy(update=driver)}), scene
+    )
 
 
 def poll(condition: Any, timeout_s: float) -> bool:
@@ -84,8 +86,9 @@ def test_sim_latency_beyond_the_deadline_times_out_at_the_deadline(scene: SimSce
 
 
 def test_viky_timeout_when_the_next_frame_is_later_than_the_deadline() -> None:
-    cfg = camera_config("viky", kind="genicam", serial="2", cti=VIKY_CTI,
-                        features={"AcquisitionFrameRate": 1.0})
+    cfg = camera_config(
+        "viky", kind="genicam", serial="2", cti=VIKY_CTI, features={"AcquisitionFrameRate": 1.0}
+    )
     with make_camera(cfg) as cam:
         cam.arm("free_run")
         cam.grab(3.0)
@@ -102,18 +105,20 @@ def test_sim_disconnect_mid_acquisition_then_reconnect(scene: SimScene) -> None:
     ids = [c.id for c in scene.station.cameras]
     flaky = sim_camera(scene, ids[0], fault={"kind": "disconnect", "every_n": 2, "down_ms": 300.0})
     others = [sim_camera(scene, cid) for cid in ids[1:]]
-    with CaptureGroup([flaky, *others], backoff=Backoff(first_s=0.05, factor=2.0, max_s=0.2)) as group:
+    with CaptureGroup(
+        [flaky, *others], backoff=Backoff(first_s=0.05, factor=2.0, max_s=0.2)
+    ) as group:
         assert all(e is None for e in group.wait_ready(5.0).values())
         assert all(f.image.shape == (H, W) for f in group.grab_all(1.0).values())  # type: ignore[union-attr]
 
         t0 = time.monotonic()
         lost = group.grab_all(1.0)  # the second grab of the flaky camera loses the device
         assert time.monotonic() - t0 < 1.0 + SLACK_S
-        assert isinstance(lost[ids[0]], DeviceLost)
+        assert isinstance(lost[ids[0]], DeviceLostError)
         assert all(not isinstance(lost[cid], Exception) for cid in ids[1:])
 
         during = group.grab_all(1.0)  # answered at once while the worker reconnects
-        assert isinstance(during[ids[0]], DeviceLost) and "reconnecting" in str(during[ids[0]])
+        assert isinstance(during[ids[0]], DeviceLostError) and "reconnecting" in str(during[ids[0]])
         assert all(not isinstance(during[cid], Exception) for cid in ids[1:])
 
         assert poll(lambda: group.status()[ids[0]].startswith("up"), 5.0), group.status()
@@ -128,7 +133,7 @@ def test_sim_camera_cannot_be_opened_while_down(scene: SimScene) -> None:
     cam.open()
     cam.arm("software")
     cam.trigger()
-    with pytest.raises(DeviceLost, match="device lost"):
+    with pytest.raises(DeviceLostError, match="device lost"):
         cam.grab(1.0)
     cam.close()
     with pytest.raises(DriverInitError, match="not reachable"):
@@ -149,7 +154,9 @@ def _opens(cam: Camera) -> bool:
 
 
 def test_sim_corrupt_frame_is_an_operation_error(scene: SimScene) -> None:
-    with sim_camera(scene, scene.station.cameras[1].id, fault={"kind": "corrupt", "every_n": 2}) as cam:
+    with sim_camera(
+        scene, scene.station.cameras[1].id, fault={"kind": "corrupt", "every_n": 2}
+    ) as cam:
         cam.arm("software")
         for expect_error in (False, True, False):
             cam.trigger()
@@ -183,7 +190,9 @@ def test_files_16_bit_image_is_refused(tmp_path: Path) -> None:
     with make_camera(camera_config("deep", kind="files", folder=str(folder))) as cam:
         cam.arm("software")
         cam.trigger()
-        with pytest.raises(DriverOperationError, match=f"camera 'deep': expected mono8, got {W}x{H} mono16"):
+        with pytest.raises(
+            DriverOperationError, match=f"camera 'deep': expected mono8, got {W}x{H} mono16"
+        ):
             cam.grab(1.0)
 
 
@@ -208,7 +217,10 @@ def test_pylon_device_switched_to_mono12_is_refused() -> None:
 
 def test_viky_pixel_format_it_does_not_offer() -> None:
     with make_camera(camera_config("viky", kind="genicam", serial="0", cti=VIKY_CTI)) as cam:
-        with pytest.raises(DriverInitError, match="PixelFormat 'bgr8' not offered; device has \\['RGBa8', 'Mono8'\\]"):
+        with pytest.raises(
+            DriverInitError,
+            match="PixelFormat 'bgr8' not offered; device has \\['RGBa8', 'Mono8'\\]",
+        ):
             cam.configure(pixel_format="bgr8")
         with pytest.raises(DriverInitError, match="Width = 5000 outside"):
             cam.configure(width=5000)
@@ -229,8 +241,15 @@ def test_backend_table_errors(scene: SimScene) -> None:
 def test_backends_are_imported_only_when_used() -> None:
     code = (
         "import sys, drivers.cameras as c; c.backend_class('files'); "
-        "print(sorted(m for m in ('pypylon', 'harvesters', 'mvpose_core.render') if m in sys.modules))"
+        "heavy = ('pypylon', 'harvesters', 'mvpose_core.render'); "
+        "print(sorted(m for m in heavy if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         cwd=Path(__file__).resolve().parents[2], check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=Path(__file__).resolve().parents[2],
+        check=True,
+    )
     assert out.stdout.strip() == "[]"
