@@ -38,9 +38,9 @@ class ValidationError(ValueError):
     """Validation input cannot be used; the message names the file, the row and the value."""
 
 
-def _column(fieldnames: Sequence[str], label: str) -> str | None:
-    """The CSV column holding ``label`` (``X``, ``offset_X``, ``offset.x`` ... any case)."""
-    wanted = {label.lower(), f"offset_{label}".lower(), f"offset.{label}".lower()}
+def _column(fieldnames: Sequence[str], label: str, position: int) -> str | None:
+    """The CSV column of ``label`` (``X``, ``offset_X``, any case) or ``o<position>`` (export)."""
+    wanted = {label.lower(), f"offset_{label}".lower(), f"offset.{label}".lower(), f"o{position}"}
     for name in fieldnames:
         if name.strip().lower() in wanted:
             return name
@@ -54,7 +54,9 @@ def read_offsets_csv(
 
     ``key`` names the column that identifies a measurement; by default the first of
     :data:`KEY_COLUMNS` present. Columns are the convention's labels (``X Y Z W P R`` for FANUC,
-    optionally prefixed ``offset_``); other columns are ignored.
+    optionally prefixed ``offset_``) or ``o1 … o6`` in that order, as the station's measurement
+    export (``GET /api/v1/measurements/export``) writes them; other columns are ignored. Rows
+    without an offset (NOK measurements in an export) are skipped.
     """
     if isinstance(source, (str, Path)):
         name = str(source)
@@ -78,7 +80,7 @@ def read_offsets_csv(
             )
     elif key not in fields:
         raise ValidationError(f"{name}: no column {key!r}; columns are {fields}")
-    cols = {lab: _column(fields, lab) for lab in conv.labels}
+    cols = {lab: _column(fields, lab, i + 1) for i, lab in enumerate(conv.labels)}
     missing = [lab for lab, c in cols.items() if c is None]
     if missing:
         raise ValidationError(
@@ -92,6 +94,8 @@ def read_offsets_csv(
             raise ValidationError(f"{name}: line {line}: empty {key!r}")
         if k in out:
             raise ValidationError(f"{name}: line {line}: {key} {k!r} appears twice")
+        if all(not (row.get(c) or "").strip() for c in cols.values()):  # type: ignore[arg-type]
+            continue  # a NOK measurement of an export: no offset to compare
         values = []
         for lab, c in cols.items():
             raw = (row.get(c) or "").strip()  # type: ignore[arg-type]
