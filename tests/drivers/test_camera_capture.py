@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -194,3 +196,16 @@ def _poll(condition: Any, timeout_s: float) -> bool:
         if time.monotonic() > t_end:
             return False
     return True
+
+
+def test_docs_example_runs() -> None:
+    """The first Python block of docs/cameras.md is executable as written."""
+    root = Path(__file__).resolve().parents[2]
+    text = (root / "docs" / "cameras.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    cwd = os.getcwd()
+    os.chdir(root)  # the example names the station file relative to the repository
+    try:
+        exec(compile(code, "docs/cameras.md", "exec"), {})
+    finally:
+        os.chdir(cwd)
