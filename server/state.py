@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from mvpose_core.station import RecipeConfig, StationConfig, load_station
-from server.api.metrics import Metrics
 from server.auth import ensure_bootstrap
 from server.images import ImageArchive
+from server.metrics import Metrics
 from server.settings import Settings
 from server.store import Store, open_store
 from server.store.schemas import MeasurementFilter, MeasurementRecord, StoredMeasurement

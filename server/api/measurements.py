@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from datetime import datetime
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import BaseModel
 
@@ -16,6 +16,7 @@ from server.api.deps import ReadUser, ServicesDep, StoreDep
 from server.errors import NotFoundError
 from server.store.chain import canonical_json
 from server.store.schemas import (
+    MAX_ID,
     ChainReport,
     ImageStatus,
     MeasurementDetail,
@@ -27,6 +28,10 @@ from server.store.schemas import (
 )
 
 router = APIRouter(prefix="/measurements", tags=["measurements"])
+
+# Bounded so an absurd number is the client's 422, not an overflow inside the database driver.
+IdPath = Annotated[int, Path(ge=1, le=MAX_ID)]
+ViewPath = Annotated[int, Path(ge=1, le=255)]
 
 
 class MeasurementSummary(BaseModel):
@@ -228,7 +233,9 @@ def verify_chain(_: ReadUser, store: StoreDep) -> ChainReport:
 
 
 @router.get("/{measurement_id}", response_model=MeasurementDetail)
-def get_measurement(measurement_id: int, _: ReadUser, services: ServicesDep) -> MeasurementDetail:
+def get_measurement(
+    measurement_id: IdPath, _: ReadUser, services: ServicesDep
+) -> MeasurementDetail:
     """One measurement with its detections per camera and the state of its images."""
     m = services.store.measurements.get(measurement_id)
     rows = {(i.view, i.camera_id): i for i in services.store.images.for_measurement(m.id)}
@@ -256,7 +263,11 @@ def get_measurement(measurement_id: int, _: ReadUser, services: ServicesDep) -> 
     responses={200: {"content": {"image/png": {}}}},
 )
 def get_image(
-    measurement_id: int, view: int, camera_id: str, _: ReadUser, services: ServicesDep
+    measurement_id: IdPath,
+    view: ViewPath,
+    camera_id: Annotated[str, Path(max_length=64)],
+    _: ReadUser,
+    services: ServicesDep,
 ) -> FileResponse:
     """An archived frame as PNG (404 once it has been evicted; the record stays)."""
     m = services.store.measurements.get(measurement_id)

@@ -15,7 +15,7 @@ from server.state import recipe_content
 from server.store.versions import Kind, VersionInfo, VersionSummary
 
 NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
-VersionPath = Annotated[int, Path(ge=1)]
+VersionPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
 
 
 class VersionContent(BaseModel):

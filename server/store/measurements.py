@@ -17,6 +17,7 @@ from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store.chain import GENESIS, canonical_json, seal
 from server.store.models import MeasurementRow
 from server.store.schemas import (
+    MAX_ID,
     ChainReport,
     MeasurementFilter,
     MeasurementRecord,
@@ -37,7 +38,7 @@ def decode_cursor(cursor: str) -> int:
         raw = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)).decode()
         tag, value = raw.split(":", 1)
         last_id = int(value)
-        if tag != "m" or last_id < 1:
+        if tag != "m" or not 1 <= last_id <= MAX_ID:
             raise ValueError(raw)
     except (ValueError, UnicodeDecodeError, binascii.Error):
         raise InvalidInputError(

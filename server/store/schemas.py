@@ -13,6 +13,7 @@ from mvpose_core.transforms import RobotConvention
 
 Name = Annotated[str, Field(min_length=1, max_length=64)]
 Hash = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+MAX_ID = 2**63 - 1  # BIGINT: ids and counters beyond it are refused at the edge
 
 
 class _Model(BaseModel):
@@ -95,11 +96,11 @@ class MeasurementRecord(_Model):
     """
 
     station: Name
-    trigger_id: int = Field(ge=0, description="the PLC's trigger counter")
+    trigger_id: int = Field(ge=0, le=MAX_ID, description="the PLC's trigger counter")
     part_id: str | None = Field(None, max_length=64)
     triggered_at: AwareDatetime
     recipe: Name
-    recipe_version: int = Field(ge=1)
+    recipe_version: int = Field(ge=1, le=2**31 - 1)
     calibration_id: str | None = Field(None, max_length=64)
     calibration_hash: Hash | None = None
     software_version: str = Field(min_length=1, max_length=64)

@@ -20,7 +20,10 @@ class StartupFailedError(RuntimeError):
 
 
 @asynccontextmanager
-async def running(app: ASGIApp, token: str | None = None) -> AsyncIterator[httpx.AsyncClient]:
+async def running(
+    app: ASGIApp, token: str | None = None
+) -> AsyncIterator[tuple[httpx.AsyncClient, dict[str, Any]]]:
+    """Start the app's lifespan; yield a client and the lifespan state; shut down on exit."""
     state: dict[str, Any] = {}
     to_app: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
     from_app: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
@@ -44,7 +47,7 @@ async def running(app: ASGIApp, token: str | None = None) -> AsyncIterator[httpx
         async with httpx.AsyncClient(
             transport=transport, base_url="http://station", headers=headers
         ) as client:
-            yield client
+            yield client, state
     finally:
         await to_app.put({"type": "lifespan.shutdown"})
         await _next(from_app, task)

@@ -1,0 +1,228 @@
+"""The app as a service: problem responses, body limit, health, OpenAPI, runtime hook, start-up."""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+from collections.abc import AsyncIterator, Iterator, Mapping, Sequence
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import pytest
+import yaml
+from apps import ENGINEER, STATION1, settings
+from asgi import StartupFailedError, running
+from fastapi import APIRouter, Request
+from fastapi.routing import APIRoute
+
+from server.api import api_router
+from server.app import create_app
+from server.state import Services
+
+PROBLEM = "application/problem+json"
+J = {"content-type": "application/json"}
+V = "/api/v1/recipes/floor_panel/versions"
+
+
+MALFORMED = [
+    ("GET", "/api/v1/measurements?limit=0", None, {}, 422, "limit"),
+    ("GET", "/api/v1/measurements?limit=abc", None, {}, 422, "limit"),
+    ("GET", "/api/v1/measurements?result=MAYBE", None, {}, 422, "result"),
+    ("GET", "/api/v1/measurements?since=yesterday", None, {}, 422, "since"),
+    ("GET", "/api/v1/measurements?since=2026-11-02T06:00:00", None, {}, 400, "time zone"),
+    ("GET", "/api/v1/measurements?cursor=%00%ff", None, {}, 400, "cursor"),
+    ("GET", "/api/v1/measurements?cursor=bTotMQ", None, {}, 400, "cursor"),  # "m:-1"
+    ("GET", "/api/v1/measurements/99999999999999999999999", None, {}, 422, "measurement_id"),
+    ("GET", "/api/v1/measurements/abc", None, {}, 422, "measurement_id"),
+    ("GET", "/api/v1/measurements/7", None, {}, 404, "measurement 7"),
+    ("GET", "/api/v1/measurements/export?format=xml", None, {}, 422, "format"),
+    ("GET", "/api/v1/recipes/floor_panel/versions/0", None, {}, 422, "version"),
+    ("GET", "/api/v1/recipes/no..such/versions", None, {}, 404, "does not exist"),
+    ("GET", "/api/v1/recipes/a%20b/versions", None, {}, 422, "name"),
+    ("POST", V, b"{not json", J, 422, "JSON"),
+    ("POST", V, b"[1, 2]", J, 422, "body"),
+    ("POST", V, b'{"content": {"marks": "x"}}', J, 400, "not valid"),
+    ("POST", V, b'{"content": {"name": "door"}}', J, 400, "door"),
+    ("POST", "/api/v1/recipes/floor_panel/versions/1/activate?x=1", b"", {}, 200, None),
+    ("POST", "/api/v1/calibrations/cal/versions", b'{"content": {}}', J, 400, "empty"),
+    ("POST", "/api/v1/tokens", b'{"name": "a b", "role": "read"}', J, 422, "name"),
+    ("POST", "/api/v1/tokens", b'{"name": "x", "role": "admin"}', J, 422, "role"),
+    ("DELETE", "/api/v1/tokens/nobody", None, {}, 404, "nobody"),
+    ("PUT", "/api/v1/measurements", None, {}, 405, None),
+    ("GET", "/api/v2/measurements", None, {}, 404, None),
+    ("POST", "/api/v1/tokens", b"{}", {"content-length": "12x"}, 400, "Content-Length"),
+]
+
+
+@pytest.mark.parametrize(("method", "url", "body", "headers", "status", "words"), MALFORMED)
+async def test_malformed_requests_get_4xx_problems(
+    tmp_path: Path, method: str, url: str, body: bytes | None, headers: dict[str, str],
+    status: int, words: str | None,
+) -> None:
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, _):
+        r = await client.request(method, url, content=body, headers=headers)
+        assert r.status_code == status, r.text
+        if status >= 400:
+            assert r.headers["content-type"] == PROBLEM
+            problem = r.json()
+            assert problem["status"] == status and problem["title"] and problem["type"]
+            if words:
+                assert words.lower() in (problem["detail"] + str(problem.get("errors"))).lower()
+
+
+async def test_recipe_upload_checked_against_the_station(tmp_path: Path) -> None:
+    recipe = yaml.safe_load(STATION1.read_text())["recipes"][0]
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, _):
+        bad = recipe | {"sightings": [recipe["sightings"][0] | {"camera": "cam99"}]}
+        r = await client.post("/api/v1/recipes/floor_panel/versions", json={"content": bad})
+        assert r.status_code == 422 and "cam99" in r.json()["detail"]
+        moved = recipe | {"T_rf_from_pf0": {"xyz": [1.0, 2.0, 3.0], "wpr": [0.0, 0.0, 1.0]}}
+        r = await client.post("/api/v1/recipes/floor_panel/versions",
+                              json={"content": moved, "comment": "re-taught"})
+        assert r.status_code == 201 and r.json()["version"] == 2 and not r.json()["active"]
+        r = await client.get("/api/v1/recipes/floor_panel/active")
+        assert r.json()["info"]["version"] == 1
+        r = await client.post("/api/v1/recipes/floor_panel/versions/2/activate")
+        assert r.status_code == 200 and r.json()["active"]
+        r = await client.get("/api/v1/recipes/floor_panel/active")
+        assert r.json()["content"]["T_rf_from_pf0"]["xyz"] == [1.0, 2.0, 3.0]
+        assert r.json()["info"]["created_by"] == "bootstrap"
+        r = await client.get("/api/v1/recipes/floor_panel/versions")
+        assert [(v["version"], v["active"]) for v in r.json()] == [(1, False), (2, True)]
+
+        cal = {"id": "cal-1", "cameras": {"cam1": {"fx": 2900.0}}}
+        r = await client.post("/api/v1/calibrations/station/versions",
+                              json={"content": cal, "activate": True})
+        assert r.status_code == 201 and r.json()["active"] and len(r.json()["sha256"]) == 64
+        r = await client.get("/api/v1/calibrations")
+        assert r.json() == [{"kind": "calibration", "name": "station", "latest_version": 1,
+                             "active_version": 1}]
+
+
+async def test_body_limit_by_header_and_while_streaming(tmp_path: Path) -> None:
+    app = create_app(settings(tmp_path, max_body_bytes=4096))
+    async with running(app, ENGINEER) as (client, _):
+        big = b'{"content": {"x": "' + b"a" * 5000 + b'"}}'
+        r = await client.post("/api/v1/calibrations/c/versions", content=big,
+                              headers=J)
+        assert r.status_code == 413 and r.headers["content-type"] == PROBLEM
+        assert r.json()["limit_bytes"] == 4096
+
+        async def chunks() -> AsyncIterator[bytes]:  # no Content-Length: chunked upload
+            for part in (big[:3000], big[3000:]):
+                yield part
+
+        r = await client.post("/api/v1/calibrations/c/versions", content=chunks(),
+                              headers=J)
+        assert r.status_code == 413
+        r = await client.get("/api/v1/calibrations")
+        assert r.json() == []  # nothing half-stored
+
+
+async def test_health_and_openapi(tmp_path: Path) -> None:
+    async with running(create_app(settings(tmp_path))) as (client, _):
+        assert (await client.get("/api/v1/health/live")).json() == {"status": "alive"}
+        r = await client.get("/api/v1/health/ready")
+        assert r.status_code == 200 and r.json()["checks"]["schema"] == "0001"
+        spec = (await client.get("/openapi.json")).json()
+        assert "/api/v1/measurements/export" in spec["paths"]
+        op = spec["paths"]["/api/v1/measurements"]["get"]
+        assert op["description"].startswith("Measurements, newest first")
+        assert "HTTPBearer" in spec["components"]["securitySchemes"]
+
+
+def test_database_work_never_runs_on_the_event_loop() -> None:
+    """Plain ``def`` endpoints and dependencies run in FastAPI's threadpool; only the loop-only
+    liveness probe is ``async``. A coroutine endpoint that queried the store would block every
+    other request (and the runtime's loop) for the duration of the query."""
+    async_ok = {"live"}
+    routes = list(_api_routes(api_router()))
+    assert len(routes) >= 20
+    for route in routes:
+        is_async = inspect.iscoroutinefunction(route.endpoint)
+        assert is_async == (route.name in async_ok), route.path
+        deps = list(route.dependant.dependencies)
+        while deps:
+            dep = deps.pop()
+            deps += dep.dependencies
+            assert not inspect.iscoroutinefunction(dep.call), (route.path, dep.call)
+
+
+def _api_routes(router: APIRouter) -> Iterator[APIRoute]:
+    for route in router.routes:
+        if isinstance(route, APIRoute):
+            yield route
+        else:  # an included router (FastAPI keeps them nested)
+            yield from _api_routes(route.original_router)  # type: ignore[attr-defined]
+
+
+class EventRuntime:
+    """A runtime written for this test: records the order of events, serves one route."""
+
+    def __init__(self, events: list[str], ready: bool) -> None:
+        self.events = events
+        self.ready = ready
+
+    def routers(self) -> Sequence[APIRouter]:
+        router = APIRouter(prefix="/station")
+
+        @router.get("/status")
+        def status(request: Request) -> dict[str, str]:
+            return {"station": request.state.services.station_name}
+
+        return [router]
+
+    @asynccontextmanager
+    async def lifespan(self, services: Services) -> AsyncIterator[None]:
+        services.store.ping()  # the store is open when the runtime starts
+        self.events.append("runtime up")
+        yield
+        services.store.ping()  # and still open when it stops
+        self.events.append("runtime down")
+
+    def readiness(self) -> Mapping[str, bool]:
+        return {"cameras": True, "plc": self.ready}
+
+
+async def test_runtime_routers_lifespan_and_readiness(tmp_path: Path) -> None:
+    events: list[str] = []
+    runtime = EventRuntime(events, ready=False)
+    async with running(create_app(settings(tmp_path), runtime)) as (client, _):
+        assert events == ["runtime up"]
+        assert (await client.get("/api/v1/station/status")).json() == {"station": "station1"}
+        r = await client.get("/api/v1/health/ready")
+        assert r.status_code == 503 and "plc" in r.json()["detail"]
+        runtime.ready = True
+        r = await client.get("/api/v1/health/ready")
+        assert r.status_code == 200 and r.json()["checks"]["plc"] is True
+    assert events == ["runtime up", "runtime down"]
+
+
+async def test_a_malformed_station_file_stops_start_up(tmp_path: Path) -> None:
+    data = yaml.safe_load(STATION1.read_text())
+    data["cameras"][1]["intrinsics"]["fx"] = -5
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    with pytest.raises(StartupFailedError) as err:
+        async with running(create_app(settings(tmp_path, station=bad))):
+            pass
+    text = str(err.value)
+    assert str(bad) in text and "intrinsics.fx" in text and "-5" in text
+    assert not (tmp_path / "var" / "mvpose.db").exists()  # refused before opening the store
+
+
+async def test_requests_are_served_while_another_waits_on_the_store(tmp_path: Path) -> None:
+    """A slow export stream (a worker thread) does not hold up liveness on the event loop."""
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+        store = state["services"].store
+        conn = store.engine.raw_connection()  # hold the write lock like a long transaction
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            upload = asyncio.create_task(client.post(
+                "/api/v1/calibrations/c/versions", json={"content": {"a": 1}}))
+            live = await asyncio.wait_for(client.get("/api/v1/health/live"), timeout=30)
+            assert live.status_code == 200 and not upload.done()
+        finally:
+            conn.rollback()
+            conn.close()
+        assert (await asyncio.wait_for(upload, timeout=30)).status_code == 201
