@@ -38,26 +38,102 @@ class CalibScene:
     ) -> dict[str, dict[str, Detection | None]]:
         """Detections camera → sample id (None where fewer than ``min_corners`` are in view),
         with Gaussian pixel noise of ``noise_px`` per coordinate."""
-        out: dict[str, dict[str, Detection | None]] = {}
-        for cid, cam in self.cameras.items():
-            out[cid] = {}
-            for sid in self.robot_poses:
-                p = apply(self.T_cf_from_bf(cid, sid), self.board.object_points)
-                ok = p[:, 2] > 1.0
-                uv = np.full((p.shape[0], 2), -1e9)
-                uv[ok] = cam.project(p[ok])
-                ok &= cam.in_image(uv, margin=5.0)
-                ids = np.flatnonzero(ok)
-                if self.board.kind != "charuco" and ids.size != self.board.n_corners:
-                    out[cid][sid] = (
-                        None  # chessboard and circle grids are found whole or not at all
-                    )
-                elif ids.size < min_corners:
-                    out[cid][sid] = None
-                else:
-                    noisy = uv[ids] + rng.normal(0.0, noise_px, (ids.size, 2))
-                    out[cid][sid] = Detection(ids.astype(np.int64), noisy)
-        return out
+        return {
+            cid: {
+                sid: observe_board(
+                    self.board, cam, self.T_cf_from_bf(cid, sid), rng, noise_px, min_corners
+                )
+                for sid in self.robot_poses
+            }
+            for cid, cam in self.cameras.items()
+        }
+
+
+def observe_board(
+    board: BoardSpec,
+    cam: CameraModel,
+    T_cf_from_bf: Array,
+    rng: np.random.Generator,
+    noise_px: float,
+    min_corners: int = 6,
+) -> Detection | None:
+    """What a detector would report: projected corners plus noise; chessboards and circle grids
+    are found whole or not at all, ChArUco corners one by one."""
+    p = apply(T_cf_from_bf, board.object_points)
+    ok = p[:, 2] > 1.0
+    uv = np.full((p.shape[0], 2), -1e9)
+    uv[ok] = cam.project(p[ok])
+    ok &= cam.in_image(uv, margin=5.0)
+    ids = np.flatnonzero(ok)
+    if board.kind != "charuco" and ids.size != board.n_corners:
+        return None
+    if ids.size < min_corners:
+        return None
+    return Detection(ids.astype(np.int64), uv[ids] + rng.normal(0.0, noise_px, (ids.size, 2)))
+
+
+@dataclass(frozen=True)
+class StationScene:
+    """Fixed cameras over a work area and board placements with their true poses in RF."""
+
+    board: BoardSpec
+    cameras: dict[str, CameraModel]
+    T_rf_from_cf: dict[str, Array]
+    T_rf_from_bf: dict[str, Array]
+
+    def observe(
+        self, rng: np.random.Generator, noise_px: float
+    ) -> dict[str, dict[str, Detection | None]]:
+        return {
+            cid: {
+                sid: observe_board(
+                    self.board, cam, compose(invert(self.T_rf_from_cf[cid]), T), rng, noise_px
+                )
+                for sid, T in self.T_rf_from_bf.items()
+            }
+            for cid, cam in self.cameras.items()
+        }
+
+
+def make_station_scene(
+    rng: np.random.Generator,
+    n_placements: int = 12,
+    n_cameras: int = 3,
+    spacing_mm: float = 300.0,
+    height_mm: float = 1300.0,
+    board: BoardSpec | None = None,
+) -> StationScene:
+    """Cameras in a row ``spacing_mm`` apart, ``height_mm`` above the floor of RF, looking down
+    and slightly inwards; each placement is seen by at least two cameras."""
+    board = board or BoardSpec("chessboard", 11, 8, 35.0)
+    cam = lab_camera()
+    xs = (np.arange(n_cameras) - (n_cameras - 1) / 2) * spacing_mm
+    cams = {f"cam{k + 1}": cam for k in range(n_cameras)}
+    T_rf_from_cf = {}
+    for k, x in enumerate(xs):
+        # Looking down (CF z = -RF z), toed in towards the middle of the row.
+        tilt = -np.degrees(np.arctan2(x, height_mm)) * 0.5
+        R = zyx_to_matrix(90.0, 0.0, 180.0) @ zyx_to_matrix(0.0, 0.0, tilt)
+        T_rf_from_cf[f"cam{k + 1}"] = make_transform(R, [1500.0 + x, 200.0, height_mm])
+    centre = board.object_points.mean(axis=0)
+    placements: dict[str, Array] = {}
+    tries = 0
+    while len(placements) < n_placements:
+        tries += 1
+        if tries > 500 * n_placements:
+            raise ValueError("make_station_scene: cannot place the board in two cameras at once")
+        R = zyx_to_matrix(
+            rng.uniform(-180, 180), rng.uniform(-25, 25), 180.0 + rng.uniform(-25, 25)
+        )
+        pos = np.array(
+            [1500.0 + rng.uniform(xs[0], xs[-1]), 200.0 + rng.normal(0, 60), rng.uniform(0, 300)]
+        )
+        T = make_transform(R, pos - R @ centre)
+        scene = StationScene(board, cams, T_rf_from_cf, {"x": T})
+        seen = scene.observe(np.random.default_rng(0), 0.0)
+        if sum(seen[c]["x"] is not None for c in cams) >= 2:
+            placements[f"{len(placements) + 1:03d}"] = T
+    return StationScene(board, cams, T_rf_from_cf, placements)
 
 
 def lab_camera(width: int = 2048, height: int = 2048, f: float = 2909.1) -> CameraModel:

@@ -1,0 +1,244 @@
+"""Calibration reports in millimetres: per-sample residuals, 1σ, repeatability, outliers, a plot."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mvpose_core.calibration.handeye import HandEyeProblem, HandEyeResult, refine
+from mvpose_core.calibration.intrinsics import IntrinsicsResult
+from mvpose_core.calibration.stereo import StereoResult
+from mvpose_core.transforms import Array, transform_error
+
+
+@dataclass(frozen=True)
+class Repeatability:
+    """Spread of the result when each sample in turn is left out (leave-one-out)."""
+
+    method: str
+    n: int
+    std: dict[str, float]  # per quantity: standard deviation over the leave-one-out results
+    max_dev: dict[str, float]  # per quantity: largest deviation from the all-samples result
+    most_influential: str  # sample whose removal moves the result most
+
+
+@dataclass(frozen=True)
+class CalibrationReport:
+    """Everything a commissioning engineer needs to judge a calibration, in px and mm."""
+
+    kind: str
+    per_sample_rms_px: dict[str, float]
+    rms_px: float
+    working_distance_mm: float
+    error_mm_at_working_distance: float  # rms_px seen as a lateral error at that distance
+    outliers: list[str]
+    rejected: dict[str, str]
+    sigma: dict[str, float] = field(default_factory=dict)  # 1σ from the covariance
+    result: dict[str, Any] = field(default_factory=dict)  # headline numbers (f, baseline, ...)
+    methods: dict[str, str] = field(default_factory=dict)  # hand-eye solver cross-check
+    repeatability: Repeatability | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def text(self) -> str:
+        """A short human-readable summary (the CLI prints it)."""
+        lines = [
+            f"{self.kind}: {len(self.per_sample_rms_px)} samples used, "
+            f"{len(self.rejected)} left out",
+            f"  reprojection RMS {self.rms_px:.3f} px = {self.error_mm_at_working_distance:.3f} mm "
+            f"at the working distance {self.working_distance_mm:.0f} mm",
+        ]
+        lines += [f"  {k}: {_fmt(v)}" for k, v in self.result.items()]
+        lines += [f"  1σ {k}: {_fmt(v)}" for k, v in self.sigma.items()]
+        if self.repeatability:
+            r = self.repeatability
+            spread = ", ".join(f"{k} {_fmt(v)}" for k, v in r.max_dev.items())
+            lines.append(
+                f"  {r.method} ({r.n} runs): largest change {spread} (sample {r.most_influential})"
+            )
+        for name, status in self.methods.items():
+            lines.append(f"  solver {name}: {status}")
+        for sid in self.outliers:
+            lines.append(f"  OUTLIER sample {sid}: {self.per_sample_rms_px[sid]:.3f} px")
+        for sid, why in self.rejected.items():
+            lines.append(f"  left out sample {sid}: {why}")
+        return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def find_outliers(per_sample: Mapping[str, float], factor: float = 4.0) -> list[str]:
+    """Samples whose RMS is far above the others: median + ``factor``·(robust σ), and > 1.5×
+    the median (so a perfect, noise-free set flags nothing)."""
+    if len(per_sample) < 4:
+        return []
+    v = np.array(list(per_sample.values()))
+    med = float(np.median(v))
+    mad = 1.4826 * float(np.median(np.abs(v - med)))
+    limit = max(med + factor * mad, 1.5 * med)
+    return [sid for sid, x in per_sample.items() if x > limit]
+
+
+def leave_one_out(
+    ids: Sequence[str], solve: Callable[[list[str]], dict[str, float]], full: dict[str, float]
+) -> Repeatability:
+    """Re-solve without each sample and compare every quantity with its value in ``full``."""
+    runs = {sid: solve([s for s in ids if s != sid]) for sid in ids}
+    keys = list(full)
+    dev = {k: np.array([abs(runs[s][k] - full[k]) for s in ids]) for k in keys}
+    vals = {k: np.array([runs[s][k] for s in ids]) for k in keys}
+    total = sum(dev[k] / (dev[k].max() or 1.0) for k in keys)
+    return Repeatability(
+        method="leave-one-out",
+        n=len(ids),
+        std={k: float(np.std(vals[k], ddof=1)) for k in keys},
+        max_dev={k: float(dev[k].max()) for k in keys},
+        most_influential=ids[int(np.argmax(total))],
+    )
+
+
+# --------------------------------------------------------------------------- per calibration kind
+
+
+def handeye_report(
+    problem: HandEyeProblem, result: HandEyeResult, loo: bool = True
+) -> CalibrationReport:
+    """Report of a hand-eye calibration; leave-one-out re-runs the joint refinement."""
+    f = problem.cameras[result.reference].fx
+    rep = None
+    if loo and len(result.per_sample_rms_px) >= 4:
+        ids = sorted(result.per_sample_rms_px)
+
+        def solve(subset: list[str]) -> dict[str, float]:
+            r = refine(problem, result.X, result.Y, subset)
+            deg, mm = transform_error(r.X, result.X)
+            return {"hand_eye_mm": mm, "hand_eye_deg": deg}
+
+        rep = leave_one_out(ids, solve, {"hand_eye_mm": 0.0, "hand_eye_deg": 0.0})
+    name = "T_gf_from_cf" if result.mount == "robot" else "T_rf_from_cf"
+    return CalibrationReport(
+        kind=f"handeye ({result.mount})",
+        per_sample_rms_px=result.per_sample_rms_px,
+        rms_px=result.rms_px,
+        working_distance_mm=result.depth_mm,
+        error_mm_at_working_distance=result.rms_px * result.depth_mm / f,
+        outliers=find_outliers(result.per_sample_rms_px),
+        rejected=dict(result.rejected),
+        sigma={
+            f"{name} translation mm": result.sigma_mm,
+            f"{name} rotation deg": result.sigma_deg,
+            "detector noise px (from residuals)": result.sigma_px,
+        },
+        result={f"{name} xyz mm": [round(float(x), 4) for x in result.X[:3, 3]]},
+        methods={k: v.status for k, v in result.methods.items()},
+        repeatability=rep,
+    )
+
+
+def intrinsics_report(
+    res: IntrinsicsResult, solve: Callable[[list[str]], IntrinsicsResult] | None = None
+) -> CalibrationReport:
+    """Report of a camera calibration; ``solve`` re-calibrates a subset for leave-one-out."""
+    depth = float(np.median([T[2, 3] for T in res.T_cf_from_bf.values()]))
+    cam = res.camera
+    rep = None
+    if solve is not None and len(res.used) >= 7:
+        rep = leave_one_out(res.used, lambda s: _intr_numbers(solve(s)), _intr_numbers(res))
+    return CalibrationReport(
+        kind=f"intrinsics ({res.camera_id})",
+        per_sample_rms_px=res.per_sample_rms_px,
+        rms_px=res.rms_px,
+        working_distance_mm=depth,
+        error_mm_at_working_distance=res.rms_px * depth / cam.fx,
+        outliers=find_outliers(res.per_sample_rms_px),
+        rejected=dict(res.rejected),
+        sigma={f"{k} (OpenCV)": v for k, v in res.std.items() if k in ("fx", "fy", "cx", "cy")},
+        result={
+            "fx px": cam.fx,
+            "fy px": cam.fy,
+            "cx px": cam.cx,
+            "cy px": cam.cy,
+            "distortion": [round(float(x), 6) for x in cam.dist],
+        },
+        repeatability=rep,
+    )
+
+
+def _intr_numbers(r: IntrinsicsResult) -> dict[str, float]:
+    return {"fx px": r.camera.fx, "cx px": r.camera.cx, "cy px": r.camera.cy}
+
+
+def stereo_report(
+    res: StereoResult, depth_mm: float, solve: Callable[[list[str]], StereoResult] | None = None
+) -> CalibrationReport:
+    rep = None
+    ids = sorted(res.per_sample_rms_px)
+    if solve is not None and len(ids) >= 6:
+        rep = leave_one_out(
+            ids, lambda s: {"baseline mm": solve(s).baseline_mm}, {"baseline mm": res.baseline_mm}
+        )
+    return CalibrationReport(
+        kind=f"stereo ({res.camera1}/{res.camera2})",
+        per_sample_rms_px=res.per_sample_rms_px,
+        rms_px=res.rms_px,
+        working_distance_mm=depth_mm,
+        error_mm_at_working_distance=res.rms_px * depth_mm / res.model1.fx,
+        outliers=find_outliers(res.per_sample_rms_px),
+        rejected=dict(res.rejected),
+        result={
+            "baseline mm": res.baseline_mm,
+            "T_cf2_from_cf1 xyz mm": [round(float(x), 4) for x in res.T_cf2_from_cf1[:3, 3]],
+        },
+        repeatability=rep,
+    )
+
+
+# --------------------------------------------------------------------------- plot
+
+
+def save_residual_plot(
+    path: str | Path, report: CalibrationReport, residuals: Mapping[str, Array] | None = None
+) -> Path:
+    """PNG: per-sample RMS (outliers red, the rest blue) and, if given, every residual vector."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.5), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 2 if residuals else 1, 1)
+    ids = list(report.per_sample_rms_px)
+    vals = [report.per_sample_rms_px[i] for i in ids]
+    colours = ["tab:red" if i in report.outliers else "tab:blue" for i in ids]
+    ax.bar(range(len(ids)), vals, color=colours)
+    ax.set_xticks(range(len(ids)), ids, rotation=90, fontsize=7)
+    ax.set_ylabel("reprojection RMS [px]")
+    ax.set_title(
+        f"{report.kind}: RMS {report.rms_px:.3f} px = "
+        f"{report.error_mm_at_working_distance:.3f} mm @ {report.working_distance_mm:.0f} mm",
+        fontsize=9,
+    )
+    if residuals:
+        ax2 = fig.add_subplot(1, 2, 2)
+        for sid, r in residuals.items():
+            ax2.plot(
+                r[:, 0], r[:, 1], ".", ms=2, color="tab:red" if sid in report.outliers else None
+            )
+        lim = max(float(np.abs(np.concatenate(list(residuals.values()))).max()), 1e-3) * 1.1
+        ax2.set_xlim(-lim, lim)
+        ax2.set_ylim(-lim, lim)
+        ax2.set_aspect("equal")
+        ax2.set_xlabel("du [px]")
+        ax2.set_ylabel("dv [px]")
+        ax2.set_title("residuals of every corner", fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
