@@ -26,7 +26,7 @@ from drivers.errors import (
     DriverOperationError,
     DriverTimeout,
 )
-from mvpose_core.station import CameraConfig
+from mvpose_core.station import CameraConfig, StationConfig
 
 if TYPE_CHECKING:
     from drivers.cameras.sim import RenderOptions, SimScene
@@ -75,6 +75,18 @@ def open_camera(config: CameraConfig, scene: SimScene | None = None) -> Camera:
     return cam
 
 
+def capture_station(
+    station: StationConfig,
+    scene: SimScene | None = None,
+    *,
+    trigger: TriggerMode = "software",
+    backoff: Backoff | None = None,
+) -> CaptureGroup:
+    """A CaptureGroup of every camera of a station; the workers open and arm them."""
+    cameras = [make_camera(c, scene) for c in station.cameras]
+    return CaptureGroup(cameras, trigger=trigger, backoff=backoff)
+
+
 def __getattr__(name: str) -> Any:
     # The simulator pulls in the renderer; load it only when someone asks for it.
     if name in ("SimScene", "RenderOptions"):
@@ -100,6 +112,7 @@ __all__ = [
     "SimScene",
     "TriggerMode",
     "backend_class",
+    "capture_station",
     "make_camera",
     "open_camera",
 ]

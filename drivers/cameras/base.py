@@ -325,6 +325,13 @@ def to_mono8(data: np.ndarray, pixel_format: str, width: int, height: int, camer
     return grey
 
 
+def trigger_source(config: CameraConfig, trigger: TriggerMode) -> str:
+    """GenICam TriggerSource for a mode: Software, or the hardware line (features or Line1)."""
+    if trigger == "software":
+        return "Software"
+    return str(config.driver.features.get("TriggerSource", "Line1"))
+
+
 def lost(camera_id: str, kind: str, what: str, err: BaseException) -> DeviceLostError:
     """A :class:`DeviceLostError` with a message in the family's shape."""
     return DeviceLostError(f"camera {camera_id!r} ({kind}): device lost during {what}: {err}")

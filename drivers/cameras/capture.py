@@ -195,17 +195,27 @@ class CaptureGroup:
                 out[cid] = f"down: {w.down_reason}" if w.down_reason else "starting"
         return out
 
-    def grab_all(self, deadline_s: float, *, trigger: bool = True) -> dict[str, Result]:
+    def grab_all(
+        self, deadline_s: float, *, trigger: bool = True, camera_ids: Sequence[str] | None = None
+    ) -> dict[str, Result]:
         """Trigger (software-armed cameras) and grab every camera; never later than the deadline.
 
-        The result has every camera: a Frame, or the DriverError of that camera alone.
+        ``camera_ids`` limits the grab to some cameras (those of one view, say). The result has
+        each of them: a Frame, or the DriverError of that camera alone.
         """
         if self._closed:
             raise DriverOperationError("capture group is closed")
+        ids = list(self._workers) if camera_ids is None else list(camera_ids)
+        unknown = [cid for cid in ids if cid not in self._workers]
+        if unknown:
+            raise ValueError(
+                f"capture group has no cameras {unknown}; it has {list(self._workers)}"
+            )
         t_end = time.monotonic() + deadline_s
         results: dict[str, Result] = {}
         pending: dict[str, Future[Result]] = {}
-        for cid, w in self._workers.items():
+        for cid in ids:
+            w = self._workers[cid]
             if w.current is not None and not w.current.done():
                 # The previous grab is stuck in a vendor call; queueing behind it would hang.
                 results[cid] = DriverOperationError(
@@ -222,7 +232,7 @@ class CaptureGroup:
                 results[cid] = fut.result()
             else:
                 results[cid] = DriverTimeout(f"camera {cid!r}: no answer within {deadline_s:.3f} s")
-        return {cid: results[cid] for cid in self._workers}
+        return {cid: results[cid] for cid in ids}
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the workers and close every camera."""

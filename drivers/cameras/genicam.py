@@ -27,7 +27,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from drivers.cameras.base import Camera, CameraSettings, Image, TriggerMode, lost, to_mono8
+from drivers.cameras.base import (
+    Camera,
+    CameraSettings,
+    Image,
+    TriggerMode,
+    lost,
+    to_mono8,
+    trigger_source,
+)
 from drivers.errors import DriverError, DriverInitError, DriverOperationError, DriverTimeout
 from mvpose_core.station import CameraConfig
 
@@ -194,7 +202,7 @@ class GenICamCamera(Camera):
                 nm, "TriggerMode", "Off" if trigger == "free_run" else "On", required=True
             )
             if trigger != "free_run":
-                source = "Software" if trigger == "software" else "Line1"
+                source = trigger_source(self.config, trigger)
                 self._set_enum(nm, "TriggerSource", source, required=True)
         if self._emulated_trigger and nm.has_node("AcquisitionFrameRate"):
             # The "triggered" frame is the next one the device sends: make it come soon.

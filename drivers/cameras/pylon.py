@@ -15,7 +15,15 @@ import logging
 import time
 from typing import Any
 
-from drivers.cameras.base import Camera, CameraSettings, Image, TriggerMode, lost, to_mono8
+from drivers.cameras.base import (
+    Camera,
+    CameraSettings,
+    Image,
+    TriggerMode,
+    lost,
+    to_mono8,
+    trigger_source,
+)
 from drivers.errors import DriverError, DriverInitError, DriverOperationError, DriverTimeout
 from mvpose_core.station import CameraConfig
 
@@ -97,9 +105,7 @@ class PylonCamera(Camera):
         self._set("TriggerSelector", "FrameStart")
         self._set("TriggerMode", "Off" if trigger == "free_run" else "On", required=True)
         if trigger != "free_run":
-            self._set(
-                "TriggerSource", "Software" if trigger == "software" else "Line1", required=True
-            )
+            self._set("TriggerSource", trigger_source(self.config, trigger), required=True)
         # Free running: only the newest frame matters. Triggered: every frame, in order.
         strategy = (
             pylon.GrabStrategy_LatestImageOnly
@@ -222,10 +228,10 @@ class PylonCamera(Camera):
                 node.Value = int(number) if isinstance(node, genicam.IInteger) else number
             elif isinstance(node, genicam.ICommand):
                 node.Execute()
+            elif isinstance(node, genicam.IBoolean):
+                node.Value = bool(value)
             else:
-                node.FromString(str(value)) if not isinstance(value, bool) else setattr(
-                    node, "Value", value
-                )
+                node.FromString(str(value))
         except DriverError:
             raise
         except Exception as err:

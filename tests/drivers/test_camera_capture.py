@@ -23,6 +23,7 @@ from drivers.cameras import (
     DriverTimeout,
     Frame,
     SimScene,
+    capture_station,
     make_camera,
 )
 from drivers.cameras.base import Image, TriggerMode
@@ -170,6 +171,28 @@ def test_hardware_trigger_of_the_sim(scene: SimScene) -> None:
         finally:
             t.join()
         assert all(isinstance(f, Frame) and np.isnan(f.t_trigger) for f in res.values())
+
+
+def test_capture_station_and_a_subset_of_cameras(scene: SimScene) -> None:
+    with capture_station(scene.station, scene) as group:
+        assert group.camera_ids == [c.id for c in scene.station.cameras]
+        group.wait_ready(5.0)
+        some = group.camera_ids[1:3]
+        res = group.grab_all(1.0, camera_ids=some)
+        assert list(res) == some and all(isinstance(f, Frame) for f in res.values())
+        with pytest.raises(ValueError, match="no cameras \\['nope'\\]"):
+            group.grab_all(1.0, camera_ids=["nope"])
+
+
+def test_pylon_hardware_trigger_line_from_features() -> None:
+    cfg = camera_config(
+        "basler", kind="pylon", serial="0815-0001", features={"TriggerSource": "Line2"}
+    )
+    with make_camera(cfg) as cam:
+        cam.arm("hardware")
+        assert cam.instant_camera.TriggerSource.Value == "Line2"  # type: ignore[attr-defined]
+        with pytest.raises(DriverTimeout):
+            cam.grab(0.1)  # nobody pulses the line
 
 
 def test_backoff_delays() -> None:
