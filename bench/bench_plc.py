@@ -6,12 +6,13 @@ from __future__ import annotations
 import asyncio
 import gc
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from bench.timing import Timing, check
 from drivers.plc import Control, PlcConfig, PlcServer, Status, TriggerOutcome, TriggerRequest
-from drivers.plc.twin import PlcTwin
+from drivers.plc.twin import PlcStatus, PlcTwin
 
 HANDSHAKE_P99_TARGET_MS = 2.0
 N = 2000
@@ -36,6 +37,10 @@ class InstantPipeline:
         return 1
 
 
+def _toggled(before: bool) -> Callable[[PlcStatus], bool]:
+    return lambda s: s.has(Status.DONE_TOGGLE) != before
+
+
 async def _run() -> tuple[Timing, Timing, Timing]:
     server = PlcServer(InstantPipeline(), PlcConfig(initial_recipe=1, watchdog_s=0))
     await server.start()
@@ -55,9 +60,7 @@ async def _run() -> tuple[Timing, Timing, Timing]:
             toggle = ready.has(Status.DONE_TOGGLE)
             t0 = time.perf_counter()
             await twin.write_trigger(i + 1)
-            answer = await twin.wait_for(
-                lambda s, t=toggle: s.has(Status.DONE_TOGGLE) != t, what="result"
-            )
+            answer = await twin.wait_for(_toggled(toggle), what="result")
             t1 = time.perf_counter()
             if answer.trigger_id != i + 1 or answer.result_id != i + 1:
                 raise RuntimeError(f"handshake {i + 1}: got result {answer.result_id}")

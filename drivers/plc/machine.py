@@ -109,8 +109,13 @@ class Handshake:
     def result_id(self) -> int:
         return self._result_id
 
-    def _ready(self) -> bool:
-        return self.state is State.READY and not self._awaiting_ack and not self._command_busy
+    def _ready(self, trigger_low: bool = True) -> bool:
+        return (
+            self.state is State.READY
+            and not self._awaiting_ack
+            and not self._command_busy
+            and not (trigger_low and self.holding[r.HR_CONTROL] & Control.TRIGGER)
+        )
 
     def _online(self, now: float) -> bool:
         wd = self.config.watchdog_s
@@ -216,7 +221,7 @@ class Handshake:
         return []
 
     def _trigger(self, now: float, control: int) -> list[Effect]:
-        if not self._ready():
+        if not self._ready(trigger_low=False):  # it was low just before this rising edge
             self.stats.missed_triggers += 1
             self._flags |= Status.MISSED_TRIGGER
             return []
@@ -248,7 +253,11 @@ class Handshake:
             if not self._error:
                 self._error = ErrorCode.WATCHDOG
         hold = self.config.trigger_hold_s
-        if (
+        if self._busy and self._trigger_since is not None:
+            # Holding TRIGGER until the answer is a legal PLC style: the hold limit counts from
+            # the end of the measurement (to within one tick).
+            self._trigger_since = now
+        elif (
             hold > 0
             and self._trigger_since is not None
             and self.holding[r.HR_CONTROL] & Control.TRIGGER

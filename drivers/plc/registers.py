@@ -134,7 +134,7 @@ class ErrorCode(IntEnum):
 
     NONE = 0
     WATCHDOG = 1  # the PLC heartbeat (register 1) stopped changing
-    TRIGGER_HELD = 2  # TRIGGER stayed high longer than the hold limit after its acknowledgement
+    TRIGGER_HELD = 2  # TRIGGER stayed high longer than the hold limit after the answer
     INTERNAL = 3  # reset of the pipeline failed
 
 

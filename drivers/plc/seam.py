@@ -68,7 +68,7 @@ class PlcConfig:
     measure_timeout_s: float = 2.0  # a slower measurement becomes ResultCode.TIMEOUT
     command_timeout_s: float = 5.0
     watchdog_s: float = 1.0  # PLC heartbeat must change within this time once seen
-    trigger_hold_s: float = 1.0  # TRIGGER high this long after TRIGGER_ACK → Error TRIGGER_HELD
+    trigger_hold_s: float = 1.0  # TRIGGER high this long after the answer → Error TRIGGER_HELD
     tick_s: float = 0.05  # server heartbeat and watch period
     allowlist: tuple[str, ...] = ()  # PLC addresses or networks ("10.1.2.0/24"); empty = any
     initial_recipe: int = 0  # selected through the handler at start when not 0

@@ -213,13 +213,21 @@ class PlcServer:
         while True:
             address, words = await self._inbox.get()
             self.stats.writes += 1
-            for effect in self.machine.write(address, words, self.clock()):
+            try:
+                effects = self.machine.write(address, words, self.clock())
+            except Exception as err:  # noqa: BLE001 — one bad write must not stop the link
+                self._note(f"write of {words} at {address} failed: {err!r}")
+                continue
+            for effect in effects:
                 self._spawn(effect)
 
     async def _ticker(self) -> None:
         while True:
             await asyncio.sleep(self.config.tick_s)
-            self.machine.tick(self.clock())
+            try:
+                self.machine.tick(self.clock())
+            except Exception as err:  # noqa: BLE001 — keep the heartbeat and watchdog running
+                self._note(f"tick failed: {err!r}")
 
     def _spawn(self, effect: Effect) -> None:
         if isinstance(effect, Measure):

@@ -191,6 +191,13 @@ class PlcTwin:
     async def beat(self) -> None:
         await self.set_control(self.control)
 
+    async def keep_alive(self, period_s: float = 0.1) -> None:
+        """Change the heartbeat every ``period_s`` for ever, as the PLC's cyclic task does; run it
+        as a task next to the handshake (pymodbus serialises the client's requests)."""
+        while True:
+            await self.beat()
+            await asyncio.sleep(period_s)
+
     async def wait_for(
         self, predicate: Callable[[PlcStatus], bool], timeout: float = 2.0, what: str = "condition"
     ) -> PlcStatus:

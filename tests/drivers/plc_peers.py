@@ -70,7 +70,7 @@ class ArithmeticHandler:
 
 def cfg(**overrides: object) -> PlcConfig:
     """Test settings: recipe 1 selected; a watchdog long enough for a loaded machine's stalls."""
-    return PlcConfig(**{"initial_recipe": 1, "watchdog_s": 10.0, **overrides})  # type: ignore[arg-type]
+    return PlcConfig(**{"initial_recipe": 1, "watchdog_s": 10.0, **overrides})
 
 
 ServerFactory = Callable[..., Awaitable[tuple[PlcServer, PlcTwin]]]
@@ -90,11 +90,11 @@ async def plc() -> AsyncIterator[ServerFactory]:
         connect: bool = True,
         **twin_kw: object,
     ) -> tuple[PlcServer, PlcTwin]:
-        server = PlcServer(handler or ArithmeticHandler(), config or cfg())  # type: ignore[arg-type]
+        server = PlcServer(handler or ArithmeticHandler(), config or cfg())
         await server.start()
         servers.append(server)
         order = server.config.word_order
-        twin = PlcTwin("127.0.0.1", server.port, word_order=order, **twin_kw)  # type: ignore[arg-type]
+        twin = PlcTwin("127.0.0.1", server.port, word_order=order, **twin_kw)
         if connect:
             await twin.connect()
             twins.append(twin)

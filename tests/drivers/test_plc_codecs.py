@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
@@ -34,7 +36,7 @@ def test_known_byte_patterns() -> None:
 @pytest.mark.parametrize("order", ORDERS)
 def test_int_and_float_agree_with_pymodbus_and_pymodbustcp(order: WordOrder) -> None:
     rng = np.random.default_rng(7)
-    word = "big" if order is WordOrder.ABCD else "little"
+    word: Literal["big", "little"] = "big" if order is WordOrder.ABCD else "little"
     big = order is WordOrder.ABCD
     dt = AsyncModbusTcpClient.DATATYPE
     for v in rng.integers(-(2**31), 2**31, size=200):

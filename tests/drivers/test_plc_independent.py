@@ -63,7 +63,7 @@ class LadderProgram:
         self.beat = (self.beat + 1) & 0xFFFF
         assert self.c.write_multiple_registers(0, [bits, self.beat, *(extra or [])])
 
-    def poll(self, cond, timeout: float = 3.0) -> list[int]:  # type: ignore[no-untyped-def]
+    def poll(self, cond, timeout: float = 3.0) -> list[int]:
         deadline = time.monotonic() + timeout
         while True:
             regs = self.read()

@@ -20,7 +20,7 @@ class Plc:
 
     def __init__(self, order: WordOrder = WordOrder.ABCD, **cfg: float) -> None:
         self.order = order
-        self.m = Handshake(PlcConfig(word_order=order, **cfg), convention_code=1, now=0.0)  # type: ignore[arg-type]
+        self.m = Handshake(PlcConfig(word_order=order, **cfg), convention_code=1, now=0.0)
         self.beat = 0
         self.t = 0.0
 
@@ -238,3 +238,26 @@ def test_static_registers() -> None:
     p.m.tick(0.1)
     p.m.tick(0.2)
     assert img[r.IR_HEARTBEAT] == hb + 2
+
+
+def test_trigger_held_through_a_long_measurement_is_legal() -> None:
+    p = Plc(trigger_hold_s=0.3).ready()
+    t0 = p.t
+    p.trigger(6)
+    p.m.tick(t0 + 0.5)  # still measuring, TRIGGER high: allowed
+    assert p.m.error is ErrorCode.NONE
+    p.m.measured(TriggerOutcome(0))
+    p.m.tick(t0 + 0.7)  # 0.2 s after the answer
+    assert p.m.error is ErrorCode.NONE
+    p.m.tick(t0 + 0.9)  # 0.4 s after the answer
+    assert p.m.error is ErrorCode.TRIGGER_HELD
+
+
+def test_not_ready_while_trigger_stays_high() -> None:
+    p = Plc().ready()
+    p.trigger(1)
+    p.m.measured(TriggerOutcome(0))
+    p.ctl(EN | Control.TRIGGER | Control.RESULT_ACK)  # acknowledged, TRIGGER not yet dropped
+    assert not p.status() & Status.READY and p.m.state is State.READY
+    p.ctl(EN | Control.RESULT_ACK)
+    assert p.status() & Status.READY

@@ -40,7 +40,7 @@ from mvpose_core.transforms import (
 )
 
 
-async def until(predicate, timeout: float = 3.0) -> None:  # type: ignore[no-untyped-def]
+async def until(predicate, timeout: float = 3.0) -> None:
     """Poll a server-side condition with a deadline."""
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -225,6 +225,21 @@ async def test_watchdog_on_lost_heartbeat(plc: ServerFactory) -> None:
     await twin.reset_error()
     assert handler.resets == 1
     check_result(await twin.cycle(4), 4)
+
+
+async def test_heartbeat_task_keeps_the_watchdog_quiet(plc: ServerFactory) -> None:
+    server, twin = await plc(config=cfg(watchdog_s=0.15, tick_s=0.01))
+    beating = asyncio.create_task(twin.keep_alive(0.02))
+    try:
+        ticks = server.machine.image[r.IR_HEARTBEAT]
+        await until(lambda: (server.machine.image[r.IR_HEARTBEAT] - ticks) % 65536 > 40)
+        check_result(await twin.cycle(12), 12)
+        assert server.stats.handshake.watchdog_trips == 0 and server.state is State.READY
+    finally:
+        beating.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await beating
+    await until(lambda: server.machine.error is ErrorCode.WATCHDOG)
 
 
 async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) -> None:
