@@ -141,7 +141,8 @@ class GenICamCamera(Camera):
             ) from err
         self._cti = cti
         try:
-            self._ia = self._create(h)
+            with _producers_lock:  # CaptureGroup workers open cameras of one producer at once
+                self._ia = self._create(h)
         except BaseException:
             self._cti = ""
             _release_producer(cti)
