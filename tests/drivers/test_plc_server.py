@@ -153,6 +153,36 @@ async def test_robot_mounted_flow_with_flange_poses(plc: ServerFactory) -> None:
         assert deg < 1e-3 and mm < 2e-3  # flange pose on the wire: 1 µm and 1e-6 quaternion counts
 
 
+async def test_a_concurrent_reader_never_sees_a_torn_result_block(plc: ServerFactory) -> None:
+    server, twin = await plc(config=cfg(word_order=WordOrder.CDAB))
+    spy = await PlcTwin("127.0.0.1", server.port, word_order=WordOrder.CDAB).connect()
+    snapshots: list[PlcStatus] = []
+    running = True
+
+    async def watch() -> None:
+        while running:
+            snapshots.append(await spy.read_status())
+
+    watcher = asyncio.create_task(watch())
+    trigger_of_result = {}
+    try:
+        for tid in range(500, 800):
+            answer = await twin.cycle(tid)
+            trigger_of_result[answer.result_id] = tid
+    finally:
+        running = False
+        await watcher
+        spy.close()
+    seen = [s for s in snapshots if s.result_id]
+    assert len(seen) > 100
+    for snap in seen:
+        want = expected_outcome(trigger_of_result[snap.result_id])
+        assert snap.result_code == want.result_code
+        assert snap.offset_counts[0] == round(want.offset[0] * 1e3)
+        assert snap.offset_counts[5] == round(want.offset[5] * 1e4)
+        assert snap.offset_float[2] == pytest.approx(want.offset[2])
+
+
 async def test_commands_select_recipe_teach_and_refusals(plc: ServerFactory) -> None:
     handler = ArithmeticHandler()
     server, twin = await plc(handler)
