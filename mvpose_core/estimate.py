@@ -98,7 +98,7 @@ class SolveInfo:
     rms_px: float  # √(mean |r|²) over the observations used, px (OpenCV's RMS)
     termination: str  # "gradient" | "step" | "cost" | "no_decrease" | "max_iterations"
     converged: bool
-    initializer: str  # "triangulation" | "generalized_dlt" | "prior"
+    initializer: str  # "warm_start" | "triangulation" | "generalized_dlt" | "prior"
     rejected: tuple[tuple[int, str, str], ...] = ()  # (view, camera_id, mark_id) dropped
 
 
@@ -184,8 +184,15 @@ def estimate_pose(
     sigma_px: float = 1.0,
     *,
     initial_T_rf_from_pf: np.ndarray | None = None,
+    warm_start: np.ndarray | None = None,
 ) -> PoseResult:
-    """Estimate ``T_rf_from_pf`` from mark observations (see the module docstring)."""
+    """Estimate ``T_rf_from_pf`` from mark observations (see the module docstring).
+
+    ``initial_T_rf_from_pf`` is a prior (e.g. the taught pose) used only when the layout gives
+    no start of its own; ``warm_start`` (e.g. the pose of the same part a moment ago) is tried
+    before the layout's starts. Either is kept only if its refined RMS is within
+    ``options.restart_rms_px``, otherwise the next start is tried.
+    """
     if not (np.isfinite(sigma_px) and sigma_px > 0):
         raise PoseInputError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
     n = len(observations)
@@ -253,18 +260,25 @@ def estimate_pose(
         )
 
     starts = _starts(observations, cameras, ci, mi, P_marks, T_rf_from_cf, initial_T_rf_from_pf)
+    if warm_start is not None:
+        T_warm = check_transform(warm_start, "warm_start")
+        starts.insert(0, ("warm_start", lambda: (T_warm[:3, :3].copy(), T_warm[:3, 3].copy())))
     active = objective.copy()
     best: tuple[LMResult, str] | None = None
+    best_in_front = False
     iterations = 0
     for name, make in starts:
         start = make()
         if start is None:
             continue
-        lm = _refine(pk_all.subset(active), start, options)
+        pk = pk_all.subset(active)
+        lm = _refine(pk, start, options)
         iterations += lm.iterations
-        if best is None or lm.final_cost < best[0].final_cost:
-            best = (lm, name)
-        if _rms(lm) <= options.restart_rms_px:
+        # A mirrored minimum with marks behind the cameras can fit well: rank it last.
+        in_front = bool(np.all(_depths(pk, lm) > 0))
+        if best is None or (in_front, -lm.final_cost) > (best_in_front, -best[0].final_cost):
+            best, best_in_front = (lm, name), in_front
+        if in_front and _rms(lm) <= options.restart_rms_px:
             break
     if best is None:
         raise PoseInputError(

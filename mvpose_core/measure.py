@@ -45,11 +45,15 @@ def measure(
     observations: Sequence[Observation],
     flange_poses: Mapping[int, np.ndarray] | None = None,
     options: EstimateOptions = EstimateOptions(),  # noqa: B008 - frozen, immutable default
+    *,
+    initial_T_rf_from_pf: np.ndarray | None = None,
 ) -> Measurement:
     """Estimate the part pose from one trigger's observations and judge it.
 
     ``flange_poses`` are the robot's actual flange poses per view (taught ones otherwise).
     The recipe's detector noise is the a-priori σ; its taught pose is the start of last resort.
+    ``initial_T_rf_from_pf`` is a warm start tried first (e.g. the pose measured just before a
+    centre correction of the same images).
     Input the estimator cannot use raises :class:`mvpose_core.estimate.PoseInputError`, whose
     ``reason`` is the gate code to report; a pose that exists but fails a tolerance comes back
     with ``gate.ok = False``.
@@ -59,7 +63,7 @@ def measure(
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
     pose = estimate_pose(
         observations, cameras, marks_pf, options, sigma_px=recipe.detector_noise_px,
-        initial_T_rf_from_pf=T_rf_from_pf0,
+        initial_T_rf_from_pf=T_rf_from_pf0, warm_start=initial_T_rf_from_pf,
     )
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)

@@ -162,3 +162,16 @@ def test_outlier_rule_rejects_the_gross_error() -> None:
     e_huber = transform_error(huber.T_rf_from_pf, T)
     assert e_robust[1] < 0.5 * e_plain[1] and e_huber[1] < e_plain[1]
     assert plain.info.rejected == ()
+
+
+def test_warm_start_is_tried_first_and_a_bad_one_is_replaced() -> None:
+    obs, cams, marks, T = noiseless("station1")
+    near = T @ make_transform(so3_exp(np.radians([0.3, 0.0, -0.2])), [2.0, 1.0, -3.0])
+    r = estimate_pose(obs, cams, marks, warm_start=near)
+    assert r.info.initializer == "warm_start"
+    assert transform_error(r.T_rf_from_pf, T) < (1e-7, 1e-5)
+    # a warm start 3 m off ends in a poor minimum: the layout's own start takes over
+    far = T @ make_transform(np.eye(3), [0.0, 0.0, 3000.0])
+    r = estimate_pose(obs, cams, marks, warm_start=far)
+    assert r.info.initializer == "generalized_dlt"
+    assert transform_error(r.T_rf_from_pf, T) < (1e-7, 1e-5)
