@@ -74,15 +74,18 @@ def _fmt(v: Any) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
-def find_outliers(per_sample: Mapping[str, float], factor: float = 4.0) -> list[str]:
-    """Samples whose RMS is far above the others: median + ``factor``·(robust σ), and > 1.5×
-    the median (so a perfect, noise-free set flags nothing)."""
+def find_outliers(
+    per_sample: Mapping[str, float], factor: float = 4.0, min_excess_px: float = 0.05
+) -> list[str]:
+    """Samples whose RMS is far above the others: above median + ``factor``·(robust σ), above
+    1.5× the median and at least ``min_excess_px`` above it (so differences at the level of
+    detector noise are not flagged)."""
     if len(per_sample) < 4:
         return []
     v = np.array(list(per_sample.values()))
     med = float(np.median(v))
     mad = 1.4826 * float(np.median(np.abs(v - med)))
-    limit = max(med + factor * mad, 1.5 * med)
+    limit = max(med + factor * mad, 1.5 * med, med + min_excess_px)
     return [sid for sid, x in per_sample.items() if x > limit]
 
 

@@ -1,0 +1,229 @@
+"""``mvpose calibrate``: rendered board images and a robot-pose file through the real command."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mvpose_core.calibration.boards import BoardSpec, render
+from mvpose_core.calibration.files import load_calibration
+from mvpose_core.calibration.synthetic import make_scene
+from mvpose_core.camera import CameraModel
+from mvpose_core.transforms import to_robot, transform_error
+from server.cli import main
+
+CAM = CameraModel(900.0, 900.0, 402.0, 297.0, 800, 600, (-0.12, 0.08, 0.0003, -0.0002, 0.0))
+BOARD = "chessboard:9x6:25"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory):
+    """Eight rendered views from a robot-mounted camera, a KUKA pose CSV, and the truth."""
+    root = tmp_path_factory.mktemp("calib")
+    rng = np.random.default_rng(3)
+    board = BoardSpec.parse(BOARD)
+    scene = make_scene(
+        rng, n_poses=8, stereo=False, board=board, camera=CAM, distance_mm=(330, 420)
+    )
+    folder = root / "images" / "left"
+    folder.mkdir(parents=True)
+    for sid in scene.robot_poses:
+        img = render(board, CAM, scene.T_cf_from_bf("left", sid), rng)
+        cv2.imwrite(str(folder / f"{sid}.png"), img)
+    return root, scene
+
+
+def _poses_csv(path: Path, scene, scale: float = 1.0, drop: str | None = None) -> Path:
+    lines = ["id,X,Y,Z,A,B,C"]
+    for sid, A in scene.robot_poses.items():
+        if sid == drop:
+            continue
+        v = to_robot(A, "kuka")
+        v[:3] *= scale
+        lines.append(sid + "," + ",".join(f"{x:.5f}" for x in v))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _run(*argv: str | Path) -> int:
+    return main(["calibrate", *[str(a) for a in argv]])
+
+
+def test_handeye_from_images_and_pose_file(data, tmp_path: Path, capsys) -> None:
+    root, scene = data
+    poses = _poses_csv(tmp_path / "poses.csv", scene)
+    out = tmp_path / "cal" / "handeye.json"
+    code = _run(
+        "handeye",
+        "--images",
+        root / "images",
+        "--board",
+        BOARD,
+        "--poses",
+        poses,
+        "--convention",
+        "kuka",
+        "--out",
+        out,
+        "--no-progress",
+    )
+    assert code == 0, capsys.readouterr().err
+    cal = load_calibration(out)  # verifies the content hash
+    assert cal.kind == "handeye"
+    assert cal.inputs.samples_used == sorted(scene.robot_poses)
+    assert cal.inputs.robot_convention == "kuka" and len(cal.inputs.robot_poses_sha256) == 64
+    X = cal.rigs["rig"].T_gf_from_rig.matrix  # no station: the rig frame is the camera frame
+    deg, mm = transform_error(X, scene.X)
+    assert mm < 0.5 and deg < 0.05, (deg, mm)
+    fx = cal.cameras["left"].intrinsics.fx
+    assert abs(fx / CAM.fx - 1) < 2e-3
+    assert (out.with_suffix(".residuals.png")).read_bytes()[:4] == b"\x89PNG"
+    text = out.with_suffix(".report.txt").read_text()
+    assert "1σ T_gf_from_cf translation mm" in text and "leave-one-out" in text
+
+
+def test_intrinsics_then_handeye_on_top(data, tmp_path: Path) -> None:
+    root, scene = data
+    base = tmp_path / "intr.json"
+    assert (
+        _run(
+            "intrinsics",
+            "--images",
+            root / "images",
+            "--board",
+            BOARD,
+            "--out",
+            base,
+            "--no-progress",
+        )
+        == 0
+    )
+    poses = _poses_csv(tmp_path / "poses.csv", scene)
+    out = tmp_path / "he.json"
+    assert (
+        _run(
+            "handeye",
+            "--images",
+            root / "images",
+            "--board",
+            BOARD,
+            "--poses",
+            poses,
+            "--convention",
+            "kuka",
+            "--base",
+            base,
+            "--out",
+            out,
+            "--no-progress",
+        )
+        == 0
+    )
+    b, h = load_calibration(base), load_calibration(out)
+    assert h.inputs.based_on == b.ref
+    assert h.cameras["left"] == b.cameras["left"]  # intrinsics reused, not recalibrated
+
+
+def test_missing_board_image_is_reported_and_left_out(data, tmp_path: Path) -> None:
+    root, scene = data
+    images = tmp_path / "images" / "left"
+    images.mkdir(parents=True)
+    for f in (root / "images" / "left").iterdir():
+        data_bytes = f.read_bytes()
+        if f.stem == "004":
+            blank = np.full((CAM.height, CAM.width), 128, np.uint8)
+            cv2.imwrite(str(images / f.name), blank)
+        else:
+            (images / f.name).write_bytes(data_bytes)
+    poses = _poses_csv(tmp_path / "poses.csv", scene)
+    out = tmp_path / "he.json"
+    assert (
+        _run(
+            "handeye",
+            "--images",
+            tmp_path / "images",
+            "--board",
+            BOARD,
+            "--poses",
+            poses,
+            "--convention",
+            "kuka",
+            "--out",
+            out,
+            "--no-progress",
+        )
+        == 0
+    )
+    cal = load_calibration(out)
+    assert "004" not in cal.inputs.samples_used
+    assert cal.inputs.samples_rejected["004"].startswith("left: board not found")
+    assert transform_error(cal.rigs["rig"].T_gf_from_rig.matrix, scene.X)[1] < 0.5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"scale": 0.001}, "wrong unit"),
+        ({"drop": "005"}, r"images without a pose: \['005'\]"),
+    ],
+)
+def test_bad_pose_files_name_the_problem(data, tmp_path: Path, capsys, kwargs, message) -> None:
+    root, scene = data
+    poses = _poses_csv(tmp_path / "poses.csv", scene, **kwargs)
+    code = _run(
+        "handeye",
+        "--images",
+        root / "images",
+        "--board",
+        BOARD,
+        "--poses",
+        poses,
+        "--convention",
+        "kuka",
+        "--out",
+        tmp_path / "x.json",
+        "--no-progress",
+    )
+    assert code == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_bad_board_and_wrong_header(data, tmp_path: Path, capsys) -> None:
+    root, scene = data
+    assert (
+        _run(
+            "intrinsics",
+            "--images",
+            root / "images",
+            "--board",
+            "chess:9x6",
+            "--out",
+            tmp_path / "x.json",
+        )
+        == 2
+    )
+    assert "--board" in capsys.readouterr().err
+    poses = _poses_csv(tmp_path / "poses.csv", scene)
+    assert (
+        _run(
+            "handeye",
+            "--images",
+            root / "images",
+            "--board",
+            BOARD,
+            "--poses",
+            poses,
+            "--convention",
+            "fanuc",
+            "--out",
+            tmp_path / "x.json",
+            "--no-progress",
+        )
+        == 2
+    )
+    assert "does not match the fanuc convention" in capsys.readouterr().err
