@@ -273,11 +273,20 @@ class Handshake:
         self._publish()
 
     def measured(self, outcome: TriggerOutcome) -> None:
-        """Publish the answer to the running trigger: a result block or VIEW_DONE, in one step."""
+        """Publish the answer to the running trigger: a result block or VIEW_DONE, in one step.
+
+        A NOK answer always ends a sequence and carries a zero offset, so a PLC program that
+        forgets to test RESULT_OK still never moves the robot by a rejected measurement.
+        """
         img = self.image
         order = self.order
         offset = tuple(outcome.offset)
         code = outcome.result_code
+        if len(offset) == 7 and self._convention is RobotConvention.ABB:
+            try:  # the full robtarget form: send it as X Y Z q2 q3 q4
+                offset = codecs.pose_to_plc(offset, self._convention)
+            except ValueError:
+                offset = (math.nan,) * 6
         numbers = (*offset, outcome.sigma_trans_mm, outcome.sigma_rot_deg, outcome.processing_ms)
         if (
             len(offset) != 6
@@ -288,9 +297,11 @@ class Handshake:
             self.stats.invalid_outcomes += 1
             offset, code = (0.0,) * 6, int(ResultCode.INVALID_OUTCOME)
             outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done)
+        if code != ResultCode.OK:
+            offset = (0.0,) * 6
         views = max(0, min(int(outcome.views_done), 0xFFFF))
         img[r.IR_VIEWS_DONE] = views
-        if outcome.final:
+        if outcome.final or code != ResultCode.OK:
             self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
             img[r.IR_RESULT_ID : r.IR_RESULT_ID + 2] = codecs.encode_uint32(self._result_id, order)
             img[r.IR_RESULT_CODE] = code

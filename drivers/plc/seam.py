@@ -25,8 +25,10 @@ class TriggerOutcome:
     """What the pipeline answers for one trigger.
 
     ``offset`` holds the 6 values of the PLC form in the recipe's robot convention
-    (``codecs.pose_to_plc``: ABB's quaternion drops q1). ``final`` is False for an intermediate
-    view of a robot-mounted rig: the PLC then gets VIEW_DONE instead of a result.
+    (``codecs.pose_to_plc``: ABB's quaternion drops q1; ABB's full 7 values are accepted too).
+    ``final`` is False for an intermediate view of a robot-mounted rig: the PLC then gets
+    VIEW_DONE instead of a result. A NOK ``result_code`` always ends the sequence with a result
+    whose offset is sent as zero.
     """
 
     result_code: int  # 0 = OK, 1..999 = the pipeline's NOK reason

@@ -31,6 +31,12 @@ def expected_outcome(trigger_id: int) -> TriggerOutcome:
     return TriggerOutcome(code, offset, 0.05 + (k % 10) * 0.01, 0.002, 1.0 + (k % 5) * 0.1)
 
 
+def published_offset(trigger_id: int) -> tuple[float, ...]:
+    """The offset the PLC must read for this trigger: zero for a NOK result."""
+    want = expected_outcome(trigger_id)
+    return want.offset if want.result_code == 0 else (0.0,) * 6
+
+
 class ArithmeticHandler:
     """A pipeline that does cheap deterministic arithmetic; ``gate`` lets a test hold it busy."""
 

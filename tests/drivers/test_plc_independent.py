@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import pytest
-from plc_peers import ServerFactory, cfg, expected_outcome, plc  # noqa: F401
+from plc_peers import ServerFactory, cfg, expected_outcome, plc, published_offset  # noqa: F401
 from pyModbusTCP import utils
 from pyModbusTCP.client import ModbusClient
 
@@ -114,8 +114,9 @@ async def test_handshake_with_pymodbustcp(plc: ServerFactory, order: WordOrder) 
         assert (got.trigger_id, got.result_id, got.result_code) == (tid, n, want.result_code)
         assert got.ok == (want.result_code == 0)
         scales = (1e3, 1e3, 1e3, 1e4, 1e4, 1e4)  # µm and 1e-4 deg, as documented
-        assert got.offset_counts == [round(v * s) for v, s in zip(want.offset, scales, strict=True)]
-        assert got.offset_float == pytest.approx(list(want.offset), rel=1e-6, abs=1e-5)
+        sent = published_offset(tid)
+        assert got.offset_counts == [round(v * s) for v, s in zip(sent, scales, strict=True)]
+        assert got.offset_float == pytest.approx(list(sent), rel=1e-6, abs=1e-5)
 
 
 async def test_exception_codes_seen_by_pymodbustcp(plc: ServerFactory) -> None:

@@ -261,3 +261,27 @@ def test_not_ready_while_trigger_stays_high() -> None:
     assert not p.status() & Status.READY and p.m.state is State.READY
     p.ctl(EN | Control.RESULT_ACK)
     assert p.status() & Status.READY
+
+
+def test_nok_view_ends_the_sequence_with_a_zero_offset_result() -> None:
+    p = Plc().ready()
+    p.trigger(1, view=1)
+    p.m.measured(TriggerOutcome(9, (5.0, 5.0, 5.0, 1.0, 1.0, 1.0), views_done=1, final=False))
+    s = p.status()
+    assert s & Status.RESULT_VALID and not s & (Status.RESULT_OK | Status.VIEW_DONE)
+    assert p.u32(r.IR_RESULT_ID) == 1 and p.m.image[r.IR_RESULT_CODE] == 9
+    assert p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_FLOAT + 12] == [0] * 24
+
+
+def test_abb_full_quaternion_offset_is_sent_without_q1() -> None:
+    p = Plc()
+    p.m.set_convention(4)  # ABB
+    p.ready()
+    p.trigger(1)
+    q = (-0.999, 0.01, -0.02, 0.03)  # q1 < 0: the same rotation is sent with q1 >= 0
+    p.m.measured(TriggerOutcome(0, (1.0, 2.0, 3.0, *q)))
+    counts = c.decode_pose_int(p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12], "abb", p.order)
+    n = math.sqrt(sum(x * x for x in q))
+    assert counts[:3] == (1.0, 2.0, 3.0)
+    assert all(abs(a - (-b / n)) < 1e-6 for a, b in zip(counts[3:], q[1:], strict=True))
+    assert p.status() & Status.RESULT_OK

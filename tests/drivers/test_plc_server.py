@@ -11,7 +11,14 @@ import time
 
 import numpy as np
 import pytest
-from plc_peers import ArithmeticHandler, ServerFactory, cfg, expected_outcome, plc  # noqa: F401
+from plc_peers import (  # noqa: F401
+    ArithmeticHandler,
+    ServerFactory,
+    cfg,
+    expected_outcome,
+    plc,
+    published_offset,
+)
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.plc import (
@@ -50,15 +57,14 @@ async def until(predicate, timeout: float = 3.0) -> None:
 
 def check_result(answer: PlcStatus, trigger_id: int) -> None:
     want = expected_outcome(trigger_id)
+    sent = published_offset(trigger_id)
     assert answer.trigger_id == trigger_id
     assert answer.has(Status.RESULT_VALID)
     assert answer.has(Status.RESULT_OK) == (want.result_code == 0)
     assert answer.result_code == want.result_code
-    counts = [
-        round(v * s) for v, s in zip(want.offset, (1e3, 1e3, 1e3, 1e4, 1e4, 1e4), strict=True)
-    ]
+    counts = [round(v * s) for v, s in zip(sent, (1e3, 1e3, 1e3, 1e4, 1e4, 1e4), strict=True)]
     assert list(answer.offset_counts) == counts
-    assert np.allclose(answer.offset_float, want.offset, rtol=1e-6, atol=1e-5)
+    assert np.allclose(answer.offset_float, sent, rtol=1e-6, atol=1e-5)
     assert answer.sigma_counts == (
         round(want.sigma_trans_mm * 1e3),
         round(want.sigma_rot_deg * 1e4),
@@ -176,11 +182,12 @@ async def test_a_concurrent_reader_never_sees_a_torn_result_block(plc: ServerFac
     seen = [s for s in snapshots if s.result_id]
     assert len(seen) > 100
     for snap in seen:
-        want = expected_outcome(trigger_of_result[snap.result_id])
-        assert snap.result_code == want.result_code
-        assert snap.offset_counts[0] == round(want.offset[0] * 1e3)
-        assert snap.offset_counts[5] == round(want.offset[5] * 1e4)
-        assert snap.offset_float[2] == pytest.approx(want.offset[2])
+        tid = trigger_of_result[snap.result_id]
+        sent = published_offset(tid)
+        assert snap.result_code == expected_outcome(tid).result_code
+        assert snap.offset_counts[0] == round(sent[0] * 1e3)
+        assert snap.offset_counts[5] == round(sent[5] * 1e4)
+        assert snap.offset_float[2] == pytest.approx(sent[2])
 
 
 async def test_commands_select_recipe_teach_and_refusals(plc: ServerFactory) -> None:
@@ -309,6 +316,33 @@ async def test_disconnect_mid_handshake_loses_nothing(plc: ServerFactory) -> Non
     finally:
         again.close()
     assert [q.trigger_id for q in handler.requests] == [41, 42]
+
+
+async def test_read_write_multiple_writes_control_and_reads_the_mirror(plc: ServerFactory) -> None:
+    server, twin = await plc()
+    cl: AsyncModbusTcpClient = twin.client
+    ids = c.encode_uint32(77, WordOrder.ABCD)
+    trigger = [int(Control.TRIGGER_ENABLE | Control.TRIGGER), 500, 0, 0, *ids, 0]
+    rr = await cl.readwrite_registers(
+        read_address=r.HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=trigger
+    )
+    assert not rr.isError() and len(rr.registers) == r.IR_COUNT
+    answer = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
+    check_result(answer, 77)
+    release = [int(Control.TRIGGER_ENABLE | Control.RESULT_ACK), 501]
+    deadline = time.monotonic() + 3
+    while True:  # fc 23 as a combined "write control, poll status" step
+        rr = await cl.readwrite_registers(
+            read_address=r.HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=release
+        )
+        mirror = PlcStatus(tuple(rr.registers), WordOrder.ABCD)
+        if mirror.has(Status.READY):
+            break
+        assert time.monotonic() < deadline
+    assert mirror.regs[:1] + mirror.regs[2:] == tuple(
+        server.input_registers()[:1] + server.input_registers()[2:]
+    )
+    assert mirror.result_id == 1 and not mirror.has(Status.RESULT_VALID)
 
 
 async def test_exception_codes_for_requests_outside_the_map(plc: ServerFactory) -> None:
