@@ -147,3 +147,16 @@ def test_transform_error_measures_angle_and_distance() -> None:
     T = make_transform(zyx_to_matrix(0.5, 0, 0), [3.0, 4.0, 0.0])
     rot, trans = transform_error(T, np.eye(4))
     assert abs(rot - 0.5) < 1e-9 and abs(trans - 5.0) < 1e-12
+
+
+def test_conventions_doc_examples_run() -> None:
+    """The Python blocks in docs/conventions.md run in order and their asserts hold."""
+    import re
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[2] / "docs" / "conventions.md"
+    blocks = re.findall(r"```python\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    assert len(blocks) >= 4
+    namespace: dict[str, object] = {}
+    for block in blocks:
+        exec(compile(block, str(doc), "exec"), namespace)  # noqa: S102 - our own documentation
