@@ -14,7 +14,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mvpose_core.detect.geometry import predict_marks
-from mvpose_core.detect.refine import find_candidates, measure
+from mvpose_core.detect.refine import find_candidates, measure_many
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -54,12 +54,12 @@ def search_marks(
     cands = find_candidates(
         image, (0, 0, W, H), dark, (r_lo, r_hi), options.min_contrast, scale, options.max_candidates
     )
+    measured = measure_many(
+        image, [c.ellipse for c in cands], dark, options.min_contrast, options.max_fit_residual_px,
+        options.min_edge_fraction, search_px=2.0 + scale + 0.1 * r_hi,
+    )
     found: list[MarkDetection] = []
-    for c in cands:
-        m = measure(
-            image, c.ellipse, dark, options.min_contrast, options.max_fit_residual_px,
-            options.min_edge_fraction, search_px=2.0 + 1.5 * scale + 0.15 * c.ellipse.radius,
-        )
+    for m in measured:
         e = m.ellipse
         if e is None or not (r_lo <= e.radius <= r_hi) or e.axis_ratio < ratio_lo:
             continue

@@ -8,11 +8,14 @@ total distance to the predictions), so two marks never take the same blob.
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_core.detect.geometry import MarkPrediction, predict_marks
-from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure
+from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
+from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_many
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -28,42 +31,59 @@ def detect_marks(
 ) -> list[MarkDetection]:
     """One detection per mark the recipe expects ``cam`` to see, found or with the reason why not."""
     image = check_image(image, cam.model, f"camera {cam.key!r}")
-    preds = predict_marks(
+    preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg
     )
     dark = recipe.polarity == "dark_on_light"
     H, W = image.shape
     results: dict[str, MarkDetection] = {}
-    accepted: list[tuple[Measurement, MarkDetection]] = []  # shared pool for the assignment
     live: list[MarkPrediction] = []
+    cands: list[tuple[int, Candidate]] = []  # (index in live, blob) — one entry per distinct blob
+    seen: list[tuple[float, float]] = []
+    scale = 8
     for p in preds:
         mid = p.mark.mark_id
         if not p.facing:
             results[mid] = MarkDetection.missing(mid, "mark faces away from the camera")
             continue
         half = p.max_shift_px + p.radius_range[1] + options.window_extra_px
-        u0, v0 = int(np.floor(p.uv[0] - half)), int(np.floor(p.uv[1] - half))
-        u1, v1 = int(np.ceil(p.uv[0] + half)) + 1, int(np.ceil(p.uv[1] + half)) + 1
+        pu, pv = float(p.uv[0]), float(p.uv[1])
+        u0, v0 = math.floor(pu - half), math.floor(pv - half)
+        u1, v1 = math.ceil(pu + half) + 1, math.ceil(pv + half) + 1
         box = (max(u0, 0), max(v0, 0), min(u1, W), min(v1, H))
         if box[2] - box[0] < 8 or box[3] - box[1] < 8:
             results[mid] = MarkDetection.missing(mid, "outside image")
             continue
+        results[mid] = MarkDetection.missing(mid, "nothing mark-like in window")
         live.append(p)
-        scale = coarse_scale(p.radius_range[0])
-        cands = find_candidates(
-            image, box, dark, p.radius_range, options.min_contrast, scale, options.max_candidates
-        )
-        # If nothing is accepted, the mark is reported with what was wrong with the nearest blob.
-        reason, nearest = "nothing mark-like in window", np.inf
-        for c in cands:
-            if any(np.hypot(*(c.ellipse.centre - d.uv_ellipse)) < 2.0 for _, d in accepted):
-                continue  # the same blob seen through an overlapping window
-            det, why = _measure_candidate(image, c, p, dark, options, scale)
-            if det is not None:
-                accepted.append(det)
-            elif (dist := float(np.hypot(*(c.ellipse.centre - p.uv)))) < nearest:
-                reason, nearest = f"{why} (blob at {dist:.0f} px from prediction)", dist
-        results[mid] = MarkDetection.missing(mid, reason)
+        s = coarse_scale(p.radius_range[0])
+        scale = min(scale, s)
+        for c in find_candidates(image, box, dark, p.radius_range, options.min_contrast, s, options.max_candidates):
+            cu, cv = float(c.ellipse.centre[0]), float(c.ellipse.centre[1])
+            if not any(abs(cu - ou) < 2.0 and abs(cv - ov) < 2.0 for ou, ov in seen):
+                seen.append((cu, cv))  # overlapping windows see the same blob once
+                cands.append((len(live) - 1, c))
+    if not cands:
+        return [results[p.mark.mark_id] for p in preds]
+    r_max = max(c.ellipse.radius for _, c in cands)
+    measured = measure_many(
+        image, [c.ellipse for _, c in cands], dark, options.min_contrast,
+        options.max_fit_residual_px, options.min_edge_fraction,
+        search_px=2.0 + scale + 0.1 * r_max,
+    )
+    accepted: list[MarkDetection] = []
+    nearest = np.full(len(live), np.inf)  # a missing mark reports what was wrong with its nearest blob
+    for (k, c), m in zip(cands, measured, strict=True):
+        p = live[k]
+        det, why = _check(m, p)
+        if det is not None:
+            accepted.append(det)
+        elif (dist := float(np.hypot(*(c.ellipse.centre - p.uv)))) < nearest[k]:
+            nearest[k] = dist
+            results[p.mark.mark_id] = MarkDetection.missing(
+                p.mark.mark_id, f"{why} (blob at {dist:.0f} px from prediction)",
+                contrast=m.contrast, fit_residual_px=m.fit_residual_px,
+            )
     _assign(live, accepted, results, options)
     return [results[p.mark.mark_id] for p in preds]
 
@@ -76,24 +96,8 @@ def coarse_scale(min_radius_px: float) -> int:
     return scale
 
 
-def _measure_candidate(
-    image: np.ndarray,
-    cand: Candidate,
-    pred: MarkPrediction,
-    dark: bool,
-    options: DetectOptions,
-    scale: int,
-) -> tuple[tuple[Measurement, MarkDetection] | None, str | None]:
-    """Measure a candidate and check it against the prediction; (measurement, detection) or reason."""
-    m = measure(
-        image,
-        cand.ellipse,
-        dark,
-        options.min_contrast,
-        options.max_fit_residual_px,
-        options.min_edge_fraction,
-        search_px=2.0 + 1.5 * scale + 0.15 * cand.ellipse.radius,
-    )
+def _check(m: Measurement, pred: MarkPrediction) -> tuple[MarkDetection | None, str | None]:
+    """An unnamed detection if the measured blob looks like the predicted mark, else the reason."""
     if m.ellipse is None:
         return None, m.reason
     e = m.ellipse
@@ -115,19 +119,19 @@ def _measure_candidate(
         correction=np.zeros(2),
         edge_points=m.edge_points,
     )
-    return (m, det), None
+    return det, None
 
 
 def _assign(
     preds: list[MarkPrediction],
-    pool: list[tuple[Measurement, MarkDetection]],
+    pool: list[MarkDetection],
     results: dict[str, MarkDetection],
     options: DetectOptions,
 ) -> None:
     """Give each predicted mark at most one accepted blob, minimising the total distance."""
     if not preds or not pool:
         return
-    uv = np.array([d.uv_ellipse for _, d in pool])
+    uv = np.array([d.uv_ellipse for d in pool])
     pred_uv = np.array([p.uv for p in preds])
     dist = np.linalg.norm(pred_uv[:, None, :] - uv[None, :, :], axis=2)
     gate = np.array([p.max_shift_px + options.window_extra_px for p in preds])
@@ -137,18 +141,8 @@ def _assign(
         if cost[r, c] >= 1e9:
             continue
         p = preds[r]
-        det = pool[c][1]
+        det = pool[c]
         corr = p.correction if options.correct_perspective else np.zeros(2)
-        results[p.mark.mark_id] = MarkDetection(
-            mark_id=p.mark.mark_id,
-            found=True,
-            uv=det.uv_ellipse + corr,  # type: ignore[operator]
-            contrast=det.contrast,
-            fit_residual_px=det.fit_residual_px,
-            axis_ratio=det.axis_ratio,
-            radius_px=det.radius_px,
-            uv_ellipse=det.uv_ellipse,
-            correction=corr.copy(),
-            edge_points=det.edge_points,
+        results[p.mark.mark_id] = replace(
+            det, mark_id=p.mark.mark_id, uv=det.uv_ellipse + corr, correction=corr.copy()  # type: ignore[operator]
         )
-
