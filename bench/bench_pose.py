@@ -9,6 +9,7 @@ A second scene, station 1 (4 fixed cameras, no overlap, 8 marks), times the gene
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +38,22 @@ def lab_scene(
     obs: list[Observation] = []
     for i in range(n_marks):
         view = 1 + i % 2  # view 1 looks at x ≈ −550 mm, view 2 at x ≈ +550 mm
-        p = np.array([(-550.0 if view == 1 else 550.0) + rng.uniform(-200, 200),
-                      rng.uniform(-250, 250), rng.uniform(-30, 30)])
+        p = np.array(
+            [
+                (-550.0 if view == 1 else 550.0) + rng.uniform(-200, 200),
+                rng.uniform(-250, 250),
+                rng.uniform(-30, 30),
+            ]
+        )
         marks[f"M{i + 1}"] = p
         for cam in cams:
             if cam.view != view:
                 continue
             T_cf_from_pf = invert(cam.T_rf_from_cf) @ T_true
             uv = cam.model.project((T_cf_from_pf[:3, :3] @ p + T_cf_from_pf[:3, 3])[None])[0]
-            obs.append(Observation(view, cam.camera_id, f"M{i + 1}", uv + rng.normal(0, SIGMA_PX, 2)))
+            obs.append(
+                Observation(view, cam.camera_id, f"M{i + 1}", uv + rng.normal(0, SIGMA_PX, 2))
+            )
     return cams, marks, obs, T_true
 
 
@@ -66,8 +74,14 @@ def poselib_call(cams: list[ViewCamera], marks: dict[str, np.ndarray], obs: list
         pose.t = T[:3, 3]
         ext.append(pose)
         m = cam.model
-        cam_dicts.append({"model": "OPENCV", "width": m.width, "height": m.height,
-                          "params": [m.fx, m.fy, m.cx, m.cy, *m.dist[:4]]})
+        cam_dicts.append(
+            {
+                "model": "OPENCV",
+                "width": m.width,
+                "height": m.height,
+                "params": [m.fx, m.fy, m.cx, m.cy, *m.dist[:4]],
+            }
+        )
     ransac = {"max_reproj_error": 4.0}
 
     def run():  # type: ignore[no-untyped-def]
@@ -83,22 +97,29 @@ def main() -> int:
         cams, marks, obs, T_true = lab_scene(n, rng)
         result = estimate_pose(obs, cams, marks, sigma_px=SIGMA_PX)
         rot, trans = transform_error(result.T_rf_from_pf, T_true)
-        ours = measure(f"mvpose estimate_pose, 4 cameras, {n:2d} marks", lambda: estimate_pose(
-            obs, cams, marks, sigma_px=SIGMA_PX), repeat=1000)
+        ours = measure(
+            f"mvpose estimate_pose, 4 cameras, {n:2d} marks",
+            partial(estimate_pose, obs, cams, marks, sigma_px=SIGMA_PX),
+            repeat=1000,
+        )
         try:
             run = poselib_call(cams, marks, obs)
             pose, _ = run()
             T_pl = np.eye(4)
             T_pl[:3, :3], T_pl[:3, 3] = pose.R, pose.t
             pl_err = transform_error(T_pl, T_true)
-            ref = measure(f"poselib estimate_generalized_absolute_pose, {n:2d} marks", run, repeat=300)
+            ref = measure(
+                f"poselib estimate_generalized_absolute_pose, {n:2d} marks", run, repeat=300
+            )
         except ImportError:
             ref, pl_err = None, (float("nan"), float("nan"))
         print(ours.line(ref))
         if ref is not None:
             print(ref.line())
-        print(f"  error vs truth: mvpose {rot:.4f}° {trans:.3f} mm ({result.info.initializer}, "
-              f"{result.info.iterations} it); poselib {pl_err[0]:.4f}° {pl_err[1]:.3f} mm")
+        print(
+            f"  error vs truth: mvpose {rot:.4f}° {trans:.3f} mm ({result.info.initializer}, "
+            f"{result.info.iterations} it); poselib {pl_err[0]:.4f}° {pl_err[1]:.3f} mm"
+        )
         ok &= check(f"median, {n} marks", ours.median, TARGET_MEDIAN_MS)
         ok &= check(f"p99, {n} marks", ours.p99, TARGET_P99_MS)
     st = load_station(ROOT / "deploy" / "stations" / "station1.yaml")
@@ -107,8 +128,11 @@ def main() -> int:
     marks = {m.id: np.asarray(m.position, dtype=float) for m in rec.marks}
     obs = synthetic_observations(st, rec, rec.T_rf_from_pf0.matrix, rng, SIGMA_PX)
     info = estimate_pose(obs, cams, marks, sigma_px=SIGMA_PX).info
-    t1 = measure("mvpose estimate_pose, station1 (4 fixed, no overlap, 8)", lambda: estimate_pose(
-        obs, cams, marks, sigma_px=SIGMA_PX), repeat=1000)
+    t1 = measure(
+        "mvpose estimate_pose, station1 (4 fixed, no overlap, 8)",
+        lambda: estimate_pose(obs, cams, marks, sigma_px=SIGMA_PX),
+        repeat=1000,
+    )
     print(t1.line(), f" [{info.initializer}, {info.iterations} it]")
     return 0 if ok else 1
 

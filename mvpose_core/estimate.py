@@ -6,7 +6,8 @@
 1. validate the input at this edge (shapes, NaN, unknown cameras/marks, duplicates, too few or
    collinear marks) — :class:`PoseInputError` names the problem;
 2. start: 3D alignment to marks triangulated from two or more rays, else a generalised-camera
-   DLT on single rays, else the caller's prior (``initial_T_rf_from_pf``) — :mod:`mvpose_core.initial`;
+   DLT on single rays, else the caller's prior (``initial_T_rf_from_pf``) — see
+   :mod:`mvpose_core.initial`;
 3. refine: Levenberg–Marquardt on the reprojection error of every observation in every camera
    (the paper's eq. 15 over both cameras of each rig), or the paper's left-camera-only objective;
    optional Huber loss and outlier rejection (rule in :class:`EstimateOptions`);
@@ -15,11 +16,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, align_points, collinearity, generalized_dlt
@@ -63,7 +65,9 @@ class EstimateOptions:
     or a layout that no longer determines the pose (then the gate judges the residuals).
     """
 
-    objective: Literal["all", "left_only"] = "all"  # left_only = paper eq. 15: first camera of each rig
+    objective: Literal["all", "left_only"] = (
+        "all"  # left_only = paper eq. 15: first camera of each rig
+    )
     loss: Literal["linear", "huber"] = "linear"
     huber_px: float = 2.0
     outlier_px: float | None = None
@@ -116,7 +120,9 @@ class PoseResult:
     covariance: np.ndarray
     residuals_px: np.ndarray
     info: SolveInfo
-    used: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # [N] in the objective
+    used: np.ndarray = field(
+        default_factory=lambda: np.zeros(0, dtype=bool)
+    )  # [N] in the objective
 
 
 # ----------------------------------------------------------------------------- packing
@@ -147,7 +153,9 @@ def _mark_array(marks_pf: Mapping[str, np.ndarray], ids: Sequence[str]) -> Array
             raise PoseInputError(f"observation names unknown mark {m!r}")
         p = np.asarray(marks_pf[m], dtype=float)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise PoseInputError(f"mark {m!r}: position must be 3 finite values (mm), got {p.tolist()}")
+            raise PoseInputError(
+                f"mark {m!r}: position must be 3 finite values (mm), got {p.tolist()}"
+            )
         out[i] = p
     return out
 
@@ -168,8 +176,17 @@ def pack_layout(
     p = _mark_array(marks_pf, [m for _, _, m in layout])
     rows = np.arange(len(layout)) if objective == "all" else np.flatnonzero(left[ci])
     ci = ci[rows]
-    pk = Packed(Rc[ci], tc[ci], p[rows], np.zeros((rows.size, 2)), np.ones(rows.size),
-                f[ci], cc[ci], k[ci], bool(np.any(k[:, 5:])))
+    pk = Packed(
+        Rc[ci],
+        tc[ci],
+        p[rows],
+        np.zeros((rows.size, 2)),
+        np.ones(rows.size),
+        f[ci],
+        cc[ci],
+        k[ci],
+        bool(np.any(k[:, 5:])),
+    )
     return pk, rows
 
 
@@ -240,7 +257,8 @@ def estimate_pose(
     mark_ids = sorted({o.mark_id for o in observations})
     if len(mark_ids) < 3:
         raise PoseInputError(
-            f"too few marks: a pose needs at least 3 distinct marks, got {len(mark_ids)} {mark_ids}",
+            f"too few marks: a pose needs at least 3 distinct marks, "
+            f"got {len(mark_ids)} {mark_ids}",
             ReasonCode.TOO_FEW_MARKS,
         )
     P_marks = _mark_array(marks_pf, mark_ids)
@@ -248,15 +266,19 @@ def estimate_pose(
     if ratio < COLLINEAR_RATIO:
         raise PoseInputError(
             f"marks {mark_ids} are collinear (spread ratio {ratio:.1e}): rotation about their "
-            "line is undetermined", ReasonCode.POSE_NOT_DETERMINED,
+            "line is undetermined",
+            ReasonCode.POSE_NOT_DETERMINED,
         )
     mi = np.array([mark_ids.index(o.mark_id) for o in observations], dtype=np.intp)
-    pk_all = Packed(Rc[ci], tc[ci], P_marks[mi], uv, weight, f[ci], cc[ci], k[ci], bool(np.any(k[:, 5:])))
+    pk_all = Packed(
+        Rc[ci], tc[ci], P_marks[mi], uv, weight, f[ci], cc[ci], k[ci], bool(np.any(k[:, 5:]))
+    )
     objective = np.ones(n, dtype=bool) if options.objective == "all" else left[ci]
     if len(set(mi[objective].tolist())) < 3:
         raise PoseInputError(
             f"too few marks for the {options.objective} objective: "
-            f"{sorted({mark_ids[j] for j in mi[objective]})}", ReasonCode.TOO_FEW_MARKS,
+            f"{sorted({mark_ids[j] for j in mi[objective]})}",
+            ReasonCode.TOO_FEW_MARKS,
         )
 
     starts = _starts(observations, cameras, ci, mi, P_marks, T_rf_from_cf, initial_T_rf_from_pf)
@@ -302,8 +324,11 @@ def estimate_pose(
             if len(set(mi[trial].tolist())) < 3:
                 break
             try:
-                invert_information(information_from_jacobian(
-                    residuals_and_jacobian(pk_all.subset(trial), lm.R, lm.t)[1]))
+                invert_information(
+                    information_from_jacobian(
+                        residuals_and_jacobian(pk_all.subset(trial), lm.R, lm.t)[1]
+                    )
+                )
             except ValueError:
                 break
             active = trial
@@ -345,20 +370,40 @@ def estimate_pose(
 
 def _refine(pk: Packed, start: tuple[Array, Array], options: EstimateOptions) -> LMResult:
     return levenberg_marquardt(
-        pk, start[0], start[1], loss=options.loss, huber_px=options.huber_px,
-        max_iterations=options.max_iterations, step_tol=options.step_tol, cost_tol=options.cost_tol,
+        pk,
+        start[0],
+        start[1],
+        loss=options.loss,
+        huber_px=options.huber_px,
+        max_iterations=options.max_iterations,
+        step_tol=options.step_tol,
+        cost_tol=options.cost_tol,
     )
 
 
 def _depths(pk: Packed, lm: LMResult) -> Array:
-    return np.einsum("nj,nj->n", pk.R_cf_from_rf[:, 2, :], pk.p_pf @ lm.R.T + lm.t) + pk.t_cf_from_rf[:, 2]
+    return (
+        np.einsum("nj,nj->n", pk.R_cf_from_rf[:, 2, :], pk.p_pf @ lm.R.T + lm.t)
+        + pk.t_cf_from_rf[:, 2]
+    )
 
 
 def _rms(lm: LMResult) -> float:
     return float(np.sqrt(np.mean(np.sum(lm.residuals * lm.residuals, axis=1))))
 
 
-def _starts(observations, cameras, ci, mi, P_marks, T_rf_from_cf, prior):  # type: ignore[no-untyped-def]
+Start = Callable[[], "tuple[Array, Array] | None"]
+
+
+def _starts(
+    observations: Sequence[Observation],
+    cameras: Sequence[ViewCamera],
+    ci: NDArray[np.intp],
+    mi: NDArray[np.intp],
+    P_marks: Array,
+    T_rf_from_cf: Array,
+    prior: np.ndarray | None,
+) -> list[tuple[str, Start]]:
     """Candidate starts in order of preference, each computed only when asked for."""
     rays: dict[str, tuple[Array, Array]] = {}
 

@@ -1,4 +1,4 @@
-"""Quality gate: OK or NOK with a stable reason code (the number goes to the PLC and the audit trail).
+"""Quality gate: OK or NOK with a stable reason code (the number goes to the PLC and the audit).
 
 The codes never change meaning; new reasons get new numbers. Checks run in the order below and
 the first failing one is reported (the most basic cause first: a missing mark explains a high
@@ -90,16 +90,41 @@ def evaluate_gate(x: GateInputs, tol: Tolerances, min_marks: int) -> GateVerdict
         return _nok(ReasonCode.NOT_CONVERGED, f"solver did not converge ({x.termination})")
     checks = [
         (ReasonCode.RESIDUAL_RMS_HIGH, "RMS reprojection error", x.rms_px, tol.max_rms_px, "px"),
-        (ReasonCode.RESIDUAL_MAX_HIGH, "largest residual", x.max_residual_px,
-         tol.max_residual_px, "px"),
-        (ReasonCode.ROTATION_UNCERTAINTY_HIGH, "1σ rotation at the grasp", x.sigma_rot_deg,
-         tol.rotation_deg, "°"),
-        (ReasonCode.TRANSLATION_UNCERTAINTY_HIGH, "1σ translation at the grasp", x.sigma_trans_mm,
-         tol.translation_mm, "mm"),
-        (ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE, "grasp point offset", x.offset_mm,
-         tol.max_offset_mm, "mm"),
-        (ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE, "rotation offset", x.offset_deg,
-         tol.max_offset_deg, "°"),
+        (
+            ReasonCode.RESIDUAL_MAX_HIGH,
+            "largest residual",
+            x.max_residual_px,
+            tol.max_residual_px,
+            "px",
+        ),
+        (
+            ReasonCode.ROTATION_UNCERTAINTY_HIGH,
+            "1σ rotation at the grasp",
+            x.sigma_rot_deg,
+            tol.rotation_deg,
+            "°",
+        ),
+        (
+            ReasonCode.TRANSLATION_UNCERTAINTY_HIGH,
+            "1σ translation at the grasp",
+            x.sigma_trans_mm,
+            tol.translation_mm,
+            "mm",
+        ),
+        (
+            ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE,
+            "grasp point offset",
+            x.offset_mm,
+            tol.max_offset_mm,
+            "mm",
+        ),
+        (
+            ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE,
+            "rotation offset",
+            x.offset_deg,
+            tol.max_offset_deg,
+            "°",
+        ),
     ]
     for code, what, value, limit, unit in checks:
         if not value <= limit:  # NaN fails too

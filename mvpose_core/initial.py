@@ -70,9 +70,8 @@ def generalized_dlt(centres: Array, directions: Array, p_pf: Array) -> tuple[Arr
     for j in range(3):  # (M q)_i = Σ_j M_ij q_j → column 3 i + j carries q_j in row i
         A[:, :, j::3][:, :, :3] += Dx * q[:, j][:, None, None]
     A[:, :, 9:] = Dx
-    A = A.reshape(3 * n, 12)
     b = np.einsum("nij,nj->ni", Dx, c).reshape(-1)
-    U, S, Vt = np.linalg.svd(A, full_matrices=False)
+    U, S, Vt = np.linalg.svd(A.reshape(3 * n, 12), full_matrices=False)
     if S[-1] < 1e-9 * S[0]:
         return None
     x = Vt.T @ ((U.T @ b) / S)

@@ -1,4 +1,4 @@
-"""One measurement, as the server pipeline calls it per trigger: pose, offsets, uncertainty, gate."""
+"""One measurement as the server pipeline calls it per trigger: pose, offsets, uncertainty, gate."""
 
 from __future__ import annotations
 
@@ -62,8 +62,13 @@ def measure(
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
     pose = estimate_pose(
-        observations, cameras, marks_pf, options, sigma_px=recipe.detector_noise_px,
-        initial_T_rf_from_pf=T_rf_from_pf0, warm_start=initial_T_rf_from_pf,
+        observations,
+        cameras,
+        marks_pf,
+        options,
+        sigma_px=recipe.detector_noise_px,
+        initial_T_rf_from_pf=T_rf_from_pf0,
+        warm_start=initial_T_rf_from_pf,
     )
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)
@@ -74,7 +79,9 @@ def measure(
     dof = 2 * r.shape[0] - 6
     posterior = None
     if dof > 0:
-        w = np.array([1.0 / (o.sigma_px or recipe.detector_noise_px) for o in observations])[pose.used]
+        w = np.array([1.0 / (o.sigma_px or recipe.detector_noise_px) for o in observations])[
+            pose.used
+        ]
         s2 = float(np.sum((r * w[:, None]) ** 2)) / dof
         posterior = sigma_figures(cov_grasp * s2)
     sig_rot = max(prior[0], posterior[0]) if posterior else prior[0]
@@ -83,19 +90,36 @@ def measure(
     lengths = np.linalg.norm(r, axis=1)
     verdict = evaluate_gate(
         GateInputs(
-            marks_used=len(used), converged=pose.info.converged,
-            termination=pose.info.termination, rms_px=pose.info.rms_px,
+            marks_used=len(used),
+            converged=pose.info.converged,
+            termination=pose.info.termination,
+            rms_px=pose.info.rms_px,
             max_residual_px=float(lengths.max()) if lengths.size else 0.0,
-            sigma_rot_deg=sig_rot, sigma_trans_mm=sig_trans,
-            offset_mm=off.grasp_displacement_mm, offset_deg=off.rotation_deg, missing=missing,
+            sigma_rot_deg=sig_rot,
+            sigma_trans_mm=sig_trans,
+            offset_mm=off.grasp_displacement_mm,
+            offset_deg=off.rotation_deg,
+            missing=missing,
         ),
-        recipe.tolerances, recipe.min_marks,
+        recipe.tolerances,
+        recipe.min_marks,
     )
     return Measurement(
-        pose=pose, T_rf_from_pf=pose.T_rf_from_pf, offset_rf=off.T_rf_offset, offset=off.base,
-        tool_offset=off.tool, T_grasp0_from_grasp=off.T_tool_offset, convention=off.convention,
-        sigma_rot_deg=sig_rot, sigma_trans_mm=sig_trans, sigma_prior=prior,
-        sigma_posterior=posterior, grasp_displacement_mm=off.grasp_displacement_mm,
-        rotation_deg=off.rotation_deg, gate=verdict, marks_used=tuple(used),
-        marks_missing=missing, offsets=off,
+        pose=pose,
+        T_rf_from_pf=pose.T_rf_from_pf,
+        offset_rf=off.T_rf_offset,
+        offset=off.base,
+        tool_offset=off.tool,
+        T_grasp0_from_grasp=off.T_tool_offset,
+        convention=off.convention,
+        sigma_rot_deg=sig_rot,
+        sigma_trans_mm=sig_trans,
+        sigma_prior=prior,
+        sigma_posterior=posterior,
+        grasp_displacement_mm=off.grasp_displacement_mm,
+        rotation_deg=off.rotation_deg,
+        gate=verdict,
+        marks_used=tuple(used),
+        marks_missing=missing,
+        offsets=off,
     )

@@ -1,4 +1,4 @@
-"""The hot loop of pose estimation: packed observations, projection with Jacobian, Levenberg–Marquardt.
+"""The hot loop of pose estimation: packed observations, projection and Jacobian, LM solver.
 
 Everything here works on a :class:`Packed` problem — one row per observation, every camera's
 pose and intrinsics gathered per row — so one refinement iteration is a fixed, small number of
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,14 +45,20 @@ class Packed:
         return int(self.uv.shape[0])
 
     def subset(self, rows: NDArray[np.intp] | NDArray[np.bool_]) -> Packed:
-        arrays = (getattr(self, name)[rows] for name in _ARRAY_FIELDS)
-        return Packed(*arrays, rational=self.rational)
+        return Packed(
+            self.R_cf_from_rf[rows],
+            self.t_cf_from_rf[rows],
+            self.p_pf[rows],
+            self.uv[rows],
+            self.weight[rows],
+            self.f[rows],
+            self.c[rows],
+            self.k[rows],
+            self.rational,
+        )
 
 
-_ARRAY_FIELDS = ("R_cf_from_rf", "t_cf_from_rf", "p_pf", "uv", "weight", "f", "c", "k")
-
-
-def so3_exp(w: Array) -> Array:
+def so3_exp(w: NDArray[np.floating[Any]]) -> Array:
     """Rotation matrix of a rotation vector (Rodrigues); scalar math, cheaper than scipy for one."""
     x, y, z = float(w[0]), float(w[1]), float(w[2])
     th2 = x * x + y * y + z * z
@@ -61,11 +68,13 @@ def so3_exp(w: Array) -> Array:
         th = math.sqrt(th2)
         a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
     # I + a [w]× + b [w]×²
-    return np.array([
-        [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
-        [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
-        [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
+            [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
+            [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
+        ]
+    )
 
 
 def project(pk: Packed, R: Array, t: Array) -> tuple[Array, Array]:
@@ -92,7 +101,7 @@ def _distort(pk: Packed, xy: Array) -> Array:
 
 
 def residuals_and_jacobian(pk: Packed, R: Array, t: Array) -> tuple[Array, Array, Array]:
-    """Residuals ``observed − predicted`` ``[N, 2]`` px, their Jacobian ``[N, 2, 6]``, depths ``[N]``.
+    """Residuals ``observed − predicted`` ``[N, 2]`` px, Jacobian ``[N, 2, 6]``, depths ``[N]``.
 
     The Jacobian is of the *predicted* pixels with respect to δ = (ω, v) (see the module
     docstring); the residual's Jacobian is its negative. Written for few numpy calls: this

@@ -57,7 +57,11 @@ def synthetic_observations(
                     f"mark {pm.mark_id} falls outside camera {cam.key} at "
                     f"({pm.uv[0]:.0f}, {pm.uv[1]:.0f}) px"
                 )
-        noise = rng.normal(0.0, sigma_px, (len(marks), 2)) if sigma_px > 0 else np.zeros((len(marks), 2))
+        noise = (
+            rng.normal(0.0, sigma_px, (len(marks), 2))
+            if sigma_px > 0
+            else np.zeros((len(marks), 2))
+        )
         out.extend(
             Observation(cam.view, cam.camera_id, pm.mark_id, pm.uv + noise[i])
             for i, pm in enumerate(marks)

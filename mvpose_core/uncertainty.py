@@ -9,9 +9,10 @@ rigid to the part (the grasp frame), where the lever arm turns rotation into tra
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mvpose_core.refine import Array, Packed, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
@@ -87,7 +88,7 @@ def invert_information(info: Array) -> Array:
     return np.linalg.inv(normed) / np.outer(d, d)
 
 
-def adjoint(T_b_from_a: Array) -> Array:
+def adjoint(T_b_from_a: NDArray[np.floating[Any]]) -> Array:
     """6x6 adjoint: a right perturbation (ω, v) of frame a becomes one of frame b."""
     R = T_b_from_a[:3, :3]
     t = T_b_from_a[:3, 3]

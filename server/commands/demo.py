@@ -1,4 +1,4 @@
-"""``mvpose demo``: the pose engine on simulated stations — true vs estimated offsets and their errors.
+"""``mvpose demo``: the pose engine on simulated stations — true vs estimated offsets, errors.
 
 For now the demo exercises the engine only (no cameras, PLC or server): for each station file it
 draws random part displacements, simulates the mark observations every camera of every view
@@ -24,7 +24,10 @@ from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import matrix_to_xyzwpr, transform_error
 
 ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_STATIONS = (ROOT / "deploy" / "stations" / "lab.yaml", ROOT / "deploy" / "stations" / "station1.yaml")
+DEFAULT_STATIONS = (
+    ROOT / "deploy" / "stations" / "lab.yaml",
+    ROOT / "deploy" / "stations" / "station1.yaml",
+)
 
 
 def _fmt(v: np.ndarray) -> str:
@@ -46,10 +49,14 @@ def run_engine_demo(
         st = load_station(path)
         rec = st.recipe()
         T0 = rec.T_rf_from_pf0.matrix
-        out(f"\n{st.name}: {len(st.cameras)} cameras, {len(st.views)} view(s), recipe {rec.name} "
-            f"({len(rec.marks)} marks), detector noise {rec.detector_noise_px} px")
-        out(f"{'#':>2}  {'base-frame offset (FANUC X Y Z mm | W P R deg)':<52}"
-            f"{'error at grasp':>18}   1σ at grasp        gate")
+        out(
+            f"\n{st.name}: {len(st.cameras)} cameras, {len(st.views)} view(s), recipe {rec.name} "
+            f"({len(rec.marks)} marks), detector noise {rec.detector_noise_px} px"
+        )
+        out(
+            f"{'#':>2}  {'base-frame offset (FANUC X Y Z mm | W P R deg)':<52}"
+            f"{'error at grasp':>18}   1σ at grasp        gate"
+        )
         errs = []
         for i in range(1, n + 1):
             T = T0 @ random_displacement(rng, max_mm, max_deg)
@@ -68,9 +75,11 @@ def run_engine_demo(
             errs.append((rot, trans))
             bad += not m.gate.ok
             out(f"{i:2d}  true {_fmt(matrix_to_xyzwpr(truth))}")
-            out(f"    est  {_fmt(m.offset)}  {rot:6.3f}° {trans:6.3f} mm   "
+            out(
+                f"    est  {_fmt(m.offset)}  {rot:6.3f}° {trans:6.3f} mm   "
                 f"{m.sigma_rot_deg:5.3f}° {m.sigma_trans_mm:5.3f} mm  "
-                f"{'OK' if m.gate.ok else 'NOK ' + m.gate.reason.name}")
+                f"{'OK' if m.gate.ok else 'NOK ' + m.gate.reason.name}"
+            )
         if errs:
             e = np.sqrt(np.mean(np.square(errs), axis=0))
             out(f"    RMS error over {len(errs)} displacements: {e[0]:.4f}° {e[1]:.3f} mm")
@@ -78,8 +87,13 @@ def run_engine_demo(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("stations", nargs="*", type=Path, default=list(DEFAULT_STATIONS),
-                        help="station files (default: lab and station1 from deploy/stations)")
+    parser.add_argument(
+        "stations",
+        nargs="*",
+        type=Path,
+        default=list(DEFAULT_STATIONS),
+        help="station files (default: lab and station1 from deploy/stations)",
+    )
     parser.add_argument("-n", type=int, default=10, help="displacements per station (default 10)")
     parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     parser.add_argument("--max-mm", type=float, default=50.0, help="displacement per axis, mm")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from estimate_scenes import NAMES, noiseless, station
 
 from mvpose_core.estimate import EstimateOptions, Observation, estimate_pose, pack_layout
 from mvpose_core.refine import Packed, levenberg_marquardt, residuals_and_jacobian, so3_exp
@@ -12,8 +13,6 @@ from mvpose_core.transforms import make_transform, transform_error
 from mvpose_core.triangulate import triangulate_marks
 from mvpose_core.uncertainty import cramer_rao_covariance
 
-from estimate_scenes import NAMES, noiseless, station
-
 
 def packed_with_uv(name: str, rational: bool = False) -> tuple[Packed, np.ndarray]:
     obs, cams, marks, T = noiseless(name)
@@ -21,8 +20,17 @@ def packed_with_uv(name: str, rational: bool = False) -> tuple[Packed, np.ndarra
     k = pk.k.copy()
     if rational:  # exercise OpenCV's rational terms too
         k[:, 5:] = [0.05, -0.01, 0.003]
-    pk = Packed(pk.R_cf_from_rf, pk.t_cf_from_rf, pk.p_pf, np.array([o.uv for o in obs]),
-                pk.weight, pk.f, pk.c, k, rational)
+    pk = Packed(
+        pk.R_cf_from_rf,
+        pk.t_cf_from_rf,
+        pk.p_pf,
+        np.array([o.uv for o in obs]),
+        pk.weight,
+        pk.f,
+        pk.c,
+        k,
+        rational,
+    )
     return pk, T
 
 
@@ -45,7 +53,9 @@ def test_packed_projection_matches_camera_model(name: str) -> None:
         assert np.allclose(-r, cam.model.project(p_cf[None, :3])[0], atol=1e-9)
 
 
-@pytest.mark.parametrize(("name", "rational"), [("lab", False), ("station1", True), ("station2", False)])
+@pytest.mark.parametrize(
+    ("name", "rational"), [("lab", False), ("station1", True), ("station2", False)]
+)
 def test_jacobian_matches_finite_differences(name: str, rational: bool) -> None:
     pk, T = packed_with_uv(name, rational)
     rng = np.random.default_rng(5)
@@ -153,7 +163,9 @@ def test_outlier_rule_rejects_the_gross_error() -> None:
     obs[5] = Observation(bad.view, bad.camera_id, bad.mark_id, bad.uv + [35.0, -20.0])
     plain = estimate_pose(obs, cams, marks, sigma_px=0.3)
     robust = estimate_pose(obs, cams, marks, EstimateOptions(outlier_px=3.0), sigma_px=0.3)
-    huber = estimate_pose(obs, cams, marks, EstimateOptions(loss="huber", huber_px=1.0), sigma_px=0.3)
+    huber = estimate_pose(
+        obs, cams, marks, EstimateOptions(loss="huber", huber_px=1.0), sigma_px=0.3
+    )
     assert robust.info.rejected == (bad.key,)
     assert not robust.used[5] and robust.used.sum() == len(obs) - 1
     assert np.linalg.norm(robust.residuals_px[5]) > 30  # still reported, against the final pose

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from estimate_scenes import noiseless
 
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError, estimate_pose
 from mvpose_core.gate import ReasonCode
@@ -11,14 +12,12 @@ from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import make_transform
 from mvpose_core.uncertainty import cramer_rao_covariance, invert_information
 
-from estimate_scenes import noiseless
-
 
 def with_obs(obs: list[Observation], i: int, **change: object) -> list[Observation]:
     o = obs[i]
     fields = {"view": o.view, "camera_id": o.camera_id, "mark_id": o.mark_id, "uv": o.uv}
     fields.update(change)
-    return obs[:i] + [Observation(**fields)] + obs[i + 1:]  # type: ignore[arg-type]
+    return obs[:i] + [Observation(**fields)] + obs[i + 1 :]  # type: ignore[arg-type]
 
 
 def test_nan_pixel_is_named() -> None:
@@ -52,8 +51,13 @@ def test_too_few_marks() -> None:
 
 def test_collinear_marks() -> None:
     obs, cams, marks, _ = noiseless("lab")
-    line = {**marks, "M1": np.array([0.0, 0.0, 0.0]), "M2": np.array([100.0, 0.0, 0.0]),
-            "M3": np.array([250.0, 0.0, 0.0]), "M4": np.array([-300.0, 0.0, 0.0])}
+    line = {
+        **marks,
+        "M1": np.array([0.0, 0.0, 0.0]),
+        "M2": np.array([100.0, 0.0, 0.0]),
+        "M3": np.array([250.0, 0.0, 0.0]),
+        "M4": np.array([-300.0, 0.0, 0.0]),
+    }
     with pytest.raises(PoseInputError, match=r"collinear") as e:
         estimate_pose(obs, cams, line)
     assert e.value.reason is ReasonCode.POSE_NOT_DETERMINED
@@ -63,7 +67,9 @@ def test_mark_behind_a_camera() -> None:
     obs, cams, marks, T = noiseless("station1")
     # A camera turned around: whatever it reports, the mark it claims is behind it.
     c = cams[0]
-    flipped = make_transform(c.T_rf_from_cf[:3, :3] @ np.diag([1.0, -1.0, -1.0]), c.T_rf_from_cf[:3, 3])
+    flipped = make_transform(
+        c.T_rf_from_cf[:3, :3] @ np.diag([1.0, -1.0, -1.0]), c.T_rf_from_cf[:3, 3]
+    )
     cams2 = [ViewCamera(c.view, c.camera_id, c.model, flipped, c.rig_id, c.rig_position), *cams[1:]]
     with pytest.raises(PoseInputError, match=r"behind camera v1/top_left") as e:
         estimate_pose(obs, cams2, marks, initial_T_rf_from_pf=T)
@@ -82,7 +88,9 @@ def test_unknown_camera_mark_and_duplicates() -> None:
         estimate_pose(obs + [obs[0]], cams, marks)
     with pytest.raises(PoseInputError, match=r"sigma_px must be > 0, got -1"):
         estimate_pose(with_obs(obs, 1, sigma_px=-1.0), cams, marks)
-    with pytest.raises(PoseInputError, match=r"sigma_px must be a positive number of pixels, got nan"):
+    with pytest.raises(
+        PoseInputError, match=r"sigma_px must be a positive number of pixels, got nan"
+    ):
         estimate_pose(obs, cams, marks, sigma_px=float("nan"))
 
 

@@ -28,7 +28,10 @@ def test_monte_carlo_reaches_cramer_rao_bound() -> None:
     not_converged = 0
     for i in range(TRIALS):
         noise = rng.normal(0.0, SIGMA, (len(obs), 2))
-        noisy = [Observation(o.view, o.camera_id, o.mark_id, o.uv + n) for o, n in zip(obs, noise, strict=True)]
+        noisy = [
+            Observation(o.view, o.camera_id, o.mark_id, o.uv + n)
+            for o, n in zip(obs, noise, strict=True)
+        ]
         for name, opts in (("all", EstimateOptions()), ("left_only", left)):
             r = estimate_pose(noisy, cams, marks, opts, sigma_px=SIGMA)
             not_converged += not r.info.converged
@@ -38,8 +41,10 @@ def test_monte_carlo_reaches_cramer_rao_bound() -> None:
     for name in ("all", "left_only"):
         bound = sigma_figures(cramer_rao_covariance(cams, marks, layout, T, SIGMA, name))  # type: ignore[arg-type]
         rms = np.sqrt(np.mean(err[name] ** 2, axis=0))
-        lines.append(f"{name:>9}: Monte Carlo RMS {rms[0]:.3f}° {rms[1]:.3f} mm   "
-                     f"Cramér–Rao {bound[0]:.3f}° {bound[1]:.3f} mm")
+        lines.append(
+            f"{name:>9}: Monte Carlo RMS {rms[0]:.3f}° {rms[1]:.3f} mm   "
+            f"Cramér–Rao {bound[0]:.3f}° {bound[1]:.3f} mm"
+        )
         if name == "all":
             assert abs(rms[0] / bound[0] - 1) < 0.10, lines[-1]
             assert abs(rms[1] / bound[1] - 1) < 0.10, lines[-1]
@@ -47,4 +52,4 @@ def test_monte_carlo_reaches_cramer_rao_bound() -> None:
         else:
             # the paper's objective uses half the observations: clearly worse than both cameras
             assert rms[0] > 1.2 * both[0] and rms[1] > 1.2 * both[1], lines[-1]
-    print("\nlab, σ = 1 px, %d trials\n" % TRIALS + "\n".join(lines))
+    print(f"\nlab, σ = 1 px, {TRIALS} trials\n" + "\n".join(lines))

@@ -15,36 +15,56 @@ from mvpose_core.station import Tolerances
 from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import from_robot, transform_error
 
-GOOD = GateInputs(marks_used=4, converged=True, termination="step", rms_px=0.2,
-                  max_residual_px=0.5, sigma_rot_deg=0.05, sigma_trans_mm=0.3, offset_mm=20.0,
-                  offset_deg=2.0)
+GOOD = GateInputs(
+    marks_used=4,
+    converged=True,
+    termination="step",
+    rms_px=0.2,
+    max_residual_px=0.5,
+    sigma_rot_deg=0.05,
+    sigma_trans_mm=0.3,
+    offset_mm=20.0,
+    offset_deg=2.0,
+)
 TOL = Tolerances()
 
 
 def test_reason_codes_are_stable() -> None:
     # These numbers are on the PLC interface and in stored audit records: never renumber.
     assert {c.name: int(c) for c in ReasonCode} == {
-        "OK": 0, "MARKS_MISSING": 1, "NOT_CONVERGED": 2, "RESIDUAL_RMS_HIGH": 3,
-        "RESIDUAL_MAX_HIGH": 4, "ROTATION_UNCERTAINTY_HIGH": 5, "TRANSLATION_UNCERTAINTY_HIGH": 6,
-        "OFFSET_TRANSLATION_OUT_OF_RANGE": 7, "OFFSET_ROTATION_OUT_OF_RANGE": 8, "BAD_INPUT": 9,
-        "TOO_FEW_MARKS": 10, "POSE_NOT_DETERMINED": 11, "MARK_BEHIND_CAMERA": 12,
+        "OK": 0,
+        "MARKS_MISSING": 1,
+        "NOT_CONVERGED": 2,
+        "RESIDUAL_RMS_HIGH": 3,
+        "RESIDUAL_MAX_HIGH": 4,
+        "ROTATION_UNCERTAINTY_HIGH": 5,
+        "TRANSLATION_UNCERTAINTY_HIGH": 6,
+        "OFFSET_TRANSLATION_OUT_OF_RANGE": 7,
+        "OFFSET_ROTATION_OUT_OF_RANGE": 8,
+        "BAD_INPUT": 9,
+        "TOO_FEW_MARKS": 10,
+        "POSE_NOT_DETERMINED": 11,
+        "MARK_BEHIND_CAMERA": 12,
     }
 
 
-@pytest.mark.parametrize(("change", "code"), [
-    ({}, ReasonCode.OK),
-    ({"marks_used": 3, "missing": ("M4",)}, ReasonCode.MARKS_MISSING),
-    ({"converged": False, "termination": "max_iterations"}, ReasonCode.NOT_CONVERGED),
-    ({"rms_px": 1.5}, ReasonCode.RESIDUAL_RMS_HIGH),
-    ({"max_residual_px": 3.5}, ReasonCode.RESIDUAL_MAX_HIGH),
-    ({"sigma_rot_deg": 0.25}, ReasonCode.ROTATION_UNCERTAINTY_HIGH),
-    ({"sigma_trans_mm": 1.2}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
-    ({"offset_mm": 120.0}, ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE),
-    ({"offset_deg": 12.0}, ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE),
-    ({"sigma_trans_mm": float("nan")}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
-    # the most basic cause wins
-    ({"marks_used": 3, "rms_px": 9.0, "converged": False}, ReasonCode.MARKS_MISSING),
-])
+@pytest.mark.parametrize(
+    ("change", "code"),
+    [
+        ({}, ReasonCode.OK),
+        ({"marks_used": 3, "missing": ("M4",)}, ReasonCode.MARKS_MISSING),
+        ({"converged": False, "termination": "max_iterations"}, ReasonCode.NOT_CONVERGED),
+        ({"rms_px": 1.5}, ReasonCode.RESIDUAL_RMS_HIGH),
+        ({"max_residual_px": 3.5}, ReasonCode.RESIDUAL_MAX_HIGH),
+        ({"sigma_rot_deg": 0.25}, ReasonCode.ROTATION_UNCERTAINTY_HIGH),
+        ({"sigma_trans_mm": 1.2}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
+        ({"offset_mm": 120.0}, ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE),
+        ({"offset_deg": 12.0}, ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE),
+        ({"sigma_trans_mm": float("nan")}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
+        # the most basic cause wins
+        ({"marks_used": 3, "rms_px": 9.0, "converged": False}, ReasonCode.MARKS_MISSING),
+    ],
+)
 def test_each_reason(change: dict, code: ReasonCode) -> None:
     v = evaluate_gate(dataclasses.replace(GOOD, **change), TOL, min_marks=4)
     assert v.reason is code and v.ok == (code is ReasonCode.OK)
@@ -68,7 +88,8 @@ def test_measure_returns_true_offsets_and_ok(name: str) -> None:
         truth = T @ np.linalg.inv(rec.T_rf_from_pf0.matrix)
         rot, trans = transform_error(from_robot(m.offset, m.convention), truth)
         assert rot < 5 * m.sigma_rot_deg and trans < 5 * m.sigma_trans_mm + 5 * np.radians(
-            m.sigma_rot_deg) * np.linalg.norm(rec.T_rf_from_pf0.matrix[:3, 3])
+            m.sigma_rot_deg
+        ) * np.linalg.norm(rec.T_rf_from_pf0.matrix[:3, 3])
         assert m.marks_missing == () and len(m.marks_used) == len(rec.marks)
         assert m.sigma_posterior is not None
         # the grasp point is 120-150 mm from the part origin: its σ is at least the origin's
@@ -86,11 +107,15 @@ def test_measure_nok_reasons_end_to_end() -> None:
     # detection much worse than the recipe's noise model: residual gate
     noisy = synthetic_observations(st, rec, T, rng, 3.0)
     assert measure(st, rec, noisy).gate.reason in (
-        ReasonCode.RESIDUAL_RMS_HIGH, ReasonCode.RESIDUAL_MAX_HIGH)
+        ReasonCode.RESIDUAL_RMS_HIGH,
+        ReasonCode.RESIDUAL_MAX_HIGH,
+    )
     # a noise model too poor for the tolerance: uncertainty gate (a priori)
     coarse = rec.model_copy(update={"detector_noise_px": 5.0})
     assert measure(st, coarse, obs).gate.reason in (
-        ReasonCode.ROTATION_UNCERTAINTY_HIGH, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH)
+        ReasonCode.ROTATION_UNCERTAINTY_HIGH,
+        ReasonCode.TRANSLATION_UNCERTAINTY_HIGH,
+    )
     # the part is further off than the station accepts
     far = T @ random_displacement(np.random.default_rng(1), 0.0, 0.0)
     far[:3, 3] += [0.0, 0.0, 130.0]

@@ -86,8 +86,11 @@ def test_covariance_at_the_grasp_point_includes_the_lever_arm() -> None:
     Exp = make_transform(Rotation.from_rotvec(delta[:3]).as_matrix(), delta[3:])
     left = T_RF_FROM_PF0 @ Exp @ T_PF_FROM_GRASP
     d_g = adjoint(invert(T_PF_FROM_GRASP)) @ delta
-    right = T_RF_FROM_PF0 @ T_PF_FROM_GRASP @ make_transform(
-        Rotation.from_rotvec(d_g[:3]).as_matrix(), d_g[3:])
+    right = (
+        T_RF_FROM_PF0
+        @ T_PF_FROM_GRASP
+        @ make_transform(Rotation.from_rotvec(d_g[:3]).as_matrix(), d_g[3:])
+    )
     assert transform_error(left, right)[1] < 1e-8  # vs ~4e-4 mm of lever-arm motion
     # 0.1° rotation about z at the part origin, no translation: 0.1° × lever arm at the grasp
     cov = np.diag([0.0, 0.0, np.radians(0.1) ** 2, 0.0, 0.0, 0.0])

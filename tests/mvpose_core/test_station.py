@@ -48,7 +48,9 @@ def test_unknown_key_names_file_and_field(tmp_path: Path) -> None:
 def test_bad_value_names_field_and_value() -> None:
     data = raw("station1")
     data["recipes"][0]["mark_diameter_mm"] = -4
-    with pytest.raises(StationFileError, match=r"st1\.yaml: recipes\[0\]\(floor_panel\)\.mark_diameter_mm.*-4"):
+    with pytest.raises(
+        StationFileError, match=r"st1\.yaml: recipes\[0\]\(floor_panel\)\.mark_diameter_mm.*-4"
+    ):
         parse_station(data, "st1.yaml")
 
 

@@ -26,7 +26,9 @@ from mvpose_core.transforms import (
 
 
 def random_transform(rng: np.random.Generator) -> np.ndarray:
-    return make_transform(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-2000, 2000, 3))
+    return make_transform(
+        Rotation.random(random_state=rng).as_matrix(), rng.uniform(-2000, 2000, 3)
+    )
 
 
 def test_compose_and_invert_follow_frame_names() -> None:
