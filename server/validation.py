@@ -1,4 +1,4 @@
-"""Commissioning validation as the paper's Tables 1–3: measured offsets against ground truth, per axis.
+"""Commissioning validation as the paper's Tables 1–3: measured offsets against the truth, per axis.
 
 Ground truth comes from robot teaching or from the tooling's read-outs (CSV, one row per
 measurement, in the recipe's robot convention); the measured offsets come from the station (its CSV
@@ -94,11 +94,11 @@ def read_offsets_csv(
             raise ValidationError(f"{name}: line {line}: empty {key!r}")
         if k in out:
             raise ValidationError(f"{name}: line {line}: {key} {k!r} appears twice")
-        if all(not (row.get(c) or "").strip() for c in cols.values()):  # type: ignore[arg-type]
+        if all(not (row.get(c) or "").strip() for c in cols.values() if c):
             continue  # a NOK measurement of an export: no offset to compare
         values = []
-        for lab, c in cols.items():
-            raw = (row.get(c) or "").strip()  # type: ignore[arg-type]
+        for c in cols.values():
+            raw = (row.get(c) or "").strip() if c else ""
             try:
                 v = float(raw)
             except ValueError:
@@ -232,7 +232,9 @@ class ValidationReport:
         return buf.getvalue()
 
 
-def grasp_error(offset_true: Array, offset_meas: Array, recipe: RecipeConfig) -> tuple[Array, Array]:
+def grasp_error(
+    offset_true: Array, offset_meas: Array, recipe: RecipeConfig
+) -> tuple[Array, Array]:
     """(rotation error deg [3], translation error mm [3]) at the grasp frame, in RF axes."""
     T_pf0 = recipe.T_rf_from_pf0.matrix
     T_grasp = recipe.T_pf_from_grasp.matrix

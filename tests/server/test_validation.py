@@ -30,7 +30,8 @@ def recipe():
     return load_station(STATION1).recipe()
 
 
-def _series(recipe, rng: np.random.Generator, n: int, rot_err_deg: np.ndarray, trans_err_mm: np.ndarray):
+def _series(recipe, rng: np.random.Generator, n: int, rot_err_deg: np.ndarray,
+            trans_err_mm: np.ndarray):
     """True offsets and measured offsets whose grasp frames differ by the given errors (RF axes)."""
     T_pf0_grasp = compose(recipe.T_rf_from_pf0.matrix, recipe.T_pf_from_grasp.matrix)
     truth, measured = {}, {}

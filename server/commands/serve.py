@@ -1,0 +1,82 @@
+"""``mvpose serve --station FILE``: the station server (REST, PLC link, pipeline) on uvicorn."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+
+from server.cli import CliError
+
+
+def _env_int(name: str, default: int) -> int:
+    raw = os.environ.get(name)
+    if raw is None or raw == "":
+        return default
+    try:
+        return int(raw)
+    except ValueError:
+        raise CliError(f"environment variable {name}: expected a port number, got {raw!r}") \
+            from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--station", type=Path,
+                        help="station YAML file (default: $MVPOSE_STATION)")
+    parser.add_argument("--host", help="REST address (default: $MVPOSE_HOST or 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="REST port (default: $MVPOSE_PORT or 8000)")
+    parser.add_argument("--plc-host",
+                        help="Modbus/TCP address (default: $MVPOSE_PLC_HOST or 127.0.0.1)")
+    parser.add_argument("--plc-port", type=int,
+                        help="Modbus/TCP port (default: $MVPOSE_PLC_PORT or 502)")
+    parser.add_argument("--data-dir", type=Path,
+                        help="SQLite database and image archive "
+                        "(default: $MVPOSE_DATA_DIR or ./var)")
+    parser.add_argument("--log-level", default="info",
+                        choices=["debug", "info", "warning", "error"])
+
+
+def run(args: argparse.Namespace) -> int:
+    # Heavy imports only when the command runs (`mvpose --help` stays fast).
+    import uvicorn
+    from pydantic import ValidationError
+
+    from mvpose_core.station import StationFileError, load_station
+    from server.app import create_app
+    from server.runtime import RuntimeOptions, StationRuntime
+    from server.settings import Settings
+
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    overrides: dict[str, object] = {}
+    if args.station is not None:
+        overrides["station"] = args.station
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    try:
+        settings = Settings(**overrides)  # type: ignore[arg-type]
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise CliError(f"settings: MVPOSE_{str(first['loc'][0]).upper()}: {first['msg']} "
+                       f"(value: {first.get('input')!r})") from None
+    if settings.station is None:
+        raise CliError("no station file: pass --station FILE or set MVPOSE_STATION")
+    try:
+        # Checked here too, so a malformed file stops start-up before anything opens.
+        station = load_station(settings.station)
+    except StationFileError as err:
+        raise CliError(str(err)) from None
+    host = args.host or os.environ.get("MVPOSE_HOST") or "127.0.0.1"
+    port = args.port if args.port is not None else _env_int("MVPOSE_PORT", 8000)
+    plc_host = args.plc_host or os.environ.get("MVPOSE_PLC_HOST") or "127.0.0.1"
+    plc_port = args.plc_port if args.plc_port is not None else _env_int("MVPOSE_PLC_PORT", 502)
+    runtime = StationRuntime(station, RuntimeOptions(plc_host=plc_host, plc_port=plc_port))
+    app = create_app(settings, runtime)
+    print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 "
+          f"(docs /docs), Modbus/TCP {plc_host}:{plc_port}", flush=True)
+    config = uvicorn.Config(app, host=host, port=port, log_level=args.log_level, lifespan="on")
+    server = uvicorn.Server(config)
+    server.run()
+    # uvicorn returns normally when the lifespan failed at start-up: report it as a failure.
+    return 0 if server.started else 1

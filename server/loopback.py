@@ -1,0 +1,177 @@
+"""The whole station on loopback: app + runtime on simulated cameras, and a PLC twin driving it.
+
+Used by ``mvpose demo``, the end-to-end tests and the station benchmark, so all three run the same
+production code paths: the FastAPI app with its lifespan (store, migrations, tokens), the
+runtime's Modbus server on a free port, and the twin talking Modbus/TCP to it like the PLC.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+
+import numpy as np
+import uvicorn
+
+from drivers.plc.registers import Status
+from drivers.plc.twin import PlcStatus, PlcTwin
+from mvpose_core.station import RecipeConfig, load_station
+from mvpose_core.transforms import Array, compose, from_robot, invert, to_robot, transform_error
+from server.app import create_app
+from server.runtime import RuntimeOptions, StationRuntime
+from server.settings import Settings
+
+
+@dataclass(frozen=True)
+class TriggerRow:
+    """One trigger as the PLC saw it, beside the truth the simulator knows."""
+
+    trigger_id: int
+    result_code: int
+    true_offset: Array  # recipe convention values
+    measured_offset: Array  # what the PLC read (PLC form), zeros when NOK
+    rot_err_deg: float
+    trans_err_mm: float
+    sigma_mm: float
+    sigma_deg: float
+    server_ms: float  # the server's processing time, as published to the PLC
+    roundtrip_ms: float  # trigger written → answer read by the twin
+
+
+def true_offset(recipe: RecipeConfig, T_rf_from_pf: Array) -> Array:
+    """The base-frame offset the station should report for a part at ``T_rf_from_pf``."""
+    delta = compose(T_rf_from_pf, invert(recipe.T_rf_from_pf0.matrix))
+    return to_robot(delta, recipe.robot_convention)
+
+
+def offset_error(recipe: RecipeConfig, true: Array, measured: Array) -> tuple[float, float]:
+    """(deg, mm) between two offsets, at the grasp point (where the robot uses it)."""
+    conv = recipe.robot_convention
+    G = compose(recipe.T_rf_from_pf0.matrix, recipe.T_pf_from_grasp.matrix)
+    return transform_error(compose(from_robot(measured, conv), G),
+                           compose(from_robot(true, conv), G))
+
+
+class Heartbeat:
+    """Keeps the twin's heartbeat going while the test does something long (rendering)."""
+
+    def __init__(self, twin: PlcTwin, period_s: float = 0.2) -> None:
+        self.twin, self.period_s = twin, period_s
+        self._task: asyncio.Task[None] | None = None
+
+    async def _run(self) -> None:
+        while True:
+            await self.twin.beat()
+            await asyncio.sleep(self.period_s)
+
+    async def __aenter__(self) -> Heartbeat:
+        self._task = asyncio.create_task(self._run())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._task is not None
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+
+
+async def move_part(runtime: StationRuntime, twin: PlcTwin, T_rf_from_pf: Array) -> None:
+    """Render every simulated camera at the new part pose (in a thread; the PLC keeps beating)."""
+    async with Heartbeat(twin):
+        await asyncio.to_thread(runtime.scene.set_part_pose, T_rf_from_pf)
+
+
+async def trigger(
+    twin: PlcTwin, recipe: RecipeConfig, trigger_id: int, truth: Array | None, *,
+    view_index: int = 0, part_id: str | None = None, timeout: float = 5.0,
+) -> tuple[PlcStatus, TriggerRow | None]:
+    """One PLC handshake; with the true part pose, the row comparing the answer to it."""
+    t = time.perf_counter()
+    status = await twin.cycle(trigger_id, view_index, part_id=part_id, timeout=timeout)
+    roundtrip = (time.perf_counter() - t) * 1e3
+    if truth is None or not status.has(Status.RESULT_VALID) and status.has(Status.VIEW_DONE):
+        return status, None
+    want = true_offset(recipe, truth)
+    got = np.array(status.offset_float, dtype=float)
+    if status.result_code == 0:
+        deg, mm = offset_error(recipe, want, got)
+    else:
+        deg = mm = float("nan")
+    s_um, s_rot = status.sigma_counts
+    return status, TriggerRow(
+        trigger_id=trigger_id, result_code=status.result_code, true_offset=want,
+        measured_offset=got, rot_err_deg=deg, trans_err_mm=mm, sigma_mm=s_um / 1000.0,
+        sigma_deg=s_rot / 1e4, server_ms=status.processing_ms, roundtrip_ms=roundtrip,
+    )
+
+
+@dataclass
+class Loopback:
+    runtime: StationRuntime
+    twin: PlcTwin
+    server: uvicorn.Server | None
+    base_url: str | None
+
+
+@contextlib.asynccontextmanager
+async def running_station(
+    settings: Settings, options: RuntimeOptions | None = None, *,
+    http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
+) -> AsyncIterator[Loopback]:
+    """App (served by uvicorn unless ``http_port`` is None) + runtime + a connected, enabled twin.
+
+    The station is ``settings.station``, read here as ``mvpose serve`` reads it.
+    """
+    if settings.station is None:
+        raise ValueError("settings.station must name the station file")
+    station = load_station(settings.station)
+    runtime = StationRuntime(station, options or RuntimeOptions())
+    app = create_app(settings, runtime)
+    server: uvicorn.Server | None = None
+    serve_task = None
+    base_url = None
+    if http_port is not None:
+        config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
+                                lifespan="on")
+        server = uvicorn.Server(config)
+        serve_task = asyncio.create_task(server.serve())
+        deadline = time.monotonic() + 60
+        while not server.started:
+            if serve_task.done():
+                with contextlib.suppress(SystemExit):  # uvicorn's exit on a failed lifespan
+                    await serve_task
+                raise RuntimeError("the station server failed to start (see the log)")
+            if time.monotonic() > deadline:
+                raise TimeoutError("the station server did not start within 60 s")
+            await asyncio.sleep(0.02)
+        sock = server.servers[0].sockets[0].getsockname()
+        base_url = f"http://{sock[0]}:{sock[1]}"
+        lifespan_cm: contextlib.AbstractAsyncContextManager[None] = contextlib.nullcontext()
+    else:
+        lifespan_cm = _lifespan(app)
+    try:
+        async with lifespan_cm:
+            # A PLC scans every few ms; a twin polling flat out in this process would only
+            # compete with the pipeline for the GIL.
+            twin = PlcTwin("127.0.0.1", runtime.plc_port, poll_s=twin_poll_s)
+            await twin.connect()
+            try:
+                await twin.enable()
+                await twin.wait_for(lambda s: s.has(Status.READY), 5.0, "READY")
+                yield Loopback(runtime=runtime, twin=twin, server=server, base_url=base_url)
+            finally:
+                twin.close()
+    finally:
+        if server is not None and serve_task is not None:
+            server.should_exit = True
+            await serve_task
+
+
+@contextlib.asynccontextmanager
+async def _lifespan(app: object) -> AsyncIterator[None]:
+    """The app's lifespan without a socket (the benchmark's baseline runs no HTTP server)."""
+    async with app.router.lifespan_context(app):  # type: ignore[attr-defined]
+        yield

@@ -1,0 +1,352 @@
+"""The per-trigger pipeline: parallel capture, window detection, measure + gate, record, outcome.
+
+One trigger, in order (every stage timed, the times go into the record)::
+
+    capture   every camera of the view at once (CaptureGroup, one deadline)
+    detect    each image in windows predicted from the recipe at the taught reference pose,
+              one worker per image (OpenCV releases the GIL)
+    measure   estimate + offset + uncertainty + gate (mvpose_core.measure) from every observation
+              of every view gathered so far
+    correct   the perspective correction of each centre recomputed at the estimated pose, and the
+              pose measured again (the correction depends on the pose; see docs/detection.md)
+    store     the MeasurementRecord appended durably (before the PLC can see RESULT_VALID)
+
+The station's deadline (``station.deadline_ms``) runs from the moment the trigger was taken. The
+verdict is decided before the record is written, with the store's recent worst-case write time
+kept in reserve: a result that cannot reach the PLC in time becomes DEADLINE_EXCEEDED in the
+record *and* on the PLC, never a late offset. Everything here is blocking and runs on the
+runtime's trigger thread, never on an event loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime
+from enum import IntEnum
+
+import numpy as np
+
+from drivers.cameras import CaptureGroup, DriverError, Frame
+from drivers.plc.codecs import pose_to_plc
+from drivers.plc.seam import TriggerOutcome
+from mvpose_core.detect import DetectOptions, MarkDetection, correct_centres, detect_marks
+from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
+from mvpose_core.gate import ReasonCode
+from mvpose_core.measure import Measurement, measure
+from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
+from mvpose_core.station import RecipeConfig, StationConfig
+from mvpose_core.transforms import Array
+from server.store.schemas import (
+    CameraDetections,
+    Detection,
+    ImageRef,
+    MeasurementRecord,
+    Offset,
+    Residuals,
+    StoredMeasurement,
+    Uncertainty,
+)
+
+log = logging.getLogger(__name__)
+
+
+class StationReason(IntEnum):
+    """NOK reasons of the station itself, beside the engine's gate codes (1..99); PLC codes too."""
+
+    CAMERA_FAILED = 101  # a camera the recipe needs gave no frame, and marks are missing because
+    DETECTION_FAILED = 102  # the detector refused an image (wrong size, format)
+    DEADLINE_EXCEEDED = 103  # the result could not reach the PLC within station.deadline_ms
+    UNKNOWN_RECIPE = 104  # the PLC selected a recipe number the station does not have
+    UNKNOWN_VIEW = 105  # a view index the station does not have, or one the recipe never uses
+    INTERNAL_ERROR = 106  # a bug: the exception is in the log and the record's reason text
+
+
+def reason_name(code: int) -> str:
+    for enum in (ReasonCode, StationReason):
+        try:
+            return enum(code).name
+        except ValueError:
+            continue
+    return f"CODE_{code}"
+
+
+@dataclass(frozen=True)
+class ActiveRecipe:
+    """A recipe as the station uses it now: its content (taught reference included) and version."""
+
+    config: RecipeConfig
+    version: int  # the store's version number (goes into every record)
+    sha256: str
+    number: int  # what the PLC selects it by: 1-based position in the station file
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    # The first pass detects without perspective correction: the correction needs the pose,
+    # and the one at the estimate (second pass) is the one that counts.
+    detect: DetectOptions = DetectOptions(correct_perspective=False)
+    estimate: EstimateOptions = EstimateOptions()
+    detect_workers: int = 2
+    recorrect: bool = True  # second pass with the perspective correction at the estimated pose
+    store_reserve_ms: float = 3.0  # at least this much of the deadline is kept for the write
+    capture_share: float = 0.6  # the capture may use at most this share of the deadline
+
+
+@dataclass
+class ViewCapture:
+    """What one view contributed: detections per camera, the frames, and failures."""
+
+    view: int
+    trigger_id: int
+    flange_pose: Array | None
+    cameras: dict[str, ViewCamera]
+    detections: dict[str, list[MarkDetection]] = field(default_factory=dict)
+    camera_errors: dict[str, str] = field(default_factory=dict)
+    frames: dict[str, np.ndarray] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def observations(self) -> list[Observation]:
+        return [
+            Observation(view=self.view, camera_id=cid, mark_id=d.mark_id, uv=d.uv)
+            for cid, dets in self.detections.items() for d in dets if d.found and d.uv is not None
+        ]
+
+
+@dataclass(frozen=True)
+class TriggerResult:
+    """The PLC's answer and, for a final view, the stored record."""
+
+    outcome: TriggerOutcome
+    record: MeasurementRecord | None
+    stored: StoredMeasurement | None
+    measurement: Measurement | None
+    frames: dict[tuple[int, str], np.ndarray]
+    message: str
+
+
+class Pipeline:
+    """Runs triggers of one station; owns a small pool for per-image detection."""
+
+    def __init__(
+        self,
+        station: StationConfig,
+        capture: CaptureGroup,
+        record_sink: Callable[[MeasurementRecord], StoredMeasurement],
+        *,
+        software_version: str,
+        calibration: tuple[str, str] | None = None,
+        plan_images: Callable[[int, datetime, bool, Sequence[tuple[int, str]]], list[ImageRef]]
+        | None = None,
+        options: PipelineOptions = PipelineOptions(),  # noqa: B008 - frozen
+    ) -> None:
+        self.station = station
+        self.capture = capture
+        self.record_sink = record_sink
+        self.software_version = software_version
+        self.calibration = calibration
+        self.plan_images = plan_images
+        self.options = options
+        self.deadline_s = station.deadline_ms / 1000.0
+        self._pool = ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
+        self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
+        self._store_ms: deque[float] = deque(maxlen=200)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    # ------------------------------------------------------------------ capture + detect
+    def view_cameras(self, view: int, flange_pose: Array | None) -> dict[str, ViewCamera]:
+        """The view's cameras, posed with the robot's actual flange pose when it sent one."""
+        if flange_pose is None:
+            return {cid: vc for (v, cid), vc in self._taught.items() if v == view}
+        return {vc.camera_id: vc for vc in
+                view_cameras(self.station, flange_poses={view: flange_pose}, views=[view])}
+
+    def capture_view(
+        self, view: int, trigger_id: int, recipe: RecipeConfig, flange_pose: Array | None,
+        t0: float,
+    ) -> ViewCapture:
+        """Grab every camera and detect the recipe's marks in the cameras of ``view``."""
+        cams = self.view_cameras(view, flange_pose)
+        vcap = ViewCapture(view=view, trigger_id=trigger_id, flange_pose=flange_pose, cameras=cams)
+        budget = max(0.001, self.deadline_s * self.options.capture_share - (time.monotonic() - t0))
+        t = time.monotonic()
+        grabbed = self.capture.grab_all(budget, camera_ids=list(cams))
+        vcap.timings_ms["capture"] = (time.monotonic() - t) * 1e3
+        jobs = {}
+        t = time.monotonic()
+        for cid, vc in cams.items():
+            res = grabbed.get(cid)
+            if not sighted_marks(recipe, view, cid):
+                continue  # this camera sees nothing of this part in this view
+            if isinstance(res, Frame):
+                vcap.frames[cid] = res.image
+                jobs[cid] = self._pool.submit(
+                    detect_marks, res.image, vc, recipe, recipe.T_rf_from_pf0.matrix,
+                    self.options.detect,
+                )
+            else:
+                err = res if isinstance(res, DriverError) else DriverError(f"no result for {cid!r}")
+                vcap.camera_errors[cid] = str(err)
+                vcap.detections[cid] = [
+                    MarkDetection.missing(m, f"camera: {err}")
+                    for m in sighted_marks(recipe, view, cid)
+                ]
+        for cid, fut in jobs.items():
+            try:
+                vcap.detections[cid] = fut.result()
+            except ValueError as err:  # the detector's refusal of a bad image names the problem
+                vcap.camera_errors[cid] = f"detection: {err}"
+                vcap.detections[cid] = [
+                    MarkDetection.missing(m, f"detection: {err}")
+                    for m in sighted_marks(recipe, view, cid)
+                ]
+        vcap.timings_ms["detect"] = (time.monotonic() - t) * 1e3
+        return vcap
+
+    # ------------------------------------------------------------------ measure + record
+    def conclude(
+        self,
+        *,
+        trigger_id: int,
+        part_id: str | None,
+        triggered_at: datetime,
+        t0: float,
+        recipe: ActiveRecipe,
+        views: Sequence[ViewCapture],
+    ) -> TriggerResult:
+        """Measure from every view, gate, write the record, and build the PLC's outcome."""
+        timings: dict[str, float] = {}
+        for v in views:
+            for stage, ms in v.timings_ms.items():
+                key = stage if len(views) == 1 else f"v{v.view}_{stage}"
+                timings[key] = timings.get(key, 0.0) + ms
+        rc = recipe.config
+        flange = {v.view: v.flange_pose for v in views if v.flange_pose is not None}
+        meas: Measurement | None = None
+        message = ""
+        code: int
+        try:
+            t = time.monotonic()
+            obs = [o for v in views for o in v.observations()]
+            meas = measure(self.station, rc, obs, flange or None, self.options.estimate)
+            timings["measure"] = (time.monotonic() - t) * 1e3
+            if self.options.recorrect:
+                t = time.monotonic()
+                for v in views:
+                    for cid, dets in v.detections.items():
+                        v.detections[cid] = correct_centres(dets, v.cameras[cid], rc,
+                                                            meas.T_rf_from_pf)
+                obs = [o for v in views for o in v.observations()]
+                meas = measure(self.station, rc, obs, flange or None, self.options.estimate,
+                               initial_T_rf_from_pf=meas.T_rf_from_pf)
+                timings["correct"] = (time.monotonic() - t) * 1e3
+            code, message = int(meas.gate.reason), meas.gate.message
+        except PoseInputError as err:  # too few marks, a layout that fixes no pose, ...
+            code, message = int(err.reason), str(err)
+        except Exception as err:  # the record must still be written, with the reason
+            log.exception("trigger %d: measurement failed", trigger_id)
+            code, message = int(StationReason.INTERNAL_ERROR), f"{type(err).__name__}: {err}"
+        failed_cams = {cid for v in views for cid in v.camera_errors}
+        if code in (ReasonCode.MARKS_MISSING, ReasonCode.TOO_FEW_MARKS) and failed_cams:
+            errs = "; ".join(e for v in views for e in v.camera_errors.values())
+            code = int(StationReason.CAMERA_FAILED)
+            message = f"{message}; {errs}"
+
+        # The verdict is final here: keep the store's worst recent write time in reserve.
+        reserve = max(self.options.store_reserve_ms, max(self._store_ms, default=0.0) * 1.5)
+        elapsed = (time.monotonic() - t0) * 1e3
+        if code == 0 and elapsed + reserve > self.station.deadline_ms:
+            code = int(StationReason.DEADLINE_EXCEEDED)
+            message = (f"result ready after {elapsed:.1f} ms, {reserve:.1f} ms kept for the store: "
+                       f"past the {self.station.deadline_ms:g} ms deadline")
+        ok = code == 0
+
+        frames = {(v.view, cid): img for v in views for cid, img in v.frames.items()}
+        images: list[ImageRef] = []
+        if self.plan_images is not None:
+            images = self.plan_images(trigger_id, triggered_at, ok, sorted(frames))
+        timings["total"] = (time.monotonic() - t0) * 1e3
+        record = self._record(trigger_id, part_id, triggered_at, recipe, views, meas, code, images,
+                              timings, message)
+        t = time.monotonic()
+        stored = self.record_sink(record)
+        store_ms = (time.monotonic() - t) * 1e3
+        self._store_ms.append(store_ms)
+        processing_ms = (time.monotonic() - t0) * 1e3
+        plc_offset = (0.0,) * 6
+        if ok and meas is not None:  # never an offset with a NOK code
+            plc_offset = pose_to_plc(meas.offset.tolist(), rc.robot_convention)
+        outcome = TriggerOutcome(
+            result_code=code,
+            offset=plc_offset,
+            sigma_trans_mm=float(meas.sigma_trans_mm) if meas else 0.0,
+            sigma_rot_deg=float(meas.sigma_rot_deg) if meas else 0.0,
+            processing_ms=processing_ms,
+            views_done=len(views),
+            final=True,
+        )
+        return TriggerResult(outcome=outcome, record=record, stored=stored, measurement=meas,
+                             frames=frames, message=message)
+
+    def _record(
+        self, trigger_id: int, part_id: str | None, triggered_at: datetime, recipe: ActiveRecipe,
+        views: Sequence[ViewCapture], meas: Measurement | None, code: int,
+        images: list[ImageRef], timings: dict[str, float], message: str,
+    ) -> MeasurementRecord:
+        rc = recipe.config
+        dets = [
+            CameraDetections(view=v.view, camera_id=cid, detections=[_detection(d) for d in ds])
+            for v in views for cid, ds in v.detections.items()
+        ]
+        pose = offset = unc = res = None
+        if meas is not None:
+            pose = MeasurementRecord.matrix(meas.T_rf_from_pf)
+            offset = Offset(convention=rc.robot_convention,
+                            values=[float(x) for x in meas.offset])
+            unc = Uncertainty(sigma_mm=float(meas.sigma_trans_mm),
+                              sigma_deg=float(meas.sigma_rot_deg))
+            r = np.asarray(meas.pose.residuals_px, dtype=float).reshape(-1, 2)
+            norms = np.linalg.norm(r, axis=1) if len(r) else np.zeros(1)
+            res = Residuals(rms_px=float(np.sqrt(np.mean(norms**2))), max_px=float(norms.max()))
+        return MeasurementRecord(
+            station=self.station.name,
+            trigger_id=trigger_id,
+            part_id=part_id or None,
+            triggered_at=triggered_at,
+            recipe=rc.name,
+            recipe_version=recipe.version,
+            calibration_id=self.calibration[0] if self.calibration else None,
+            calibration_hash=self.calibration[1] if self.calibration else None,
+            software_version=self.software_version,
+            result="OK" if code == 0 else "NOK",
+            reason_code=code,
+            reason=reason_name(code),
+            message=message[:500] or None,
+            detections=dets,
+            T_rf_from_pf=pose,
+            offset=offset,
+            uncertainty=unc,
+            residuals=res,
+            timings_ms={k: round(v, 4) for k, v in timings.items()},
+            images=images,
+        )
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _detection(d: MarkDetection) -> Detection:
+    quality = {k: float(v) for k, v in (("contrast", d.contrast), ("fit_residual_px",
+               d.fit_residual_px), ("axis_ratio", d.axis_ratio), ("radius_px", d.radius_px))
+               if _finite(v) is not None}
+    uv = (float(d.uv[0]), float(d.uv[1])) if d.found and d.uv is not None else None
+    return Detection(mark_id=d.mark_id, found=d.found and uv is not None, uv=uv,
+                     reason=(d.reason or None) and d.reason[:200], quality=quality)
+

@@ -1,0 +1,48 @@
+"""Station files and settings for the pipeline and end-to-end tests (deploy/stations variants)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from drivers.cameras import RenderOptions
+from server.runtime import RuntimeOptions
+from server.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[2]
+STATIONS = ROOT / "deploy" / "stations"
+ENGINEER = "mvp_engineer-token-for-the-pipeline-tests-0000000"
+
+# Rendering 4 MP frames is the main cost of these tests: no read noise (a full-frame random
+# draw per camera) and 4x4 instead of 16x16 super-sampling at the mark rims. Detection and the
+# estimate still see anti-aliased, blurred, unevenly lit marks.
+FAST_RENDER = RenderOptions(noise_sigma=0.0, shot_noise_gain=0.0, supersample=4)
+
+
+def relaxed_deadline(data: dict[str, Any]) -> None:
+    """Correctness tests run on a shared, loaded 2-core machine: a 50 ms deadline would turn
+    scheduler hiccups into NOK results. The deadline has its own test (test_pipeline.py) and
+    the latency is measured by bench/bench_station.py."""
+    data["deadline_ms"] = 1000.0
+
+
+def station_file(tmp: Path, name: str, *edits: Callable[[dict[str, Any]], None]) -> Path:
+    """A copy of deploy/stations/<name>.yaml in ``tmp``, changed by ``edits``."""
+    data = yaml.safe_load((STATIONS / f"{name}.yaml").read_text())
+    for edit in edits:
+        edit(data)
+    path = tmp / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def settings_for(station: Path, data_dir: Path, database_url: str | None = None) -> Settings:
+    return Settings(station=station, data_dir=data_dir, database_url=database_url,
+                    bootstrap_token=ENGINEER, images_ok_every=1000)
+
+
+def runtime_options(seed: int = 0) -> RuntimeOptions:
+    return RuntimeOptions(sim_seed=seed, sim_render=FAST_RENDER)

@@ -1,0 +1,145 @@
+"""The per-trigger pipeline through the real runtime: deadline, camera faults, views, teach, REST.
+
+Every test runs the production wiring (app lifespan, store, runtime, Modbus server on a free port)
+with station 1's simulated cameras and talks to it as the PLC does, through the PLC twin.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
+
+from drivers.plc.registers import Command, Status
+from mvpose_core.synth import random_displacement
+from server.loopback import move_part, running_station, trigger
+from server.pipeline import StationReason
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _at(recipe: Any, rng: np.random.Generator) -> np.ndarray:
+    return recipe.T_rf_from_pf0.matrix @ random_displacement(rng, 15.0, 1.5)
+
+
+async def test_past_the_deadline_the_plc_gets_an_error_code_never_an_offset(tmp_path: Path) -> None:
+    def tight(d: dict[str, Any]) -> None:
+        d["deadline_ms"] = 2.0  # less than any capture + detection of four 4 MP frames
+
+    settings = settings_for(station_file(tmp_path, "station1", tight), tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        T = _at(recipe, np.random.default_rng(1))
+        await move_part(lb.runtime, lb.twin, T)
+        status, row = await trigger(lb.twin, recipe, 41, T)
+        assert status.has(Status.RESULT_VALID) and not status.has(Status.RESULT_OK)
+        assert status.result_code == StationReason.DEADLINE_EXCEEDED
+        assert status.offset_float == (0.0,) * 6
+        lb.runtime.wait_idle()
+        stored = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id)
+        rec = stored.record
+        # What the PLC got is what the audit trail says, with the pose kept for diagnosis.
+        assert (rec.trigger_id, rec.result, rec.reason) == (41, "NOK", "DEADLINE_EXCEEDED")
+        assert rec.T_rf_from_pf is not None and "deadline" in (rec.message or "")
+        assert {"capture", "detect", "measure", "total"} <= set(rec.timings_ms)
+
+
+async def test_a_camera_that_times_out_gives_camera_failed_and_the_others_still_measure(
+    tmp_path: Path,
+) -> None:
+    def fault(d: dict[str, Any]) -> None:
+        cam = next(c for c in d["cameras"] if c["id"] == "back_left")
+        cam["driver"]["fault"] = {"kind": "timeout", "every_n": 1}
+
+    station = station_file(tmp_path, "station1", fault, relaxed_deadline)
+    settings = settings_for(station, tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        T = _at(recipe, np.random.default_rng(2))
+        await move_part(lb.runtime, lb.twin, T)
+        status, _ = await trigger(lb.twin, recipe, 7, T)
+        assert status.result_code == StationReason.CAMERA_FAILED
+        lb.runtime.wait_idle()
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        by_cam = {c.camera_id: c.detections for c in rec.detections}
+        assert all(not d.found and "camera" in (d.reason or "") for d in by_cam["back_left"])
+        assert all(d.found for cid in ("top_left", "top_right", "back_right")
+                   for d in by_cam[cid])
+        # The NOK frames are archived (after the PLC got its answer).
+        assert rec.images and {i.camera_id for i in rec.images} == {
+            "top_left", "top_right", "back_right"}
+
+
+async def test_unknown_view_and_recipe_are_refused_and_recorded(tmp_path: Path) -> None:
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        T = _at(recipe, np.random.default_rng(3))
+        await move_part(lb.runtime, lb.twin, T)
+        status, _ = await trigger(lb.twin, recipe, 9, T, view_index=7, part_id="VIN-9")
+        assert status.result_code == StationReason.UNKNOWN_VIEW
+        done = await lb.twin.command(Command.SELECT_RECIPE, 2)
+        assert done.has(Status.COMMAND_FAILED)
+        assert done.command_result == StationReason.UNKNOWN_RECIPE
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        assert (rec.trigger_id, rec.part_id, rec.reason) == (9, "VIN-9", "UNKNOWN_VIEW")
+        status, row = await trigger(lb.twin, recipe, 10, T)  # the station still measures
+        assert status.result_code == 0 and row is not None
+        assert row.trans_err_mm < recipe.tolerances.translation_mm
+
+
+async def test_rest_trigger_teach_and_plc_teach_make_new_recipe_versions(tmp_path: Path) -> None:
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    rng = np.random.default_rng(4)
+    async with running_station(settings, runtime_options()) as lb:
+        recipe = lb.runtime.active.config
+        tol = recipe.tolerances
+        T = _at(recipe, rng)
+        await move_part(lb.runtime, lb.twin, T)
+        async with httpx.AsyncClient(base_url=lb.base_url + "/api/v1", timeout=20,
+                                     headers={"Authorization": f"Bearer {ENGINEER}"}) as api:
+            made = await api.post("/tokens", json={"name": "mes", "role": "read"})
+            assert made.status_code == 201, made.text
+            read = {"Authorization": f"Bearer {made.json()['token']}"}
+            refused = await api.post("/station/trigger", json={"part_id": "X"}, headers=read)
+            assert refused.status_code == 403
+            assert (await api.get("/station/status", headers=read)).status_code == 200
+
+            answer = (await api.post("/station/trigger", json={"part_id": "COMM-1"})).json()
+            assert answer["result_code"] == 0, answer
+            assert answer["record"]["trigger_id"] == 0 and answer["record"]["part_id"] == "COMM-1"
+            assert np.abs(answer["offset"][:3]).max() > 1.0  # the part is displaced
+
+            mid = answer["measurement_id"]
+            taught = await api.post("/station/teach", json={"measurement_id": mid})
+            assert taught.status_code == 200, taught.text
+            assert taught.json()["version"] == 2
+            again = (await api.post("/station/trigger", json={"part_id": "COMM-2"})).json()
+            assert again["record"]["recipe_version"] == 2
+            # Same part, same place, new reference: the offset is zero within the noise.
+            assert np.abs(again["offset"][:3]).max() < tol.translation_mm / 2
+            assert np.abs(again["offset"][3:]).max() < tol.rotation_deg / 2
+
+            bad = await api.post("/station/teach", json={"measurement_id": 10**6})
+            assert bad.status_code == 404
+
+            # By PLC command: armed now, taken from the next final OK result.
+            T2 = _at(recipe, rng)
+            await move_part(lb.runtime, lb.twin, T2)
+            done = await lb.twin.command(Command.TEACH_REFERENCE)
+            assert done.has(Status.COMMAND_DONE)
+            status, _ = await trigger(lb.twin, recipe, 21, T2)
+            assert status.result_code == 0
+            status, _ = await trigger(lb.twin, recipe, 22, T2)
+            assert np.abs(status.offset_float[:3]).max() < tol.translation_mm / 2
+            versions = (await api.get("/recipes/floor_panel/versions")).json()
+            assert [v["version"] for v in versions] == [1, 2, 3]
+            assert versions[-1]["active"] and versions[-1]["created_by"] == "plc"
+            state = (await api.get("/station/status")).json()
+            assert state["recipe"]["version"] == 3
+            assert state["last_result"]["trigger_id"] == 22
+            assert state["cameras"] and all(s.startswith("up") for s in state["cameras"].values())
