@@ -21,10 +21,8 @@ from server.store.schemas import (
     ImageStatus,
     MeasurementDetail,
     MeasurementFilter,
-    Offset,
-    Residuals,
+    MeasurementSummary,
     StoredMeasurement,
-    Uncertainty,
 )
 
 router = APIRouter(prefix="/measurements", tags=["measurements"])
@@ -32,49 +30,6 @@ router = APIRouter(prefix="/measurements", tags=["measurements"])
 # Bounded so an absurd number is the client's 422, not an overflow inside the database driver.
 IdPath = Annotated[int, Path(ge=1, le=MAX_ID)]
 ViewPath = Annotated[int, Path(ge=1, le=255)]
-
-
-class MeasurementSummary(BaseModel):
-    """A list row: the result without detections (fetch one measurement for those)."""
-
-    id: int
-    seq: int
-    stored_at: datetime
-    triggered_at: datetime
-    trigger_id: int
-    part_id: str | None
-    recipe: str
-    recipe_version: int
-    result: Literal["OK", "NOK"]
-    reason_code: int
-    reason: str
-    offset: Offset | None
-    uncertainty: Uncertainty | None
-    residuals: Residuals | None
-    total_ms: float | None
-    hash: str
-
-    @classmethod
-    def of(cls, m: StoredMeasurement) -> MeasurementSummary:
-        r = m.record
-        return cls(
-            id=m.id,
-            seq=m.seq,
-            stored_at=m.stored_at,
-            triggered_at=r.triggered_at,
-            trigger_id=r.trigger_id,
-            part_id=r.part_id,
-            recipe=r.recipe,
-            recipe_version=r.recipe_version,
-            result=r.result,
-            reason_code=r.reason_code,
-            reason=r.reason,
-            offset=r.offset,
-            uncertainty=r.uncertainty,
-            residuals=r.residuals,
-            total_ms=r.timings_ms.get("total"),
-            hash=m.hash,
-        )
 
 
 class MeasurementPage(BaseModel):
@@ -116,8 +71,8 @@ def list_measurements(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> MeasurementPage:
     """Measurements, newest first; pass next_cursor back as cursor for the next page."""
-    items, next_cursor = store.measurements.page(filters, cursor, limit)
-    return MeasurementPage(items=[MeasurementSummary.of(m) for m in items], next_cursor=next_cursor)
+    items, next_cursor = store.measurements.summary_page(filters, cursor, limit)
+    return MeasurementPage(items=items, next_cursor=next_cursor)
 
 
 CSV_COLUMNS = [
@@ -152,37 +107,36 @@ CSV_COLUMNS = [
 ]
 
 
-def _csv_row(m: StoredMeasurement) -> list[object]:
-    r = m.record
-    values: list[object] = list(r.offset.values) if r.offset else []
+def _csv_row(m: MeasurementSummary) -> list[object]:
+    values: list[object] = list(m.offset.values) if m.offset else []
     values += [""] * (7 - len(values))
     return [
         m.id,
         m.seq,
-        r.triggered_at.isoformat(),
+        m.triggered_at.isoformat(),
         m.stored_at.isoformat(),
-        r.trigger_id,
-        r.part_id or "",
-        r.recipe,
-        r.recipe_version,
-        r.result,
-        r.reason_code,
-        r.reason,
-        r.offset.convention.value if r.offset else "",
+        m.trigger_id,
+        m.part_id or "",
+        m.recipe,
+        m.recipe_version,
+        m.result,
+        m.reason_code,
+        m.reason,
+        m.offset.convention.value if m.offset else "",
         *values,
-        r.uncertainty.sigma_mm if r.uncertainty else "",
-        r.uncertainty.sigma_deg if r.uncertainty else "",
-        r.residuals.rms_px if r.residuals else "",
-        r.residuals.max_px if r.residuals else "",
-        r.timings_ms.get("total", ""),
-        r.calibration_id or "",
-        r.calibration_hash or "",
-        canonical_json(r.timings_ms),
+        m.uncertainty.sigma_mm if m.uncertainty else "",
+        m.uncertainty.sigma_deg if m.uncertainty else "",
+        m.residuals.rms_px if m.residuals else "",
+        m.residuals.max_px if m.residuals else "",
+        "" if m.total_ms is None else m.total_ms,
+        m.calibration_id or "",
+        m.calibration_hash or "",
+        canonical_json(m.timings_ms),
         m.hash,
     ]
 
 
-def _csv_stream(rows: Iterator[StoredMeasurement]) -> Iterator[str]:
+def _csv_stream(rows: Iterator[MeasurementSummary]) -> Iterator[str]:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
@@ -214,12 +168,13 @@ def export_measurements(
     format: Literal["csv", "json"] = "csv",  # noqa: A002
 ) -> StreamingResponse:
     """Every matching measurement, oldest first, as CSV (one row each) or a JSON array."""
-    rows = store.measurements.iterate(filters)
-    # A sync generator: Starlette pulls it in the threadpool, so export never blocks the loop.
+    # Sync generators: Starlette pulls them in the threadpool, so export never blocks the loop.
+    body: Iterator[str]
     if format == "csv":
-        body, media = _csv_stream(rows), "text/csv; charset=utf-8"
+        body = _csv_stream(store.measurements.iterate_summaries(filters))
+        media = "text/csv; charset=utf-8"
     else:
-        body, media = _json_stream(rows), "application/json"
+        body, media = _json_stream(store.measurements.iterate(filters)), "application/json"
     name = f"measurements-{store.station}.{format}"
     return StreamingResponse(
         body, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'}

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from datetime import UTC, datetime
 from typing import Any, cast
 
+from pydantic import BaseModel, ConfigDict
 from sqlalchemy import Engine, Select, Table, func, insert, select
 from sqlalchemy.exc import IntegrityError
 
@@ -21,7 +22,11 @@ from server.store.schemas import (
     ChainReport,
     MeasurementFilter,
     MeasurementRecord,
+    MeasurementSummary,
+    Offset,
+    Residuals,
     StoredMeasurement,
+    Uncertainty,
 )
 
 M = cast(Table, MeasurementRow.__table__)
@@ -141,15 +146,41 @@ class MeasurementRepository:
         more = len(rows) > limit
         return items, (encode_cursor(items[-1].id) if more and items else None)
 
+    def summary_page(
+        self, filters: MeasurementFilter, cursor: str | None, limit: int
+    ) -> tuple[list[MeasurementSummary], str | None]:
+        """As :meth:`page`, without detections: about 3x cheaper to read (REST lists)."""
+        query = self._filtered(filters).order_by(M.c.id.desc()).limit(limit + 1)
+        if cursor is not None:
+            query = query.where(M.c.id < decode_cursor(cursor))
+        with self._engine.connect() as conn:
+            rows = conn.execute(query).all()
+        items = [_summary(r) for r in rows[:limit]]
+        more = len(rows) > limit
+        return items, (encode_cursor(items[-1].id) if more and items else None)
+
     def iterate(self, filters: MeasurementFilter, batch: int = 500) -> Iterator[StoredMeasurement]:
         """Every matching record, oldest first, fetched in batches (for exports)."""
+        for rows in self._batches(filters, batch):
+            yield from (_stored(r) for r in rows)
+
+    def iterate_summaries(
+        self, filters: MeasurementFilter, batch: int = 500
+    ) -> Iterator[MeasurementSummary]:
+        """Every matching record's summary, oldest first (CSV export)."""
+        for rows in self._batches(filters, batch):
+            yield from (_summary(r) for r in rows)
+
+    def _batches(self, filters: MeasurementFilter, batch: int) -> Iterator[list[Any]]:
+        # Keyset batches, each on its own short-lived connection: a slow export client never
+        # holds a read transaction open (which would stop SQLite's WAL checkpoints).
         last_id = 0
         while True:
             query = self._filtered(filters).where(M.c.id > last_id).order_by(M.c.id).limit(batch)
             with self._engine.connect() as conn:
-                rows = conn.execute(query).all()
-            for r in rows:
-                yield _stored(r)
+                rows = list(conn.execute(query).all())
+            if rows:
+                yield rows
             if len(rows) < batch:
                 return
             last_id = rows[-1].id
@@ -247,15 +278,67 @@ def _link_problem(r: Any, prev: str, expected_seq: int, station: str) -> str | N
     return None
 
 
+class _Envelope(BaseModel):
+    """The hashed body: parsed in one pass by pydantic-core (about 3x faster than json.loads +
+    validate, which matters: REST reads share the GIL with the trigger thread)."""
+
+    station: str
+    seq: int
+    stored_at: datetime
+    record: MeasurementRecord
+
+
+class _SummaryRecord(BaseModel):
+    model_config = ConfigDict(extra="ignore")  # detections and images are skipped, not built
+
+    message: str | None = None
+    calibration_id: str | None = None
+    calibration_hash: str | None = None
+    offset: Offset | None = None
+    uncertainty: Uncertainty | None = None
+    residuals: Residuals | None = None
+    timings_ms: dict[str, float] = {}
+
+
+class _SummaryEnvelope(BaseModel):
+    record: _SummaryRecord
+
+
+def _summary(r: Any) -> MeasurementSummary:
+    rec = _SummaryEnvelope.model_validate_json(r.body).record
+    return MeasurementSummary.model_construct(
+        id=r.id,
+        seq=r.seq,
+        stored_at=r.stored_at,
+        triggered_at=r.triggered_at,
+        trigger_id=r.trigger_id,
+        part_id=r.part_id,
+        recipe=r.recipe,
+        recipe_version=r.recipe_version,
+        result=r.result,
+        reason_code=r.reason_code,
+        reason=r.reason,
+        message=rec.message,
+        calibration_id=rec.calibration_id,
+        calibration_hash=rec.calibration_hash,
+        offset=rec.offset,
+        uncertainty=rec.uncertainty,
+        residuals=rec.residuals,
+        timings_ms=rec.timings_ms,
+        total_ms=rec.timings_ms.get("total"),
+        hash=r.hash,
+    )
+
+
 def _stored(r: Any) -> StoredMeasurement:
-    env = json.loads(r.body)
-    return StoredMeasurement(
+    env = _Envelope.model_validate_json(r.body)
+    return StoredMeasurement.model_construct(
         id=r.id,
         seq=r.seq,
         stored_at=r.stored_at,
         prev_hash=r.prev_hash,
         hash=r.hash,
-        record=MeasurementRecord.model_validate(env["record"]),
+        record=env.record,
     )
 
 

@@ -157,6 +157,31 @@ class StoredMeasurement(_Model):
     record: MeasurementRecord
 
 
+class MeasurementSummary(_Model):
+    """A list or CSV row: the result without detections and images (ask for one for those)."""
+
+    id: int
+    seq: int
+    stored_at: datetime
+    triggered_at: datetime
+    trigger_id: int
+    part_id: str | None
+    recipe: str
+    recipe_version: int
+    result: Literal["OK", "NOK"]
+    reason_code: int
+    reason: str
+    message: str | None = None
+    calibration_id: str | None = None
+    calibration_hash: str | None = None
+    offset: Offset | None = None
+    uncertainty: Uncertainty | None = None
+    residuals: Residuals | None = None
+    timings_ms: dict[str, float] = Field(default_factory=dict)
+    total_ms: float | None = Field(None, description="timings_ms['total'] when the pipeline set it")
+    hash: str
+
+
 class ImageStatus(_Model):
     view: int
     camera_id: str
