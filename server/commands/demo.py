@@ -1,10 +1,16 @@
-"""``mvpose demo``: the pose engine on simulated stations — true vs estimated offsets, errors.
+"""``mvpose demo``: the whole station server on simulated hardware, driven by the PLC twin.
 
-For now the demo exercises the engine only (no cameras, PLC or server): for each station file it
-draws random part displacements, simulates the mark observations every camera of every view
-would make (with the recipe's detector noise), runs :func:`mvpose_core.measure.measure` and
-prints the true and the estimated base-frame offset in XYZWPR with the error. The engine part is
-:func:`run_engine_demo`, callable on its own.
+``mvpose demo`` runs station 1 (four simulated 2048 × 2048 cameras, SQLite under ./var/demo,
+Modbus/TCP on loopback, the REST API): the PLC twin moves the part to random known displacements
+(the simulated cameras render the new position before the trigger), triggers, and the demo prints
+per trigger the true and the measured offset, the error, the 1σ and the server's latency. The
+REST API stays up at the printed address; ``--triggers N`` stops after N triggers.
+
+``mvpose demo --engine-only`` is the engine on its own (no cameras, PLC or server): for each
+station file it simulates the mark observations every camera would make (with the recipe's
+detector noise), runs :func:`mvpose_core.measure.measure` and prints true vs estimated offsets.
+That part is :func:`run_engine_demo`, callable on its own; the server demo is
+:func:`run_station_demo` (the loop lives in server/loopback.py, shared with tests and bench).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ DEFAULT_STATIONS = (
     ROOT / "deploy" / "stations" / "lab.yaml",
     ROOT / "deploy" / "stations" / "station1.yaml",
 )
+STATION_DEMO = ROOT / "deploy" / "stations" / "station1.yaml"
 
 
 def _fmt(v: np.ndarray) -> str:
@@ -91,13 +98,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "stations",
         nargs="*",
         type=Path,
-        default=list(DEFAULT_STATIONS),
-        help="station files (default: lab and station1 from deploy/stations)",
+        help="station file (default deploy/stations/station1.yaml; with --engine-only: files, "
+        "default lab and station1)",
     )
-    parser.add_argument("-n", type=int, default=10, help="displacements per station (default 10)")
+    parser.add_argument("--engine-only", action="store_true",
+                        help="the pose engine alone on synthetic observations (no server)")
+    parser.add_argument("--triggers", type=int, default=None,
+                        help="stop after N triggers (default: trigger until Ctrl-C)")
+    parser.add_argument("--keep-serving", action="store_true",
+                        help="with --triggers: keep the REST API up afterwards until Ctrl-C")
+    parser.add_argument("-n", type=int, default=10,
+                        help="--engine-only: displacements per station (default 10)")
     parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    parser.add_argument("--max-mm", type=float, default=50.0, help="displacement per axis, mm")
-    parser.add_argument("--max-deg", type=float, default=5.0, help="rotation per axis, deg")
+    parser.add_argument("--max-mm", type=float, default=None,
+                        help="displacement per axis, mm (default 20; engine-only 50)")
+    parser.add_argument("--max-deg", type=float, default=None,
+                        help="rotation per axis, deg (default 2; engine-only 5)")
+    parser.add_argument("--port", type=int, default=8000,
+                        help="REST port (default 8000, a free one if taken; 0 = any)")
+    parser.add_argument("--data-dir", type=Path, default=Path("var") / "demo",
+                        help="SQLite store and image archive (default ./var/demo)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -105,8 +125,25 @@ def run(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise CliError(f"-n must be at least 1, got {args.n}")
+    if args.triggers is not None and args.triggers < 1:
+        raise CliError(f"--triggers must be at least 1, got {args.triggers}")
     try:
-        bad = run_engine_demo(args.stations, args.n, args.seed, args.max_mm, args.max_deg)
+        if args.engine_only:
+            bad = run_engine_demo(args.stations or DEFAULT_STATIONS, args.n, args.seed,
+                                  50.0 if args.max_mm is None else args.max_mm,
+                                  5.0 if args.max_deg is None else args.max_deg)
+        else:
+            from server.demo_station import run_station_demo
+
+            if len(args.stations) > 1:
+                raise CliError("the server demo runs one station file")
+            bad = run_station_demo(
+                args.stations[0] if args.stations else STATION_DEMO, args.triggers,
+                keep_serving=args.keep_serving, seed=args.seed, port=args.port,
+                data_dir=args.data_dir,
+                max_mm=20.0 if args.max_mm is None else args.max_mm,
+                max_deg=2.0 if args.max_deg is None else args.max_deg,
+            )
     except StationFileError as err:
         raise CliError(str(err)) from None
     except ValueError as err:  # e.g. a displacement that moves a mark out of an image
