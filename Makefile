@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/mvpose demo
+	$(BIN)/mvpose demo --triggers 10
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests
