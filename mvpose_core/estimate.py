@@ -21,38 +21,20 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, align_points, collinearity, generalized_dlt
+from mvpose_core.problem import Observation, PoseInputError, Problem, build_problem, pack_layout
 from mvpose_core.refine import Array, LMResult, Packed, levenberg_marquardt, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import check_transform, make_transform
+
+__all__ = [
+    "EstimateOptions", "Observation", "PoseInputError", "PoseResult", "SolveInfo",
+    "estimate_pose", "pack_layout",
+]  # fmt: skip
 from mvpose_core.triangulate import rays_intersection
 from mvpose_core.uncertainty import information_from_jacobian, invert_information
-
-
-class PoseInputError(ValueError):
-    """The estimator refuses its input; ``reason`` is the gate code the server reports."""
-
-    def __init__(self, message: str, reason: ReasonCode = ReasonCode.BAD_INPUT) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-@dataclass(frozen=True)
-class Observation:
-    """One detected mark centre in one image: distorted pixel ``uv`` ``[2]``."""
-
-    view: int
-    camera_id: str
-    mark_id: str
-    uv: np.ndarray
-    sigma_px: float | None = None  # per-observation σ; None = the call's sigma_px
-
-    @property
-    def key(self) -> tuple[int, str, str]:
-        return (self.view, self.camera_id, self.mark_id)
 
 
 @dataclass(frozen=True)
@@ -125,71 +107,6 @@ class PoseResult:
     )  # [N] in the objective
 
 
-# ----------------------------------------------------------------------------- packing
-
-
-def _camera_arrays(cameras: Sequence[ViewCamera]) -> tuple[dict[tuple[int, str], int], tuple]:
-    index: dict[tuple[int, str], int] = {}
-    for i, c in enumerate(cameras):
-        if (c.view, c.camera_id) in index:
-            raise PoseInputError(f"camera v{c.view}/{c.camera_id} is listed twice")
-        index[(c.view, c.camera_id)] = i
-    T = np.asarray([c.T_rf_from_cf for c in cameras], dtype=float)
-    if T.shape != (len(cameras), 4, 4) or not np.all(np.isfinite(T)):
-        raise PoseInputError("every camera needs a finite 4x4 T_rf_from_cf")
-    R_cf_from_rf = np.transpose(T[:, :3, :3], (0, 2, 1))
-    t_cf_from_rf = -np.einsum("cij,cj->ci", R_cf_from_rf, T[:, :3, 3])
-    f = np.array([(c.model.fx, c.model.fy) for c in cameras])
-    cc = np.array([(c.model.cx, c.model.cy) for c in cameras])
-    k = np.array([tuple(c.model.dist) + (0.0,) * (8 - len(c.model.dist)) for c in cameras])
-    left = np.array([c.rig_position == 0 for c in cameras])
-    return index, (R_cf_from_rf, t_cf_from_rf, f, cc, k, left, T)
-
-
-def _mark_array(marks_pf: Mapping[str, np.ndarray], ids: Sequence[str]) -> Array:
-    out = np.empty((len(ids), 3))
-    for i, m in enumerate(ids):
-        if m not in marks_pf:
-            raise PoseInputError(f"observation names unknown mark {m!r}")
-        p = np.asarray(marks_pf[m], dtype=float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise PoseInputError(
-                f"mark {m!r}: position must be 3 finite values (mm), got {p.tolist()}"
-            )
-        out[i] = p
-    return out
-
-
-def pack_layout(
-    cameras: Sequence[ViewCamera],
-    marks_pf: Mapping[str, np.ndarray],
-    layout: Sequence[tuple[int, str, str]],
-    objective: str = "all",
-) -> tuple[Packed, np.ndarray]:
-    """Pack a layout of (view, camera_id, mark_id) with zero pixels; rows kept by ``objective``."""
-    index, (Rc, tc, f, cc, k, left, _) = _camera_arrays(cameras)
-    ci = np.empty(len(layout), dtype=np.intp)
-    for n, (v, cid, _m) in enumerate(layout):
-        if (v, cid) not in index:
-            raise PoseInputError(f"layout names unknown camera v{v}/{cid}")
-        ci[n] = index[(v, cid)]
-    p = _mark_array(marks_pf, [m for _, _, m in layout])
-    rows = np.arange(len(layout)) if objective == "all" else np.flatnonzero(left[ci])
-    ci = ci[rows]
-    pk = Packed(
-        Rc[ci],
-        tc[ci],
-        p[rows],
-        np.zeros((rows.size, 2)),
-        np.ones(rows.size),
-        f[ci],
-        cc[ci],
-        k[ci],
-        bool(np.any(k[:, 5:])),
-    )
-    return pk, rows
-
-
 # ----------------------------------------------------------------------------- estimation
 
 
@@ -210,78 +127,18 @@ def estimate_pose(
     before the layout's starts. Either is kept only if its refined RMS is within
     ``options.restart_rms_px``, otherwise the next start is tried.
     """
-    if not (np.isfinite(sigma_px) and sigma_px > 0):
-        raise PoseInputError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
+    prob = build_problem(observations, cameras, marks_pf, sigma_px)
+    pk_all, mi = prob.pk, prob.mi
     n = len(observations)
-    index, (Rc, tc, f, cc, k, left, T_rf_from_cf) = _camera_arrays(cameras)
-    ci = np.empty(n, dtype=np.intp)
-    weight = np.full(n, 1.0 / sigma_px)
-    seen: set[tuple[int, str, str]] = set()
-    try:
-        uv = np.array([o.uv for o in observations], dtype=float).reshape(n, 2)
-        fast = bool(np.all(np.isfinite(uv)))
-    except (ValueError, TypeError):
-        fast = False
-    for i, o in enumerate(observations):
-        key = (o.view, o.camera_id)
-        j = index.get(key)
-        if j is None:
-            raise PoseInputError(
-                f"observation v{o.view}/{o.camera_id}/{o.mark_id}: no camera v{o.view}/"
-                f"{o.camera_id} in this station"
-            )
-        ci[i] = j
-        okey = (o.view, o.camera_id, o.mark_id)
-        if okey in seen:
-            raise PoseInputError(
-                f"observation v{o.view}/{o.camera_id}/{o.mark_id}: the same mark is observed "
-                "twice in one image"
-            )
-        seen.add(okey)
-        if o.sigma_px is not None:
-            if not (np.isfinite(o.sigma_px) and o.sigma_px > 0):
-                raise PoseInputError(
-                    f"observation v{o.view}/{o.camera_id}/{o.mark_id}: sigma_px must be > 0, "
-                    f"got {o.sigma_px}"
-                )
-            weight[i] = 1.0 / o.sigma_px
-    if not fast:
-        # Slow path only to name the culprit.
-        for o in observations:
-            name = f"observation v{o.view}/{o.camera_id}/{o.mark_id}"
-            u = np.asarray(o.uv, dtype=float)
-            if u.shape != (2,):
-                raise PoseInputError(f"{name}: uv must have shape (2,), got {u.shape}")
-            if not np.all(np.isfinite(u)):
-                raise PoseInputError(f"{name}: uv contains NaN or infinite values {u.tolist()}")
-    mark_ids = sorted({o.mark_id for o in observations})
-    if len(mark_ids) < 3:
-        raise PoseInputError(
-            f"too few marks: a pose needs at least 3 distinct marks, "
-            f"got {len(mark_ids)} {mark_ids}",
-            ReasonCode.TOO_FEW_MARKS,
-        )
-    P_marks = _mark_array(marks_pf, mark_ids)
-    ratio = collinearity(P_marks)
-    if ratio < COLLINEAR_RATIO:
-        raise PoseInputError(
-            f"marks {mark_ids} are collinear (spread ratio {ratio:.1e}): rotation about their "
-            "line is undetermined",
-            ReasonCode.POSE_NOT_DETERMINED,
-        )
-    mi = np.array([mark_ids.index(o.mark_id) for o in observations], dtype=np.intp)
-    pk_all = Packed(
-        Rc[ci], tc[ci], P_marks[mi], uv, weight, f[ci], cc[ci], k[ci], bool(np.any(k[:, 5:]))
-    )
-    objective = np.ones(n, dtype=bool) if options.objective == "all" else left[ci]
+    objective = np.ones(n, dtype=bool) if options.objective == "all" else prob.table.left[prob.ci]
     if len(set(mi[objective].tolist())) < 3:
         raise PoseInputError(
             f"too few marks for the {options.objective} objective: "
-            f"{sorted({mark_ids[j] for j in mi[objective]})}",
+            f"{sorted({prob.mark_ids[j] for j in mi[objective]})}",
             ReasonCode.TOO_FEW_MARKS,
         )
 
-    starts = _starts(observations, cameras, ci, mi, P_marks, T_rf_from_cf, initial_T_rf_from_pf)
+    starts = _starts(prob, cameras, initial_T_rf_from_pf)
     if warm_start is not None:
         T_warm = check_transform(warm_start, "warm_start")
         starts.insert(0, ("warm_start", lambda: (T_warm[:3, :3].copy(), T_warm[:3, 3].copy())))
@@ -332,7 +189,7 @@ def estimate_pose(
             except ValueError:
                 break
             active = trial
-            rejected.append(observations[worst].key)
+            rejected.append(prob.keys[worst])
             lm = _refine(pk_all.subset(active), (lm.R, lm.t), options)
             iterations += lm.iterations
 
@@ -396,47 +253,41 @@ Start = Callable[[], "tuple[Array, Array] | None"]
 
 
 def _starts(
-    observations: Sequence[Observation],
-    cameras: Sequence[ViewCamera],
-    ci: NDArray[np.intp],
-    mi: NDArray[np.intp],
-    P_marks: Array,
-    T_rf_from_cf: Array,
-    prior: np.ndarray | None,
+    prob: Problem, cameras: Sequence[ViewCamera], prior: np.ndarray | None
 ) -> list[tuple[str, Start]]:
     """Candidate starts in order of preference, each computed only when asked for."""
     rays: dict[str, tuple[Array, Array]] = {}
 
     def get_rays() -> tuple[Array, Array]:
         if not rays:
-            uv = np.array([o.uv for o in observations], dtype=float)
-            # One undistortion call per distinct lens model (usually one for the whole station).
-            xy = np.empty_like(uv)
-            groups: dict[tuple[float, ...], list[int]] = {}
-            for c in np.unique(ci).tolist():
-                m = cameras[c].model
-                groups.setdefault((m.fx, m.fy, m.cx, m.cy, *m.dist), []).append(c)
-            for members in groups.values():
-                rows = np.isin(ci, members)
-                xy[rows] = cameras[members[0]].model.undistort_normalized(uv[rows])
+            pk, ci = prob.pk, prob.ci
+            if np.all(pk.f == pk.f[0]) and np.all(pk.c == pk.c[0]) and np.all(pk.k == pk.k[0]):
+                # One lens model for the whole station (the usual case): one undistortion call.
+                xy = cameras[int(ci[0])].model.undistort_normalized(pk.uv)
+            else:
+                xy = np.empty_like(pk.uv)
+                for c in np.unique(ci).tolist():
+                    rows = ci == c
+                    xy[rows] = cameras[c].model.undistort_normalized(pk.uv[rows])
             ray = np.concatenate([xy, np.ones((len(ci), 1))], axis=1)
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-            d = np.einsum("nij,nj->ni", T_rf_from_cf[ci, :3, :3], ray)
-            rays["r"] = (T_rf_from_cf[ci, :3, 3], d)
+            T = prob.table.T_rf_from_cf[ci]
+            rays["r"] = (T[:, :3, 3], np.einsum("nij,nj->ni", T[:, :3, :3], ray))
         return rays["r"]
 
     def triangulation() -> tuple[Array, Array] | None:
+        P, mi = prob.P_marks, prob.mi
         if np.bincount(mi).max() < 2:
             return None
         centres, d = get_rays()
-        pts, ok = rays_intersection(centres, d, mi, P_marks.shape[0])
-        if ok.sum() < 3 or collinearity(P_marks[ok]) < COLLINEAR_RATIO:
+        pts, ok = rays_intersection(centres, d, mi, P.shape[0])
+        if ok.sum() < 3 or collinearity(P[ok]) < COLLINEAR_RATIO:
             return None
-        return align_points(P_marks[ok], pts[ok])
+        return align_points(P[ok], pts[ok])
 
     def dlt() -> tuple[Array, Array] | None:
         centres, d = get_rays()
-        return generalized_dlt(centres, d, P_marks[mi])
+        return generalized_dlt(centres, d, prob.pk.p_pf)
 
     def from_prior() -> tuple[Array, Array] | None:
         if prior is None:

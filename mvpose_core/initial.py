@@ -27,8 +27,8 @@ COLLINEAR_RATIO = 1e-3
 def collinearity(points: Array) -> float:
     """Ratio of the second to the first singular value of centred points (0 = on one line)."""
     c = points - points.mean(axis=0)
-    s = np.linalg.svd(c, compute_uv=False)
-    return float(s[1] / s[0]) if s[0] > 0 else 0.0
+    ev = np.linalg.eigvalsh(c.T @ c)  # squared singular values, ascending
+    return float(np.sqrt(max(ev[1], 0.0) / ev[2])) if ev[2] > 0 else 0.0
 
 
 def _nearest_rotation(M: Array) -> Array:

@@ -14,6 +14,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from mvpose_core.problem import pack_layout
 from mvpose_core.refine import Array, Packed, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import check_transform
@@ -41,8 +42,6 @@ def pose_information(
     ``objective="left_only"`` keeps the observations of each rig's first camera (the paper's
     eq. 15). Raises ``ValueError`` naming the camera and mark if a mark is behind a camera.
     """
-    from mvpose_core.estimate import pack_layout  # estimate imports this module
-
     T = check_transform(T_rf_from_pf, "T_rf_from_pf")
     if not (np.isfinite(sigma_px) and sigma_px > 0):
         raise ValueError(f"sigma_px must be a positive number of pixels, got {sigma_px}")

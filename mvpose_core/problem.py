@@ -1,0 +1,200 @@
+"""A pose problem checked at the public edge and packed for the solver: one row per observation.
+
+:func:`build_problem` validates what :func:`mvpose_core.estimate.estimate_pose` receives (shapes,
+NaN, unknown cameras or marks, duplicates, too few or collinear marks) and raises
+:class:`PoseInputError` naming the problem; it then gathers every observation's camera pose,
+intrinsics and mark position into a :class:`~mvpose_core.refine.Packed` array set. The common
+path is vectorised; the per-observation loop only runs to name a culprit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mvpose_core.gate import ReasonCode
+from mvpose_core.initial import COLLINEAR_RATIO, collinearity
+from mvpose_core.refine import Array, Packed
+from mvpose_core.scene import ViewCamera
+
+
+class PoseInputError(ValueError):
+    """The estimator refuses its input; ``reason`` is the gate code the server reports."""
+
+    def __init__(self, message: str, reason: ReasonCode = ReasonCode.BAD_INPUT) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One detected mark centre in one image: distorted pixel ``uv`` ``[2]``."""
+
+    view: int
+    camera_id: str
+    mark_id: str
+    uv: np.ndarray
+    sigma_px: float | None = None  # per-observation σ; None = the call's sigma_px
+
+    @property
+    def key(self) -> tuple[int, str, str]:
+        return (self.view, self.camera_id, self.mark_id)
+
+
+@dataclass(frozen=True)
+class CameraTable:
+    """Every view camera's pose and lens as arrays, indexed by (view, camera_id)."""
+
+    index: dict[tuple[int, str], int]
+    R_cf_from_rf: Array  # [C, 3, 3]
+    t_cf_from_rf: Array  # [C, 3]
+    T_rf_from_cf: Array  # [C, 4, 4]
+    f: Array  # [C, 2]
+    c: Array  # [C, 2]
+    k: Array  # [C, 8]
+    left: NDArray[np.bool_]  # [C] first camera of its rig
+
+    @classmethod
+    def of(cls, cameras: Sequence[ViewCamera]) -> CameraTable:
+        index = {(c.view, c.camera_id): i for i, c in enumerate(cameras)}
+        if len(index) != len(cameras):
+            keys = [c.key for c in cameras]
+            raise PoseInputError(f"a camera is listed twice: {sorted(set(keys), key=keys.index)}")
+        T = np.asarray([c.T_rf_from_cf for c in cameras], dtype=float)
+        if T.shape != (len(cameras), 4, 4) or not np.all(np.isfinite(T)):
+            raise PoseInputError("every camera needs a finite 4x4 T_rf_from_cf")
+        R = np.transpose(T[:, :3, :3], (0, 2, 1))
+        m = [c.model for c in cameras]
+        return cls(
+            index=index,
+            R_cf_from_rf=R,
+            t_cf_from_rf=-np.einsum("cij,cj->ci", R, T[:, :3, 3]),
+            T_rf_from_cf=T,
+            f=np.array([(x.fx, x.fy) for x in m]),
+            c=np.array([(x.cx, x.cy) for x in m]),
+            k=np.array([tuple(x.dist) + (0.0,) * (8 - len(x.dist)) for x in m]),
+            left=np.array([c.rig_position == 0 for c in cameras]),
+        )
+
+    def rows(self, ci: NDArray[np.intp], p_pf: Array, uv: Array, weight: Array) -> Packed:
+        k = self.k[ci]
+        return Packed(
+            self.R_cf_from_rf[ci], self.t_cf_from_rf[ci], p_pf, uv, weight,
+            self.f[ci], self.c[ci], k, bool(np.any(k[:, 5:])),
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Validated observations, packed (``pk``) with the indices the starts need."""
+
+    pk: Packed
+    ci: NDArray[np.intp]  # [N] camera index of each observation (into ``cameras``)
+    mi: NDArray[np.intp]  # [N] mark index of each observation (into ``mark_ids``)
+    mark_ids: list[str]
+    P_marks: Array  # [M, 3] distinct marks in PF
+    table: CameraTable
+    keys: list[tuple[int, str, str]]
+
+
+def _marks(marks_pf: Mapping[str, np.ndarray], ids: Sequence[str]) -> Array:
+    try:
+        P = np.array([marks_pf[m] for m in ids], dtype=float)
+        if P.shape == (len(ids), 3) and np.all(np.isfinite(P)):
+            return P
+    except (KeyError, ValueError, TypeError):
+        pass
+    for m in ids:  # slow path, to name the culprit
+        if m not in marks_pf:
+            raise PoseInputError(f"observation names unknown mark {m!r}")
+        p = np.asarray(marks_pf[m], dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise PoseInputError(
+                f"mark {m!r}: position must be 3 finite values (mm), got {p.tolist()}"
+            )
+    raise PoseInputError(f"mark positions for {list(ids)} are not a [M, 3] array")  # unreachable
+
+
+def _name(key: tuple[int, str, str]) -> str:
+    return f"observation v{key[0]}/{key[1]}/{key[2]}"
+
+
+def build_problem(
+    observations: Sequence[Observation],
+    cameras: Sequence[ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+    sigma_px: float,
+) -> Problem:
+    """Validate and pack; every refusal is a :class:`PoseInputError` naming the problem."""
+    if not (np.isfinite(sigma_px) and sigma_px > 0):
+        raise PoseInputError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
+    table = CameraTable.of(cameras)
+    n = len(observations)
+    keys = [(o.view, o.camera_id, o.mark_id) for o in observations]
+    cams = [table.index.get((v, c)) for v, c, _ in keys]
+    if None in cams:
+        v, c, m = keys[cams.index(None)]
+        raise PoseInputError(f"{_name((v, c, m))}: no camera v{v}/{c} in this station")
+    if len(set(keys)) != n:
+        dup = next(k for i, k in enumerate(keys) if k in keys[:i])
+        raise PoseInputError(f"{_name(dup)}: the same mark is observed twice in one image")
+    try:
+        uv = np.array([o.uv for o in observations], dtype=float).reshape(n, 2)
+        ok = bool(np.all(np.isfinite(uv)))
+    except (ValueError, TypeError):
+        ok = False
+    if not ok:
+        for key, o in zip(keys, observations, strict=True):
+            u = np.asarray(o.uv, dtype=float)
+            if u.shape != (2,):
+                raise PoseInputError(f"{_name(key)}: uv must have shape (2,), got {u.shape}")
+            if not np.all(np.isfinite(u)):
+                raise PoseInputError(
+                    f"{_name(key)}: uv contains NaN or infinite values {u.tolist()}"
+                )
+    weight = np.full(n, 1.0 / sigma_px)
+    for i, o in enumerate(observations):
+        if o.sigma_px is not None:
+            if not (np.isfinite(o.sigma_px) and o.sigma_px > 0):
+                raise PoseInputError(f"{_name(keys[i])}: sigma_px must be > 0, got {o.sigma_px}")
+            weight[i] = 1.0 / o.sigma_px
+    mark_ids = sorted({m for _, _, m in keys})
+    if len(mark_ids) < 3:
+        raise PoseInputError(
+            f"too few marks: a pose needs at least 3 distinct marks, got {len(mark_ids)} "
+            f"{mark_ids}",
+            ReasonCode.TOO_FEW_MARKS,
+        )
+    P = _marks(marks_pf, mark_ids)
+    ratio = collinearity(P)
+    if ratio < COLLINEAR_RATIO:
+        raise PoseInputError(
+            f"marks {mark_ids} are collinear (spread ratio {ratio:.1e}): rotation about their "
+            "line is undetermined",
+            ReasonCode.POSE_NOT_DETERMINED,
+        )
+    pos = {m: i for i, m in enumerate(mark_ids)}
+    mi = np.array([pos[m] for _, _, m in keys], dtype=np.intp)
+    ci = np.array(cams, dtype=np.intp)
+    return Problem(table.rows(ci, P[mi], uv, weight), ci, mi, mark_ids, P, table, keys)
+
+
+def pack_layout(
+    cameras: Sequence[ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+    layout: Sequence[tuple[int, str, str]],
+    objective: str = "all",
+) -> tuple[Packed, NDArray[np.intp]]:
+    """Pack a layout of (view, camera_id, mark_id) with zero pixels; rows kept by ``objective``."""
+    table = CameraTable.of(cameras)
+    ci = np.empty(len(layout), dtype=np.intp)
+    for n, (v, cid, _m) in enumerate(layout):
+        if (v, cid) not in table.index:
+            raise PoseInputError(f"layout names unknown camera v{v}/{cid}")
+        ci[n] = table.index[(v, cid)]
+    p = _marks(marks_pf, [m for _, _, m in layout])
+    rows = np.arange(len(layout)) if objective == "all" else np.flatnonzero(table.left[ci])
+    return table.rows(ci[rows], p[rows], np.zeros((rows.size, 2)), np.ones(rows.size)), rows
