@@ -56,7 +56,9 @@ class RenderedImage:
     """A rendered frame and its truth."""
 
     image: np.ndarray  # uint8 [H, W]
-    centres: dict[str, np.ndarray]  # true projected CIRCLE centre (uv, [2]) of each mark in the image
+    centres: dict[
+        str, np.ndarray
+    ]  # true projected CIRCLE centre (uv, [2]) of each mark in the image
     occluded: tuple[str, ...] = ()  # marks drawn partially hidden (a detector must miss them)
 
 
@@ -65,7 +67,7 @@ def render_view(
     recipe: RecipeConfig,
     T_rf_from_pf: np.ndarray,
     rng: np.random.Generator,
-    options: RenderOptions = RenderOptions(),
+    options: RenderOptions = RenderOptions(),  # noqa: B008 - frozen, immutable default
 ) -> RenderedImage:
     """Render what ``cam`` sees of the recipe's sighted marks with the part at ``T_rf_from_pf``."""
     model = cam.model
@@ -98,7 +100,9 @@ def render_view(
         paint_clutter(albedo, list(footprints.values()), bg_albedo, mark_albedo, rng)
 
     if options.blur_sigma_px > 0:
-        albedo = cv2.GaussianBlur(albedo, (0, 0), options.blur_sigma_px, borderType=cv2.BORDER_REPLICATE)
+        albedo = cv2.GaussianBlur(  # type: ignore[assignment]
+            albedo, (0, 0), options.blur_sigma_px, borderType=cv2.BORDER_REPLICATE
+        )
     signal = albedo * _illumination(H, W, options, rng)
     noisy = _add_noise(signal, options, rng)
     image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
@@ -109,7 +113,7 @@ def render_view(
 
 
 def _plane_radius(model: CameraModel, uv: Array, pm: ProjectedMark) -> Array:
-    """Distance (mm) from the mark centre of the point where each pixel's ray meets the mark plane."""
+    """Distance (mm) from the mark centre to where each pixel's ray meets the mark's plane."""
     xy = model.undistort_normalized(uv)
     rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
     s = float(pm.n_cf @ pm.p_cf) / (rays @ pm.n_cf)
@@ -173,5 +177,7 @@ def _add_noise(signal: np.ndarray, options: RenderOptions, rng: np.random.Genera
     noise = rng.standard_normal(signal.shape, dtype=np.float32)
     if options.shot_noise_gain == 0:
         return signal + np.float32(options.noise_sigma) * noise
-    var = np.float32(options.noise_sigma**2) + np.float32(options.shot_noise_gain) * np.maximum(signal, 0)
+    var = np.float32(options.noise_sigma**2) + np.float32(options.shot_noise_gain) * np.maximum(
+        signal, 0
+    )
     return signal + np.sqrt(var) * noise

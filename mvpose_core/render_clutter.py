@@ -14,7 +14,9 @@ from mvpose_core.transforms import Array
 Footprint = tuple[Array, float]  # (centre uv, radius px) of a drawn mark
 
 
-def _blend(albedo: np.ndarray, box: tuple[int, int, int, int], cover: np.ndarray, value: float) -> None:
+def _blend(
+    albedo: np.ndarray, box: tuple[int, int, int, int], cover: np.ndarray, value: float
+) -> None:
     u0, v0, u1, v1 = box
     patch = albedo[v0:v1, u0:u1]
     c = cover.astype(np.float32)

@@ -36,7 +36,12 @@ def plate_scene(
     if not 0.0 <= tilt_deg < 80.0:
         raise ValueError(f"tilt_deg must be in [0, 80), got {tilt_deg}")
     model = CameraModel(
-        fx=f_px, fy=f_px, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, width=width, height=height,
+        fx=f_px,
+        fy=f_px,
+        cx=(width - 1) / 2.0,
+        cy=(height - 1) / 2.0,
+        width=width,
+        height=height,
         dist=dist,
     )
     cam = ViewCamera(view=1, camera_id=CAMERA_ID, model=model, T_rf_from_cf=np.eye(4))
@@ -59,7 +64,7 @@ def plate_scene(
         mark_diameter_mm=mark_diameter_mm,
         polarity=polarity,  # type: ignore[arg-type]
         sightings=[Sighting(view=1, camera=CAMERA_ID, marks=[m.id for m in marks])],
-        T_rf_from_pf0=Pose(xyz=tuple(v[:3]), wpr=tuple(v[3:])),  # type: ignore[arg-type]
+        T_rf_from_pf0=Pose(xyz=tuple(v[:3]), wpr=tuple(v[3:])),
         tolerances=Tolerances(max_offset_mm=max_offset_mm, max_offset_deg=max_offset_deg),
     )
     return cam, recipe

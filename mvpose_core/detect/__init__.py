@@ -1,4 +1,4 @@
-"""Circular-mark detection: window mode from a prior pose, search mode, centre correction, stereo check.
+"""Circular-mark detection: window mode from a prior pose, search mode, centre correction, stereo.
 
 Typical use per image: ``detect_marks(image, cam, recipe, T_rf_from_pf_prior)``; after the pose
 is refined, ``correct_centres(detections, cam, recipe, T_rf_from_pf)`` recomputes the perspective
@@ -11,7 +11,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from mvpose_core.detect.geometry import Ellipse, MarkPrediction, perspective_correction, predict_marks
+from mvpose_core.detect.geometry import (
+    Ellipse,
+    MarkPrediction,
+    perspective_correction,
+    predict_marks,
+)
 from mvpose_core.detect.search import identify_marks, search_marks
 from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image

@@ -1,9 +1,9 @@
-"""What the recipe predicts for each mark in an image: its ellipse, its window, its centre correction.
+"""What the recipe predicts for each mark in an image: its ellipse, window and centre correction.
 
 The image of a circle is (up to lens distortion) an ellipse whose centre is not the image of the
 circle's centre. Both the expected ellipse and the correction come from the same computation: the
-circle's rim is sampled in 3D at the given pose, projected through the lens, and an ellipse is fitted
-to it exactly as the detector fits one to edge points (:func:`fit_ellipses`).
+circle's rim is sampled in 3D at the given pose, projected through the lens, and an ellipse is
+fitted to it exactly as the detector fits one to edge points (:func:`fit_ellipses`).
 """
 
 from __future__ import annotations
@@ -74,16 +74,25 @@ class Ellipses:
     @classmethod
     def of(cls, items: list[Ellipse]) -> Ellipses:
         return cls(
-            np.array([e.centre for e in items], dtype=float), np.array([e.a for e in items], dtype=float),
-            np.array([e.b for e in items], dtype=float), np.array([e.angle for e in items], dtype=float),
+            np.array([e.centre for e in items], dtype=float),
+            np.array([e.a for e in items], dtype=float),
+            np.array([e.b for e in items], dtype=float),
+            np.array([e.angle for e in items], dtype=float),
         )
 
     def __getitem__(self, k: int) -> Ellipse:
-        return Ellipse(self.centre[k].copy(), float(self.a[k]), float(self.b[k]), float(self.angle[k]))
+        return Ellipse(
+            self.centre[k].copy(), float(self.a[k]), float(self.b[k]), float(self.angle[k])
+        )
 
     @property
     def radius(self) -> Array:
         return np.sqrt(self.a * self.b)
+
+    @property
+    def ok(self) -> np.ndarray:
+        """``["C"]`` bool: which fits succeeded."""
+        return np.ones(len(self.a), dtype=bool) if self.valid is None else self.valid
 
     def radius_towards(self, phi: Array) -> Array:
         """``["C", "R"]`` distances from each centre to its ellipse along directions ``phi``."""
@@ -92,7 +101,7 @@ class Ellipses:
         return a * b / np.hypot(b * np.cos(d), a * np.sin(d))
 
     def distances(self, pts: Array) -> Array:
-        """Approximate signed distances ``["C", "N"]`` of points ``["C", "N", 2]`` to each ellipse."""
+        """Approximate signed distances ``["C", "N"]`` of points ``["C", "N", 2]`` (+ outside)."""
         c, s = np.cos(self.angle)[:, None], np.sin(self.angle)[:, None]
         dx, dy = pts[..., 0] - self.centre[:, 0, None], pts[..., 1] - self.centre[:, 1, None]
         x, y = c * dx + s * dy, -s * dx + c * dy
@@ -103,7 +112,7 @@ class Ellipses:
 
 
 def fit_ellipses(pts: Array, weights: Array) -> Ellipses:
-    """Least-squares conics through point sets ``["C", "N", 2]`` (weights ``["C", "N"]``, 0 = unused).
+    """Least-squares conics through point sets ``["C", "N", 2]`` with weights ``["C", "N"]``.
 
     Each set is centred and scaled first, then ``A x² + B xy + C y² + D x + E y = 1`` is solved
     by its 5 × 5 normal equations, all sets in one batched solve. For closed rims with sub-pixel
@@ -132,7 +141,9 @@ def fit_ellipses(pts: Array, weights: Array) -> Ellipses:
     det = np.where(valid, det, 1.0)
     x0 = (B * E - 2.0 * Cc * D) / det
     y0 = (B * D - 2.0 * A * E) / det
-    k = 1.0 - 0.5 * (D * x0 + E * y0)  # (p - c)^T Q (p - c) = k at the rim, Q = [[A, B/2], [B/2, C]]
+    k = 1.0 - 0.5 * (
+        D * x0 + E * y0
+    )  # (p - c)^T Q (p - c) = k at the rim, Q = [[A, B/2], [B/2, C]]
     # Eigenvalues of Q in closed form; the smaller one belongs to the major axis.
     mid, rad = 0.5 * (A + Cc), np.hypot(0.5 * (A - Cc), 0.5 * B)
     lam_small, lam_big = mid - rad, mid + rad
@@ -152,7 +163,7 @@ def fit_ellipse(pts: Array) -> Ellipse | None:
     if pts.shape[0] < 6:
         return None
     e = fit_ellipses(pts[None].astype(float), np.ones((1, pts.shape[0])))
-    return e[0] if bool(e.valid[0]) else None
+    return e[0] if bool(e.ok[0]) else None
 
 
 def rim_points(pm: ProjectedMark, radius_mm: float, n: int = _RIM_SAMPLES) -> Array:
@@ -191,11 +202,19 @@ def _displacement_mm(recipe: RecipeConfig, mark_id: str) -> float:
 
 
 # Directions in which a mark's displacement is tried: the 6 axes and the 8 cube diagonals.
-_DIRS = np.concatenate([np.eye(3), -np.eye(3), np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3) / np.sqrt(3)])
+_DIRS = np.concatenate(
+    [
+        np.eye(3),
+        -np.eye(3),
+        np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3) / np.sqrt(3),
+    ]
+)
 
 
 _CACHE_SIZE = 32
-_cache: OrderedDict[tuple[object, ...], tuple[ViewCamera, RecipeConfig, list[MarkPrediction]]] = OrderedDict()
+_cache: OrderedDict[tuple[object, ...], tuple[ViewCamera, RecipeConfig, list[MarkPrediction]]] = (
+    OrderedDict()
+)
 _cache_lock = Lock()
 
 
@@ -206,7 +225,7 @@ def predict_marks_cached(
     size_tolerance: float = 0.15,
     shape_slack_deg: float = 8.0,
 ) -> list[MarkPrediction]:
-    """:func:`predict_marks` of the sighted marks, remembered for the last few (camera, recipe, pose).
+    """:func:`predict_marks` of the sighted marks, remembered for recent (camera, recipe, pose).
 
     Window mode predicts from the same prior at every trigger; this saves ~0.5 ms per image. The
     entry holds the camera and recipe objects themselves and is used only for those very objects
@@ -252,27 +271,36 @@ def predict_marks(
     in_front = z > 1.0
     rims = np.stack([rim_points(pm, recipe.mark_diameter_mm / 2.0) for pm in pms])  # [M, n, 3]
     rims[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
-    ells = fit_ellipses(cam.model.project(rims.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rims.shape[:2]))
+    ells = fit_ellipses(
+        cam.model.project(rims.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rims.shape[:2])
+    )
     D = np.array([_displacement_mm(recipe, pm.mark_id) for pm in pms])
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
     ahead = moved[..., 2] > 0.2 * np.maximum(z, 1.0)[:, None]
     moved[..., 2] = np.where(ahead, moved[..., 2], 1.0)
-    shift_all = np.linalg.norm(cam.model.project(moved.reshape(-1, 3)).reshape(M, -1, 2) - uv[:, None], axis=2)
+    shift_all = np.linalg.norm(
+        cam.model.project(moved.reshape(-1, 3)).reshape(M, -1, 2) - uv[:, None], axis=2
+    )
     shift = np.where(ahead.all(axis=1), shift_all.max(axis=1), 1e9)
     view = p_cf / np.linalg.norm(p_cf, axis=1, keepdims=True)
     tilt = np.degrees(np.arccos(np.clip(np.abs(np.sum(n_cf * view, axis=1)), 0.0, 1.0)))
     spread = recipe.tolerances.max_offset_deg + shape_slack_deg
     out: list[MarkPrediction] = []
     for k, pm in enumerate(pms):
-        facing = bool(in_front[k] and ells.valid[k] and float(n_cf[k] @ p_cf[k]) < 0.0)
+        facing = bool(in_front[k] and ells.ok[k] and float(n_cf[k] @ p_cf[k]) < 0.0)
         ell = ells[k] if facing else Ellipse(centre=pm.uv, a=1.0, b=1.0, angle=0.0)
         near, far = max(z[k] - D[k], 0.2 * z[k]), z[k] + D[k]
         r = ell.radius
-        radius_range = (r * z[k] / far * (1.0 - size_tolerance), r * z[k] / near * (1.0 + size_tolerance))
+        radius_range = (
+            r * z[k] / far * (1.0 - size_tolerance),
+            r * z[k] / near * (1.0 + size_tolerance),
+        )
         ratio_lo = float(np.cos(np.deg2rad(min(tilt[k] + spread, 85.0)))) * (1.0 - size_tolerance)
         ratio_hi = 1.0
         if tilt[k] - spread > 0:
-            ratio_hi = min(1.0, float(np.cos(np.deg2rad(tilt[k] - spread))) * (1.0 + size_tolerance))
+            ratio_hi = min(
+                1.0, float(np.cos(np.deg2rad(tilt[k] - spread))) * (1.0 + size_tolerance)
+            )
         out.append(
             MarkPrediction(
                 mark=pm,
@@ -290,6 +318,6 @@ def predict_marks(
 def perspective_correction(
     cam: ViewCamera, recipe: RecipeConfig, T_rf_from_pf: Array, mark_ids: list[str]
 ) -> dict[str, Array]:
-    """Per mark, the vector (px) from the imaged ellipse's centre to the image of the circle centre."""
+    """Per mark, the vector (px) from the imaged ellipse's centre to the circle centre's image."""
     preds = predict_marks(cam, recipe, T_rf_from_pf, mark_ids=mark_ids)
     return {p.mark.mark_id: p.correction for p in preds if p.facing}

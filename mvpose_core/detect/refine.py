@@ -10,12 +10,12 @@ illumination gradient does not pull the edge), and an ellipse is fitted to the e
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from mvpose_core.detect.geometry import Ellipse, Ellipses, fit_ellipses
-from mvpose_core.transforms import Array
 
 _STEP = 0.5  # px between samples along a ray
 _LEVEL_SAMPLES = 3  # samples at each end of a ray that give its inner and outer grey levels
@@ -93,15 +93,27 @@ def find_candidates(
         if area < 0.7 * np.pi * a * b:
             continue
         centre = np.array([cx, cy]) * scale + (scale - 1) / 2.0 + np.array([u0, v0])
-        out.append(Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale))
+        out.append(
+            Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale)
+        )
         if len(out) >= max_candidates:
             break
     return out
 
 
+@lru_cache(maxsize=64)
+def _ray_grid(n_rays: int, half: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ray angles, their cos and sin ``[1, R, 1]`` and sample offsets ``[S]`` (float32)."""
+    phi = np.linspace(0.0, 2.0 * np.pi, n_rays, endpoint=False)
+    t = np.arange(-half, half + 1e-9, _STEP).astype(np.float32)
+    cos = np.cos(phi).astype(np.float32)[None, :, None]
+    sin = np.sin(phi).astype(np.float32)[None, :, None]
+    return phi, cos, sin, t
+
+
 def _rays(
     image: np.ndarray, ell: Ellipses, n_rays: int, half: float, dark: bool
-) -> tuple[Array, Array, Array, Array]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px.
 
     Returns profiles ``[C, R, S]`` (increasing outwards for the recipe's polarity), the radius of
@@ -109,26 +121,35 @@ def _rays(
     Sampling is OpenCV's bilinear ``remap`` (1/32 px positions, 8-bit values): both
     quantisations are far below the noise and average out over the rim.
     """
-    phi = np.linspace(0.0, 2.0 * np.pi, n_rays, endpoint=False)
-    t = np.arange(-half, half + 1e-9, _STEP)
-    radii = np.maximum(ell.radius_towards(phi)[:, :, None] + t[None, None, :], 0.0)  # [C, R, S]
-    u = ell.centre[:, 0, None, None] + radii * np.cos(phi)[None, :, None]
-    v = ell.centre[:, 1, None, None] + radii * np.sin(phi)[None, :, None]
+    phi, cos, sin, t = _ray_grid(n_rays, half)
+    radii = ell.radius_towards(phi).astype(np.float32)[:, :, None] + t  # [C, R, S]
+    np.maximum(radii, 0.0, out=radii)
+    cu = ell.centre[:, 0].astype(np.float32)[:, None, None]
+    cv = ell.centre[:, 1].astype(np.float32)[:, None, None]
+    u = cu + radii * cos
+    v = cv + radii * sin
     H, W = image.shape
     # A ray is a straight segment: it is inside the image when both of its ends are.
     ends_u, ends_v = u[..., [0, -1]], v[..., [0, -1]]
     inside = np.all((ends_u >= 0) & (ends_u < W - 1) & (ends_v >= 0) & (ends_v < H - 1), axis=2)
     C, R, S = radii.shape
-    prof = cv2.remap(
-        image, u.reshape(C * R, S).astype(np.float32), v.reshape(C * R, S).astype(np.float32),
-        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
-    ).reshape(C, R, S).astype(np.float32)
+    prof = (
+        cv2.remap(
+            image,
+            u.reshape(C * R, S),
+            v.reshape(C * R, S),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        .reshape(C, R, S)
+        .astype(np.float32)
+    )
     if not dark:
         prof = -prof  # the same code then finds light marks on a dark surface
     return prof, radii, phi, inside
 
 
-def _crossings(prof: Array, radii: Array) -> tuple[Array, Array, Array]:
+def _crossings(prof: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per ray: radius where the profile crosses its mid level, the ray's contrast, and validity."""
     inner = prof[..., :_LEVEL_SAMPLES].mean(axis=-1)
     outer = prof[..., -_LEVEL_SAMPLES:].mean(axis=-1)
@@ -139,11 +160,12 @@ def _crossings(prof: Array, radii: Array) -> tuple[Array, Array, Array]:
     up = ~above[..., :-1] & above[..., 1:]
     S = prof.shape[-1]
     dist = np.where(up, np.abs(np.arange(S - 1) + 0.5 - (S - 1) / 2.0), np.inf)
-    j = np.argmin(dist, axis=-1)[..., None]
-    p0 = np.take_along_axis(prof, j, -1)[..., 0]
-    p1 = np.take_along_axis(prof, j + 1, -1)[..., 0]
+    j = np.argmin(dist, axis=-1)
+    flat = j + S * np.arange(j.size).reshape(j.shape)  # index of sample j of each ray
+    p0 = prof.reshape(-1)[flat]
+    p1 = prof.reshape(-1)[flat + 1]
     frac = np.clip((level - p0) / np.where(p1 != p0, p1 - p0, 1.0), 0.0, 1.0)
-    edge_r = np.take_along_axis(radii, j, -1)[..., 0] + _STEP * frac
+    edge_r = radii.reshape(-1)[flat] + _STEP * frac
     return edge_r, outer - inner, up.any(axis=-1)
 
 
@@ -158,7 +180,7 @@ def measure_many(
 ) -> list[Measurement]:
     """Sub-pixel edge points and the ellipse through them, for many candidates at once.
 
-    Two passes: 24 rays searching ± ``search_px`` around the start ellipse locate the rim; then
+    Two passes: 16 rays searching ± ``search_px`` around the start ellipse locate the rim; then
     up to 96 rays within ± 3 px of that rim give the final edge points and fit. Every step is
     one array operation over all candidates (a Python loop per candidate would cost more than
     the arithmetic).
@@ -169,27 +191,38 @@ def measure_many(
     ell = Ellipses.of(starts)
     failed = np.zeros(C, dtype=int)  # 0 = fine, else 1 + index into _FAILURES
     n_fine = int(np.clip(4.0 * ell.radius.max(), 32, 96))  # ~1.5 px of rim per ray
-    for n_rays, half in ((24, search_px), (n_fine, 3.0)):
+    for n_rays, half in ((16, search_px), (n_fine, 3.0)):
         prof, radii, phi, inside = _rays(image, ell, n_rays, half, dark)
         edge_r, ray_contrast, crossed = _crossings(prof, radii)
         contrast = np.median(ray_contrast, axis=1)
         good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])
         npts = good.sum(axis=1)
-        pts = ell.centre[:, None, :] + edge_r[..., None] * np.stack([np.cos(phi), np.sin(phi)], 1)[None]
+        _, cos, sin, _ = _ray_grid(n_rays, half)
+        pts = np.stack(
+            [
+                ell.centre[:, 0, None] + edge_r * cos[..., 0],
+                ell.centre[:, 1, None] + edge_r * sin[..., 0],
+            ],
+            axis=2,
+        )
         fitted = fit_ellipses(pts, good)
         # The first failing check names the reason (order of _FAILURES); earlier failures stick.
-        checks = np.stack([
-            inside.sum(axis=1) < min_edge_fraction * n_rays,
-            contrast < min_contrast,
-            npts < min_edge_fraction * n_rays,
-            ~fitted.valid,
-        ])
+        checks = np.stack(
+            [
+                inside.sum(axis=1) < min_edge_fraction * n_rays,
+                contrast < min_contrast,
+                npts < min_edge_fraction * n_rays,
+                ~fitted.ok,
+            ]
+        )
         first = np.where(checks.any(axis=0), np.argmax(checks, axis=0) + 1, 0)
         failed = np.where(failed > 0, failed, first)
-        ok = (fitted.valid & (failed == 0))[:, None]
+        ok = (fitted.ok & (failed == 0))[:, None]
         ell = Ellipses(
-            np.where(ok, fitted.centre, ell.centre), np.where(ok[:, 0], fitted.a, ell.a),
-            np.where(ok[:, 0], fitted.b, ell.b), np.where(ok[:, 0], fitted.angle, ell.angle),
+            np.where(ok, fitted.centre, ell.centre),
+            np.where(ok[:, 0], fitted.a, ell.a),
+            np.where(ok[:, 0], fitted.b, ell.b),
+            np.where(ok[:, 0], fitted.angle, ell.angle),
         )
     d = ell.distances(pts)
     residual = np.sqrt(np.sum(np.where(good, d * d, 0.0), axis=1) / np.maximum(npts, 1))
@@ -198,7 +231,9 @@ def measure_many(
         Measurement(
             ell[c] if failed[c] == 0 else None,
             _FAILURES[failed[c] - 1] if failed[c] else None,
-            float(contrast[c]), float(residual[c]), int(npts[c]),
+            float(contrast[c]),
+            float(residual[c]),
+            int(npts[c]),
         )
         for c in range(C)
     ]

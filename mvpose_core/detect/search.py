@@ -25,7 +25,7 @@ def search_marks(
     image: np.ndarray,
     cam: ViewCamera,
     recipe: RecipeConfig,
-    options: DetectOptions = DetectOptions(),
+    options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
 ) -> list[MarkDetection]:
     """Every accepted mark-like blob in the frame, named ``"?0"``, ``"?1"``… in reading order.
 
@@ -36,7 +36,11 @@ def search_marks(
     preds = [
         p
         for p in predict_marks(
-            cam, recipe, recipe.T_rf_from_pf0.matrix, options.size_tolerance, options.shape_slack_deg,
+            cam,
+            recipe,
+            recipe.T_rf_from_pf0.matrix,
+            options.size_tolerance,
+            options.shape_slack_deg,
             mark_ids=[m.id for m in recipe.marks],
         )
         if p.facing
@@ -55,8 +59,13 @@ def search_marks(
         image, (0, 0, W, H), dark, (r_lo, r_hi), options.min_contrast, scale, options.max_candidates
     )
     measured = measure_many(
-        image, [c.ellipse for c in cands], dark, options.min_contrast, options.max_fit_residual_px,
-        options.min_edge_fraction, search_px=2.0 + scale + 0.1 * r_hi,
+        image,
+        [c.ellipse for c in cands],
+        dark,
+        options.min_contrast,
+        options.max_fit_residual_px,
+        options.min_edge_fraction,
+        search_px=2.0 + scale + 0.1 * r_hi,
     )
     found: list[MarkDetection] = []
     for m in measured:
@@ -65,9 +74,16 @@ def search_marks(
             continue
         found.append(
             MarkDetection(
-                mark_id="", found=True, uv=e.centre.copy(), contrast=m.contrast,
-                fit_residual_px=m.fit_residual_px, axis_ratio=e.axis_ratio, radius_px=e.radius,
-                uv_ellipse=e.centre.copy(), correction=np.zeros(2), edge_points=m.edge_points,
+                mark_id="",
+                found=True,
+                uv=e.centre.copy(),
+                contrast=m.contrast,
+                fit_residual_px=m.fit_residual_px,
+                axis_ratio=e.axis_ratio,
+                radius_px=e.radius,
+                uv_ellipse=e.centre.copy(),
+                correction=np.zeros(2),
+                edge_points=m.edge_points,
             )
         )
     found.sort(key=lambda d: (round(float(d.uv[1]) / 8.0), float(d.uv[0])))  # type: ignore[index]
@@ -80,15 +96,20 @@ def identify_marks(
     recipe: RecipeConfig,
     T_rf_from_pf: Array,
     max_distance_px: float,
-    options: DetectOptions = DetectOptions(),
+    options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
 ) -> list[MarkDetection]:
     """Name search-mode blobs after the sighted marks they are nearest to at ``T_rf_from_pf``.
 
     One-to-one (least total distance); a mark with no blob within ``max_distance_px`` is reported
     missing. Named marks get the perspective correction at ``T_rf_from_pf``.
     """
-    preds = predict_marks(cam, recipe, T_rf_from_pf, options.size_tolerance, options.shape_slack_deg)
-    out = {p.mark.mark_id: MarkDetection.missing(p.mark.mark_id, "no blob near prediction") for p in preds}
+    preds = predict_marks(
+        cam, recipe, T_rf_from_pf, options.size_tolerance, options.shape_slack_deg
+    )
+    out = {
+        p.mark.mark_id: MarkDetection.missing(p.mark.mark_id, "no blob near prediction")
+        for p in preds
+    }
     live = [b for b in blobs if b.found and b.uv_ellipse is not None]
     if preds and live:
         pred_uv = np.array([p.uv for p in preds])
@@ -101,6 +122,9 @@ def identify_marks(
             p, b = preds[r], live[c]
             corr = p.correction if options.correct_perspective else np.zeros(2)
             out[p.mark.mark_id] = replace(
-                b, mark_id=p.mark.mark_id, uv=b.uv_ellipse + corr, correction=corr.copy()  # type: ignore[operator]
+                b,
+                mark_id=p.mark.mark_id,
+                uv=b.uv_ellipse + corr,
+                correction=corr.copy(),
             )
     return [out[p.mark.mark_id] for p in preds]

@@ -61,7 +61,8 @@ def stereo_check(
     if unknown:
         raise ValueError(f"stereo_check: detections for unknown cameras {unknown}")
     found = {
-        k: {d.mark_id: d for d in dets if d.found and d.uv is not None} for k, dets in detections.items()
+        k: {d.mark_id: d for d in dets if d.found and d.uv is not None}
+        for k, dets in detections.items()
     }
     failures: list[EpipolarFailure] = []
     bad: dict[tuple[str, str], int] = {}  # (camera, mark) -> failed pairs

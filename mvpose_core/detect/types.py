@@ -26,9 +26,13 @@ class DetectOptions:
 
     def __post_init__(self) -> None:
         if self.search_scale not in (1, 2, 4, 8):
-            raise ValueError(f"DetectOptions.search_scale must be 1, 2, 4 or 8, got {self.search_scale}")
+            raise ValueError(
+                f"DetectOptions.search_scale must be 1, 2, 4 or 8, got {self.search_scale}"
+            )
         if not 0 < self.min_edge_fraction <= 1:
-            raise ValueError(f"DetectOptions.min_edge_fraction must be in (0, 1], got {self.min_edge_fraction}")
+            raise ValueError(
+                f"DetectOptions.min_edge_fraction must be in (0, 1], got {self.min_edge_fraction}"
+            )
         for name in ("min_contrast", "max_fit_residual_px", "size_tolerance", "window_extra_px"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -46,7 +50,9 @@ class MarkDetection:
     mark_id: str
     found: bool
     uv: Array | None
-    reason: str | None = None  # why not found / rejected ("outside window", "low contrast", "shape", ...)
+    reason: str | None = (
+        None  # why not found / rejected ("outside window", "low contrast", "shape", ...)
+    )
     contrast: float = 0.0  # grey levels, positive for the recipe's polarity
     fit_residual_px: float = float("nan")  # RMS of edge points to the ellipse
     axis_ratio: float = float("nan")  # minor / major axis
@@ -72,11 +78,14 @@ def check_image(image: object, model: CameraModel, what: str) -> np.ndarray:
     if image.size == 0:
         raise ValueError(f"{what}: the image is empty (shape {shape or '()'})")
     if image.dtype != np.uint8:
-        raise ValueError(f"{what}: expected a mono8 (uint8) image, got dtype {image.dtype} shape {shape}")
+        raise ValueError(
+            f"{what}: expected a mono8 (uint8) image, got dtype {image.dtype} shape {shape}"
+        )
     if image.ndim != 2:
         raise ValueError(f"{what}: expected a 2-D mono image, got shape {shape}")
     if image.shape != (model.height, model.width):
         raise ValueError(
-            f"{what}: expected {model.width}x{model.height} mono8, got {image.shape[1]}x{image.shape[0]}"
+            f"{what}: expected {model.width}x{model.height} mono8, "
+            f"got {image.shape[1]}x{image.shape[0]}"
         )
     return image

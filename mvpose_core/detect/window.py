@@ -27,9 +27,9 @@ def detect_marks(
     cam: ViewCamera,
     recipe: RecipeConfig,
     T_rf_from_pf_prior: Array,
-    options: DetectOptions = DetectOptions(),
+    options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
 ) -> list[MarkDetection]:
-    """One detection per mark the recipe expects ``cam`` to see, found or with the reason why not."""
+    """One detection per mark the recipe expects ``cam`` to see: found, or the reason why not."""
     image = check_image(image, cam.model, f"camera {cam.key!r}")
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg
@@ -58,7 +58,9 @@ def detect_marks(
         live.append(p)
         s = coarse_scale(p.radius_range[0])
         scale = min(scale, s)
-        for c in find_candidates(image, box, dark, p.radius_range, options.min_contrast, s, options.max_candidates):
+        for c in find_candidates(
+            image, box, dark, p.radius_range, options.min_contrast, s, options.max_candidates
+        ):
             cu, cv = float(c.ellipse.centre[0]), float(c.ellipse.centre[1])
             if not any(abs(cu - ou) < 2.0 and abs(cv - ov) < 2.0 for ou, ov in seen):
                 seen.append((cu, cv))  # overlapping windows see the same blob once
@@ -67,12 +69,18 @@ def detect_marks(
         return [results[p.mark.mark_id] for p in preds]
     r_max = max(c.ellipse.radius for _, c in cands)
     measured = measure_many(
-        image, [c.ellipse for _, c in cands], dark, options.min_contrast,
-        options.max_fit_residual_px, options.min_edge_fraction,
+        image,
+        [c.ellipse for _, c in cands],
+        dark,
+        options.min_contrast,
+        options.max_fit_residual_px,
+        options.min_edge_fraction,
         search_px=2.0 + scale + 0.1 * r_max,
     )
     accepted: list[MarkDetection] = []
-    nearest = np.full(len(live), np.inf)  # a missing mark reports what was wrong with its nearest blob
+    nearest = np.full(
+        len(live), np.inf
+    )  # a missing mark reports what was wrong with its nearest blob
     for (k, c), m in zip(cands, measured, strict=True):
         p = live[k]
         det, why = _check(m, p)
@@ -81,8 +89,10 @@ def detect_marks(
         elif (dist := float(np.hypot(*(c.ellipse.centre - p.uv)))) < nearest[k]:
             nearest[k] = dist
             results[p.mark.mark_id] = MarkDetection.missing(
-                p.mark.mark_id, f"{why} (blob at {dist:.0f} px from prediction)",
-                contrast=m.contrast, fit_residual_px=m.fit_residual_px,
+                p.mark.mark_id,
+                f"{why} (blob at {dist:.0f} px from prediction)",
+                contrast=m.contrast,
+                fit_residual_px=m.fit_residual_px,
             )
     _assign(live, accepted, results, options)
     return [results[p.mark.mark_id] for p in preds]
@@ -144,5 +154,8 @@ def _assign(
         det = pool[c]
         corr = p.correction if options.correct_perspective else np.zeros(2)
         results[p.mark.mark_id] = replace(
-            det, mark_id=p.mark.mark_id, uv=det.uv_ellipse + corr, correction=corr.copy()  # type: ignore[operator]
+            det,
+            mark_id=p.mark.mark_id,
+            uv=det.uv_ellipse + corr,
+            correction=corr.copy(),
         )

@@ -46,7 +46,9 @@ def test_centre_std_at_noise_2_for_radius_6px() -> None:
 
 
 @pytest.mark.parametrize("tilt_deg,diameter_mm", [(30.0, 12.0), (40.0, 16.0)])
-def test_bias_after_perspective_correction_on_tilted_marks(tilt_deg: float, diameter_mm: float) -> None:
+def test_bias_after_perspective_correction_on_tilted_marks(
+    tilt_deg: float, diameter_mm: float
+) -> None:
     cam, recipe = plate_scene(tilt_deg=tilt_deg, mark_diameter_mm=diameter_mm)
     err, raw = _errors(cam, recipe, 6, seed=2, opts=NOISE2)
     # Without the correction the ellipse centre is off by several hundredths of a pixel ...

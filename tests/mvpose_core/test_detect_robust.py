@@ -36,7 +36,12 @@ def test_clutter_set_gives_no_false_marks_and_occluded_marks_are_missing(lab) ->
     found = missing_ok = 0
     for seed_round in range(3):
         for cam in cams:
-            ids = [m for s in recipe.sightings if s.view == cam.view and s.camera == cam.camera_id for m in s.marks]
+            ids = [
+                m
+                for s in recipe.sightings
+                if s.view == cam.view and s.camera == cam.camera_id
+                for m in s.marks
+            ]
             hidden = (ids[seed_round % len(ids)],)
             r = render_view(cam, recipe, T0, rng, RenderOptions(clutter=True, occluded=hidden))
             for d in detect_marks(r.image, cam, recipe, T0):
@@ -111,14 +116,18 @@ def test_stereo_check_keeps_consistent_marks_and_drops_a_wrong_blob(lab) -> None
     T0 = recipe.T_rf_from_pf0.matrix
     rng = np.random.default_rng(12)
     view1 = [c for c in cams if c.view == 1]
-    dets = {c.key: detect_marks(render_view(c, recipe, T0, rng).image, c, recipe, T0) for c in view1}
+    dets = {
+        c.key: detect_marks(render_view(c, recipe, T0, rng).image, c, recipe, T0) for c in view1
+    }
     kept, failures = stereo_check(dets, view1)
     assert failures == [] and kept == {k: list(v) for k, v in dets.items()}
     # The left camera takes a blob 25 px below M2 for M2 (what a swap with clutter looks like).
     left = dets["v1/left"]
     bad = [replace(d, uv=d.uv + np.array([0.0, 25.0])) if d.mark_id == "M2" else d for d in left]
     kept, failures = stereo_check({**dets, "v1/left": bad}, view1)
-    assert [(f.mark_id, f.camera_a, f.camera_b) for f in failures] == [("M2", "v1/left", "v1/right")]
+    assert [(f.mark_id, f.camera_a, f.camera_b) for f in failures] == [
+        ("M2", "v1/left", "v1/right")
+    ]
     assert failures[0].distance_px > 10
     for key in ("v1/left", "v1/right"):
         status = {d.mark_id: (d.found, d.reason) for d in kept[key]}

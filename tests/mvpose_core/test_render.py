@@ -86,9 +86,20 @@ def test_clutter_and_occluders_leave_unoccluded_marks_intact() -> None:
     T = recipe.T_rf_from_pf0.matrix
     opts = RenderOptions(noise_sigma=0.0, blur_sigma_px=0.0, gradient=0.0, shot_noise_gain=0.0)
     clean = render_view(cam, recipe, T, np.random.default_rng(2), opts)
-    busy = render_view(cam, recipe, T, np.random.default_rng(2), RenderOptions(
-        noise_sigma=0.0, blur_sigma_px=0.0, gradient=0.0, shot_noise_gain=0.0,
-        clutter=True, occluded=("M1",)))
+    busy = render_view(
+        cam,
+        recipe,
+        T,
+        np.random.default_rng(2),
+        RenderOptions(
+            noise_sigma=0.0,
+            blur_sigma_px=0.0,
+            gradient=0.0,
+            shot_noise_gain=0.0,
+            clutter=True,
+            occluded=("M1",),
+        ),
+    )
     assert busy.occluded == ("M1",)
     assert np.count_nonzero(busy.image != clean.image) > 2000  # clutter was drawn
     for mid, uv in clean.centres.items():
@@ -111,7 +122,9 @@ def test_marks_facing_away_or_outside_are_not_drawn() -> None:
     assert r.image.min() == r.image.max()
 
 
-@pytest.mark.parametrize("field,value", [("noise_sigma", -1.0), ("blur_sigma_px", float("nan")), ("supersample", 0)])
+@pytest.mark.parametrize(
+    "field,value", [("noise_sigma", -1.0), ("blur_sigma_px", float("nan")), ("supersample", 0)]
+)
 def test_bad_options_are_refused(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
         RenderOptions(**{field: value})
