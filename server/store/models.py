@@ -52,6 +52,7 @@ class MeasurementRow(Base):
         UniqueConstraint("station", "seq", name="uq_measurements_station_seq"),
         Index("ix_measurements_station_time", "station", "triggered_at"),
         Index("ix_measurements_station_part", "station", "part_id"),
+        Index("ix_measurements_station_id", "station", "id"),  # newest-first paging
     )
 
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)

@@ -18,6 +18,7 @@ from fastapi.routing import APIRoute
 from server.api import api_router
 from server.app import create_app
 from server.state import Services
+from server.store.db import head_revision
 
 PROBLEM = "application/problem+json"
 J = {"content-type": "application/json"}
@@ -123,7 +124,7 @@ async def test_health_and_openapi(tmp_path: Path) -> None:
     async with running(create_app(settings(tmp_path))) as (client, _):
         assert (await client.get("/api/v1/health/live")).json() == {"status": "alive"}
         r = await client.get("/api/v1/health/ready")
-        assert r.status_code == 200 and r.json()["checks"]["schema"] == "0001"
+        assert r.status_code == 200 and r.json()["checks"]["schema"] == head_revision()
         spec = (await client.get("/openapi.json")).json()
         assert "/api/v1/measurements/export" in spec["paths"]
         op = spec["paths"]["/api/v1/measurements"]["get"]
