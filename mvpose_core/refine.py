@@ -16,7 +16,7 @@ written in the part frame.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,16 @@ class Packed:
     k: Array  # [N, 8] k1 k2 p1 p2 k3 k4 k5 k6
     #: any of k4 k5 k6 non-zero (OpenCV's rational model); without them the denominator is 1
     rational: bool = True
+    #: −[p]× per row ``[N, 3, 3]`` (d p / d ω), derived from ``p_pf``
+    neg_px: Array = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        p = self.p_pf
+        m = np.zeros((p.shape[0], 3, 3))
+        m[:, 0, 1], m[:, 0, 2] = p[:, 2], -p[:, 1]
+        m[:, 1, 0], m[:, 1, 2] = -p[:, 2], p[:, 0]
+        m[:, 2, 0], m[:, 2, 1] = p[:, 1], -p[:, 0]
+        object.__setattr__(self, "neg_px", m)
 
     @property
     def n(self) -> int:
@@ -147,11 +157,7 @@ def residuals_and_jacobian(pk: Packed, R: Array, t: Array) -> tuple[Array, Array
     # d(x, y)/d p_cf = [I2 | -xy] / Z, so d uv / d p_cf = [D | -D·xy]
     B = D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :])
     J = np.empty((pk.n, 2, 6))
-    # d p_cf/dω = -A [p]×; a row b times -[p]× is p × b.
-    p = pk.p_pf[:, None, :]
-    J[:, :, 0] = p[:, :, 1] * B[:, :, 2] - p[:, :, 2] * B[:, :, 1]
-    J[:, :, 1] = p[:, :, 2] * B[:, :, 0] - p[:, :, 0] * B[:, :, 2]
-    J[:, :, 2] = p[:, :, 0] * B[:, :, 1] - p[:, :, 1] * B[:, :, 0]
+    J[:, :, :3] = B @ pk.neg_px  # d p_cf/dω = −A [p]×
     J[:, :, 3:] = B
     return res, J, Z
 
@@ -234,11 +240,13 @@ def levenberg_marquardt(
         # residual = observed − predicted and J is of predicted, so −∇cost = Jᵀr.
         H = Jw.T @ Jw
         g = Jw.T @ r
-        dH = np.diag(np.diag(H))
+        dH = H.flat[::7].copy()  # the diagonal
         accepted = False
         while lam < 1e10:
             try:
-                delta = np.linalg.solve(H + lam * dH, g)
+                A = H.copy()
+                A.flat[::7] += lam * dH
+                delta = np.linalg.solve(A, g)
             except np.linalg.LinAlgError:
                 lam = max(lam * 10.0, 1e-9)
                 continue

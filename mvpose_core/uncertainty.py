@@ -9,13 +9,14 @@ rigid to the part (the grasp frame), where the lever arm turns rotation into tra
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mvpose_core.problem import pack_layout
-from mvpose_core.refine import Array, Packed, residuals_and_jacobian
+from mvpose_core.refine import Array, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import check_transform
 
@@ -46,7 +47,7 @@ def pose_information(
     if not (np.isfinite(sigma_px) and sigma_px > 0):
         raise ValueError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
     pk, rows = pack_layout(cameras, marks_pf, layout, objective)
-    pk = Packed(**{**pk.__dict__, "weight": np.full(pk.n, 1.0 / sigma_px)})
+    pk = replace(pk, weight=np.full(pk.n, 1.0 / sigma_px))
     _, J, depth = residuals_and_jacobian(pk, T[:3, :3], T[:3, 3])
     bad = np.flatnonzero(~(depth > 0))
     if bad.size:
