@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,10 @@ from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
 
 MIGRATIONS = Path(__file__).parent / "migrations"
+_MIGRATION_LOCK = 0x6D76706F7365  # "mvpose": the advisory lock key of schema migrations
+# Alembic's migration context is process-global (alembic.context / alembic.op proxies), so two
+# threads migrating at once corrupt each other; between processes the database serialises them.
+_MIGRATING = threading.Lock()
 
 
 def create_store_engine(url: str, sqlite_synchronous: str = "FULL") -> Engine:
@@ -48,7 +53,11 @@ def alembic_config() -> Config:
 def migrate(engine: Engine) -> str:
     """Bring the schema to the newest revision (run at every start-up); returns that revision."""
     cfg = alembic_config()
-    with engine.begin() as conn:
+    with _MIGRATING, engine.begin() as conn:
+        if conn.dialect.name == "postgresql":
+            # Stations sharing one database may start together: one migrates, the others wait
+            # (the lock ends with the transaction) and then find the schema at head.
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _MIGRATION_LOCK})
         cfg.attributes["connection"] = conn
         command.upgrade(cfg, "head")
     return head_revision()

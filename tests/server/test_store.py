@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import threading
 from collections.abc import Iterator
 from datetime import timedelta
@@ -244,3 +247,21 @@ def test_record_schema_refuses_inconsistent_records() -> None:
                           ({"surprise": 1}, "Extra inputs")):
         with pytest.raises(ValidationError, match=match):
             type(good).model_validate({**data, **change})
+
+
+def test_stations_starting_together_migrate_once(postgres_cluster: PostgresCluster) -> None:
+    """Two station processes open a fresh shared PostgreSQL database at the same moment."""
+    url = postgres_cluster.create_database()
+    code = textwrap.dedent(f"""
+        import sys
+        from server.store import open_store
+        store = open_store({url!r}, sys.argv[1])
+        print(store.revision())
+        store.close()
+    """)
+    procs = [subprocess.Popen([sys.executable, "-c", code, f"station{k}"], text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              cwd=Path(__file__).parents[2]) for k in (1, 2)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err[-500:] for _, err in outs]
+    assert [out.strip() for out, _ in outs] == [head_revision()] * 2
