@@ -1,0 +1,1 @@
+"""Accuracy studies (the paper's Section 3.1) and station planning on synthetic observations."""
