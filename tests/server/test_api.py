@@ -9,20 +9,32 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import sqlalchemy as sa
 from apps import ENGINEER, record_some, settings
 from asgi import running
+from postgres import PostgresCluster
 from records import T0
 
 from mvpose_core.gate import ReasonCode
 from server.app import create_app
 
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db(request: pytest.FixtureRequest, tmp_path: Path) -> dict[str, str]:
+    """Settings overrides selecting the backend (default SQLite under tmp_path)."""
+    if request.param == "sqlite":
+        return {}
+    cluster: PostgresCluster = request.getfixturevalue("postgres_cluster")
+    return {"database_url": cluster.create_database()}
+
+
 OK, MISSING, RMS = ReasonCode.OK, ReasonCode.MARKS_MISSING, ReasonCode.RESIDUAL_RMS_HIGH
 REASONS = [OK, OK, MISSING, OK, RMS, OK, OK, MISSING, OK, OK, OK, RMS]
 
 
-async def test_list_filters_and_cursor_paging(tmp_path: Path) -> None:
-    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+async def test_list_filters_and_cursor_paging(tmp_path: Path, db: dict[str, str]) -> None:
+    async with running(create_app(settings(tmp_path, **db)), ENGINEER) as (client, state):
         stored = await record_some(state["services"], REASONS)
         seen, cursor = [], None
         while True:
@@ -55,8 +67,8 @@ async def test_list_filters_and_cursor_paging(tmp_path: Path) -> None:
         assert item["hash"] == stored[-1].hash
 
 
-async def test_csv_and_json_export(tmp_path: Path) -> None:
-    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+async def test_csv_and_json_export(tmp_path: Path, db: dict[str, str]) -> None:
+    async with running(create_app(settings(tmp_path, **db)), ENGINEER) as (client, state):
         stored = await record_some(state["services"], REASONS)
         r = await client.get("/api/v1/measurements/export", params={"format": "csv"})
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
@@ -128,10 +140,10 @@ async def test_chain_endpoint_reports_tampering(tmp_path: Path) -> None:
         assert "reason_code" in r.json()["problem"]
 
 
-async def test_everything_survives_a_restart(tmp_path: Path) -> None:
-    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+async def test_everything_survives_a_restart(tmp_path: Path, db: dict[str, str]) -> None:
+    async with running(create_app(settings(tmp_path, **db)), ENGINEER) as (client, state):
         stored = await record_some(state["services"], REASONS[:4])
-    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+    async with running(create_app(settings(tmp_path, **db)), ENGINEER) as (client, state):
         more = await record_some(state["services"], REASONS[4:6], seed=1)
         r = await client.get("/api/v1/measurements", params={"limit": 100})
         assert [i["id"] for i in r.json()["items"]] == [m.id for m in reversed(stored + more)]
