@@ -206,17 +206,20 @@ def estimate_pose(
             f"(depth {depth[behind[0]]:.1f} mm): wrong camera, mark or camera pose",
             ReasonCode.MARK_BEHIND_CAMERA,
         )
-    Jw = J[active] * pk_all.weight[active][:, None, None]
+    all_used = bool(active.all())
+    Jw = (J if all_used else J[active]) * (pk_all.weight if all_used else pk_all.weight[active])[
+        :, None, None
+    ]
     try:
         cov = invert_information(information_from_jacobian(Jw))
     except ValueError as err:
         raise PoseInputError(str(err), ReasonCode.POSE_NOT_DETERMINED) from None
-    r_act = res[active]
+    r_act = res if all_used else res[active]
     info = SolveInfo(
         iterations=iterations,
         initial_cost=initial_cost,
         final_cost=lm.final_cost,
-        rms_px=float(np.sqrt(np.mean(np.sum(r_act * r_act, axis=1)))),
+        rms_px=float(np.sqrt(np.einsum("ni,ni->", r_act, r_act) / r_act.shape[0])),
         termination=lm.termination,
         converged=lm.converged,
         initializer=initializer,
