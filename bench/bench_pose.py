@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -59,7 +60,9 @@ def lab_scene(
     return cams, marks, obs, T_true
 
 
-def poselib_call(cams: list[ViewCamera], marks: dict[str, np.ndarray], obs: list[Observation]):  # type: ignore[no-untyped-def]
+def poselib_call(
+    cams: list[ViewCamera], marks: dict[str, np.ndarray], obs: list[Observation]
+) -> Callable[[], Any]:
     """A closure running PoseLib's generalized absolute pose on the same observations."""
     import poselib
 
@@ -88,7 +91,7 @@ def poselib_call(cams: list[ViewCamera], marks: dict[str, np.ndarray], obs: list
     # outlier-free data): 50 keeps RANSAC honest without paying for 1000 minimal solves.
     ransac = {"max_reproj_error": 4.0, "min_iterations": 50}
 
-    def run():  # type: ignore[no-untyped-def]
+    def run() -> Any:
         return poselib.estimate_generalized_absolute_pose(p2d, p3d, ext, cam_dicts, ransac, {})
 
     return run
