@@ -18,6 +18,7 @@ import numpy as np
 from mvpose_core.detect.geometry import Ellipse, Ellipses, fit_ellipses
 
 _STEP = 0.5  # px between samples along a ray
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _LEVEL_SAMPLES = 3  # samples at each end of a ray that give its inner and outer grey levels
 
 
@@ -72,6 +73,9 @@ def find_candidates(
     if hat.max() <= level:
         return []
     _, binary = cv2.threshold(hat, level, 255, cv2.THRESH_BINARY)
+    # Peel one pixel so that a mark touching clutter (a hole a few px away merges at reduced
+    # scale) still comes out as its own blob; the pixel is given back to the ellipse below.
+    binary = cv2.erode(binary, _CROSS)
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     # Coarse pixels and blur blunt the contour: be lenient on area here, strict after measuring.
     a_lo = np.pi * (0.5 * r_lo) ** 2
@@ -92,6 +96,7 @@ def find_candidates(
         # The blob must fill its ellipse: rejects rings, crescents, and branched shapes.
         if area < 0.7 * np.pi * a * b:
             continue
+        a, b = a + 1.0, b + 1.0  # the peeled pixel
         centre = np.array([cx, cy]) * scale + (scale - 1) / 2.0 + np.array([u0, v0])
         out.append(
             Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale)
