@@ -57,8 +57,9 @@ class EstimateOptions:
     max_rejections: int = 3
     #: a start whose refined RMS exceeds this (px) makes the solver try the next start
     restart_rms_px: float = 20.0
-    #: converged when a step is below this many σ of the estimate (see refine.levenberg_marquardt)
-    step_tol: float = 1e-4
+    #: converged when a step is shorter than this many σ of the estimate (see
+    #: refine.levenberg_marquardt; the last step is still applied)
+    step_tol: float = 1e-2
     cost_tol: float = 1e-12
 
     def __post_init__(self) -> None:

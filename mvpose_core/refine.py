@@ -199,18 +199,19 @@ def levenberg_marquardt(
     loss: str = "linear",
     huber_px: float = 2.0,
     max_iterations: int = 50,
-    step_tol: float = 1e-4,
+    step_tol: float = 1e-2,
     cost_tol: float = 1e-12,
 ) -> LMResult:
     """Minimise Σ w² ρ(‖observed − predicted‖) over the pose, starting at (R, t).
 
     Each iteration solves (H + λ·diag H) δ = g with H = JᵀJ, g = Jᵀr (whitened by the weights;
-    IRLS weights for Huber). Step sizes are measured statistically, as √(δᵀHδ) in units of the
-    estimate's own standard deviation. Converged ("step") when a proposed step is below
-    ``step_tol`` σ (decided before spending an evaluation on it) or an accepted one below
-    √``step_tol`` σ (the next would be below step_tol σ, quadratic convergence); when an accepted
-    step lowers the cost by less than ``cost_tol`` relative ("cost"); or when no step lowers it
-    at all ("no_decrease": a minimum to machine precision). Otherwise "max_iterations".
+    IRLS weights for Huber). Step lengths are measured statistically, as √(δᵀHδ) in units of
+    the estimate's own standard deviation. Converged ("step") when a proposed step is shorter
+    than ``step_tol`` σ: it is then applied from the linear model (exact to O(step²), so the
+    pose is still refined to ~step_tol² σ) and the residuals are moved to first order, without
+    another evaluation; the Jacobian returned is the one at the previous iterate. Also converged
+    when an accepted step lowers the cost by less than ``cost_tol`` relative ("cost"), or when
+    no step lowers it at all ("no_decrease"). Otherwise "max_iterations".
     """
     w = pk.weight
     w2 = w * w
@@ -228,6 +229,10 @@ def levenberg_marquardt(
         # cost Σ w² ρ(|r|): its IRLS form weights each row by w·√(ψ(s)/s)
         iw = w * np.sqrt(robust_weights(s, loss, huber_px))
         return cost, (res * iw[:, None]).reshape(-1), (J * iw[:, None, None]).reshape(-1, 6), res, J
+
+    def cost_of(res: Array) -> float:
+        s = np.sqrt(np.einsum("ni,ni->n", res, res))
+        return float(w2 @ robust_rho(s, loss, huber_px))
 
     cost, r, Jw, res, J = evaluate(R, t)
     initial = cost
@@ -250,9 +255,15 @@ def levenberg_marquardt(
             except np.linalg.LinAlgError:
                 lam = max(lam * 10.0, 1e-9)
                 continue
-            # δᵀHδ is the step's length in units of the estimate's own 1σ ellipsoid (χ²).
+            # δᵀHδ is the step's squared length in units of the estimate's own σ (χ²).
             step2 = float(delta @ H @ delta)
             if step2 < step_tol * step_tol:
+                # So small that the linear model is exact to O(step²): take it without paying
+                # for an evaluation, and move the residuals to first order.
+                t = t + R @ delta[3:]
+                R = R @ so3_exp(delta[:3])
+                res = res - J @ delta
+                cost = cost_of(res)
                 termination, converged = "step", True
                 break
             R_new = R @ so3_exp(delta[:3])
@@ -271,11 +282,6 @@ def levenberg_marquardt(
         R, t = R_new, t_new
         cost, r, Jw, res, J = new
         lam = max(lam * 0.1, 1e-9)
-        # Gauss–Newton converges quadratically near the minimum: after a step of s σ the
-        # remaining error is O(s²·nonlinearity), so a step below √step_tol σ is the last one.
-        if step2 < step_tol:
-            termination, converged = "step", True
-            break
         if decrease <= cost_tol * max(cost, 1e-300):
             termination, converged = "cost", True
             break
