@@ -4,7 +4,7 @@
 :mod:`mvpose_core.scene`) and returns ``T_rf_from_pf``. Steps:
 
 1. validate the input at this edge (shapes, NaN, unknown cameras/marks, duplicates, too few or
-   collinear marks) — :class:`PoseInputError` names the problem;
+   collinear marks; :mod:`mvpose_core.problem`) — :class:`PoseInputError` names the problem;
 2. start: 3D alignment to marks triangulated from two or more rays, else a generalised-camera
    DLT on single rays, else the caller's prior (``initial_T_rf_from_pf``) — see
    :mod:`mvpose_core.initial`;
@@ -28,13 +28,14 @@ from mvpose_core.problem import Observation, PoseInputError, Problem, build_prob
 from mvpose_core.refine import Array, LMResult, Packed, levenberg_marquardt, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import check_transform, make_transform
+from mvpose_core.triangulate import rays_intersection
+from mvpose_core.uncertainty import information_from_jacobian, invert_information
 
+# Observation, PoseInputError and pack_layout live in mvpose_core.problem; import them from here.
 __all__ = [
     "EstimateOptions", "Observation", "PoseInputError", "PoseResult", "SolveInfo",
     "estimate_pose", "pack_layout",
 ]  # fmt: skip
-from mvpose_core.triangulate import rays_intersection
-from mvpose_core.uncertainty import information_from_jacobian, invert_information
 
 
 @dataclass(frozen=True)
@@ -80,10 +81,10 @@ class SolveInfo:
     """How the solve went (PoseLib-style statistics)."""
 
     iterations: int
-    initial_cost: float  # ½ Σ ρ(|r|/σ)² at the start
+    initial_cost: float  # Σ ρ(|r|)/σ² at the start (½ Σ |r/σ|² for the linear loss)
     final_cost: float
     rms_px: float  # √(mean |r|²) over the observations used, px (OpenCV's RMS)
-    termination: str  # "gradient" | "step" | "cost" | "no_decrease" | "max_iterations"
+    termination: str  # "step" | "cost" | "no_decrease" | "max_iterations"
     converged: bool
     initializer: str  # "warm_start" | "triangulation" | "generalized_dlt" | "prior"
     rejected: tuple[tuple[int, str, str], ...] = ()  # (view, camera_id, mark_id) dropped
