@@ -9,6 +9,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -53,6 +54,12 @@ def _to_response(exc: Exception, path: str) -> JSONResponse:
         return problem(422, "Validation failed", detail, "validation", path, errors=errs)
     if isinstance(exc, StationFileError):
         return problem(422, "Invalid station content", str(exc), "station", path)
+    if isinstance(exc, OperationalError):
+        # The database is unreachable, locked past its busy timeout, or out of disk: not the
+        # client's fault and not a bug here; retrying later can succeed.
+        log.error("database unavailable on %s: %s", path, exc.orig)
+        return problem(503, "Store unavailable", f"the database did not answer: "
+                       f"{type(exc.orig).__name__}", "store-unavailable", path)
     if isinstance(exc, StarletteHTTPException):
         return problem(
             exc.status_code,
@@ -90,6 +97,7 @@ def install_problem_handlers(app: FastAPI) -> None:
         ValidationError,
         StationFileError,
         StarletteHTTPException,
+        OperationalError,
         Exception,
     ):
         app.add_exception_handler(exc_type, handler)

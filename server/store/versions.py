@@ -9,7 +9,7 @@ from typing import Any, Literal, cast
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import Engine, Table, func, insert, select, update
 
-from server.errors import NotFoundError
+from server.errors import InvalidInputError, NotFoundError
 from server.store.chain import canonical_json, sha256_text
 from server.store.models import ActiveVersionRow, VersionRow
 
@@ -51,7 +51,10 @@ class VersionRepository:
         self, kind: Kind, name: str, content: dict[str, Any], created_by: str, comment: str = ""
     ) -> VersionInfo:
         """Store ``content`` as the next version of ``name`` (versions count from 1)."""
-        text = canonical_json(content)
+        try:
+            text = canonical_json(content)
+        except ValueError as err:  # NaN / Infinity parsed from a lenient JSON body
+            raise InvalidInputError(f"{kind} {name!r}: content is not plain JSON ({err})") from None
         with self._engine.begin() as conn:
             latest = conn.execute(
                 select(func.max(V.c.version)).where(*self._key(kind, name))

@@ -49,6 +49,7 @@ MALFORMED = [
     ("POST", "/api/v1/tokens", b'{"name": "a b", "role": "read"}', J, 422, "name"),
     ("POST", "/api/v1/tokens", b'{"name": "x", "role": "admin"}', J, 422, "role"),
     ("DELETE", "/api/v1/tokens/nobody", None, {}, 404, "nobody"),
+    ("POST", "/api/v1/calibrations/c/versions", b'{"content": {"x": NaN}}', J, 400, "plain JSON"),
     ("PUT", "/api/v1/measurements", None, {}, 405, None),
     ("GET", "/api/v2/measurements", None, {}, 404, None),
     ("POST", "/api/v1/tokens", b"{}", {"content-length": "12x"}, 400, "Content-Length"),
@@ -227,3 +228,14 @@ async def test_requests_are_served_while_another_waits_on_the_store(tmp_path: Pa
             conn.rollback()
             conn.close()
         assert (await asyncio.wait_for(upload, timeout=30)).status_code == 201
+
+
+async def test_an_unreachable_database_is_503_not_500(tmp_path: Path) -> None:
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+        # the file vanishes under a running station: the next connection finds no tables
+        state["services"].store.engine.dispose()
+        for suffix in ("", "-wal", "-shm"):
+            (tmp_path / "var" / f"mvpose.db{suffix}").unlink(missing_ok=True)
+        r = await client.get("/api/v1/measurements")
+        assert r.status_code == 503, r.text
+        assert r.headers["content-type"] == PROBLEM and "database" in r.json()["detail"]
