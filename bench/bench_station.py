@@ -90,7 +90,6 @@ async def _main() -> int:
         async with running_station(station, settings, opts) as lb:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
-            await lb.twin.beat()
             await _run("warm-up", lb, 20)
             quiet_s, quiet_rt, nok_q = await _run("idle REST", lb, N_TRIGGERS)
             load = subprocess.Popen(

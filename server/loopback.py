@@ -55,33 +55,9 @@ def offset_error(recipe: RecipeConfig, true: Array, measured: Array) -> tuple[fl
                            compose(from_robot(true, conv), G))
 
 
-class Heartbeat:
-    """Keeps the twin's heartbeat going while the test does something long (rendering)."""
-
-    def __init__(self, twin: PlcTwin, period_s: float = 0.2) -> None:
-        self.twin, self.period_s = twin, period_s
-        self._task: asyncio.Task[None] | None = None
-
-    async def _run(self) -> None:
-        while True:
-            await self.twin.beat()
-            await asyncio.sleep(self.period_s)
-
-    async def __aenter__(self) -> Heartbeat:
-        self._task = asyncio.create_task(self._run())
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
-
-
 async def move_part(runtime: StationRuntime, twin: PlcTwin, T_rf_from_pf: Array) -> None:
     """Render every simulated camera at the new part pose (in a thread; the PLC keeps beating)."""
-    async with Heartbeat(twin):
-        await asyncio.to_thread(runtime.scene.set_part_pose, T_rf_from_pf)
+    await asyncio.to_thread(runtime.scene.set_part_pose, T_rf_from_pf)
 
 
 async def trigger(
@@ -137,12 +113,11 @@ async def running_station(
         config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
                                 lifespan="on")
         server = uvicorn.Server(config)
-        serve_task = asyncio.create_task(server.serve())
+        serve_task = asyncio.create_task(_serve(server))
         deadline = time.monotonic() + 60
         while not server.started:
             if serve_task.done():
-                with contextlib.suppress(SystemExit):  # uvicorn's exit on a failed lifespan
-                    await serve_task
+                await serve_task  # raises why it stopped
                 raise RuntimeError("the station server failed to start (see the log)")
             if time.monotonic() > deadline:
                 raise TimeoutError("the station server did not start within 60 s")
@@ -158,16 +133,31 @@ async def running_station(
             # compete with the pipeline for the GIL.
             twin = PlcTwin("127.0.0.1", runtime.plc_port, poll_s=twin_poll_s)
             await twin.connect()
+            # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
+            beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")
             try:
                 await twin.enable()
                 await twin.wait_for(lambda s: s.has(Status.READY), 5.0, "READY")
                 yield Loopback(runtime=runtime, twin=twin, server=server, base_url=base_url)
             finally:
+                beat.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await beat
                 twin.close()
     finally:
         if server is not None and serve_task is not None:
             server.should_exit = True
             await serve_task
+
+
+async def _serve(server: uvicorn.Server) -> None:
+    # uvicorn calls sys.exit() when the lifespan fails; a SystemExit escaping a task would stop
+    # the whole event loop, so it becomes an ordinary error here.
+    try:
+        await server.serve()
+    except SystemExit as err:
+        raise RuntimeError(f"the station server failed to start (exit {err.code}; see the log)") \
+            from None
 
 
 @contextlib.asynccontextmanager

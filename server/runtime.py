@@ -30,6 +30,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import anyio.to_thread
@@ -141,10 +142,10 @@ class StationRuntime:
                 f"runtime of station {self.station.name!r} needs settings.station to be that "
                 f"station's file, got {services.settings.station}")
         self.services = services
+        calib = self._apply_calibration(services.settings.station)
         self._load_recipes()
         self._open_cameras()
         assert self.capture is not None
-        calib = None
         self.pipeline = Pipeline(
             self.station, self.capture, services.record_measurement,
             software_version=services.software_version, calibration=calib,
@@ -196,6 +197,24 @@ class StationRuntime:
         if self.capture is not None:
             self.capture.close()
         self.plc = self.pipeline = self.capture = None
+
+    def _apply_calibration(self, station_file: Path | None) -> tuple[str, str] | None:
+        """Put the station's calibration file (if it names one) into the station model.
+
+        A relative path is taken from the station file's folder. A missing or tampered file
+        (content hash) stops start-up, naming the file."""
+        if not self.station.calibration:
+            return None
+        from mvpose_core.calibration.files import apply_calibration, load_calibration
+
+        path = Path(self.station.calibration)
+        if not path.is_absolute() and station_file is not None:
+            path = Path(station_file).parent / path
+        calib = load_calibration(path)
+        self.station = apply_calibration(self.station, calib)
+        log.info("station %s: calibration %s (sha256 %s) from %s", self.station.name, calib.id,
+                 calib.sha256[:12], path)
+        return calib.id, calib.sha256
 
     @property
     def plc_port(self) -> int:

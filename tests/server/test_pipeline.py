@@ -143,3 +143,43 @@ async def test_rest_trigger_teach_and_plc_teach_make_new_recipe_versions(tmp_pat
             assert state["recipe"]["version"] == 3
             assert state["last_result"]["trigger_id"] == 22
             assert state["cameras"] and all(s.startswith("up") for s in state["cameras"].values())
+
+
+async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -> None:
+    from mvpose_core.calibration.files import (
+        CameraCalibration,
+        InputsSummary,
+        make_calibration,
+        save_calibration,
+    )
+    from mvpose_core.station import load_station
+
+    base = load_station(station_file(tmp_path, "station1"))
+    cam = base.camera("top_left").model
+    calibrated = CameraCalibration(  # the camera as the calibration measured it: fx 1 px more
+        intrinsics={"fx": cam.fx + 1.0, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy},
+        distortion=list(cam.dist), image_size=(cam.width, cam.height))
+    calib = make_calibration("intrinsics", InputsSummary(board="test"),
+                             cameras={"top_left": calibrated}, station="station1")
+    save_calibration(tmp_path / "calib.json", calib)
+
+    def use(d: dict[str, Any]) -> None:
+        d["calibration"] = "calib.json"  # relative to the station file
+
+    settings = settings_for(station_file(tmp_path, "station1", use, relaxed_deadline),
+                            tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        assert lb.runtime.station.camera("top_left").intrinsics.fx == cam.fx + 1.0
+        recipe = lb.runtime.active.config
+        T = _at(recipe, np.random.default_rng(6))
+        await move_part(lb.runtime, lb.twin, T)
+        status, row = await trigger(lb.twin, recipe, 3, T)
+        assert status.result_code == 0 and row is not None
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        assert (rec.calibration_id, rec.calibration_hash) == (calib.id, calib.sha256)
+
+    (tmp_path / "calib.json").write_text((tmp_path / "calib.json").read_text().replace(
+        '"fx": ', '"fx": 1', 1))  # tampered: the content hash no longer matches
+    with pytest.raises(RuntimeError, match="failed to start"):
+        async with running_station(settings, runtime_options(), http_port=0):
+            pass
