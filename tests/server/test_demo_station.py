@@ -1,4 +1,4 @@
-"""``mvpose demo --triggers N``: the whole server on station 1, the PLC twin, REST address printed."""
+"""``mvpose demo --triggers N``: the whole server on station 1 and the PLC twin; REST printed."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ from server.cli import main
 
 
 @pytest.mark.timeout(180)
-def test_demo_measures_n_triggers_and_stops(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_measures_n_triggers_and_stops(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     rc = main(["demo", "--triggers", "2", "--port", "0", "--data-dir", str(tmp_path / "var"),
                "--seed", "3"])
     out = capsys.readouterr().out
