@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Literal
 
 import cv2
@@ -276,10 +276,7 @@ def render(
         )
     # Board coordinates at the pixel corners; the map is smooth, so sub-samples interpolate them
     # bilinearly (exact weights, no fixed-point remap).
-    u, v = np.meshgrid(np.arange(camera.width + 1.0) - 0.5, np.arange(camera.height + 1.0) - 0.5)
-    xy = camera.undistort_normalized(np.stack([u.ravel(), v.ravel()], axis=1))
-    x = xy[:, 0].reshape(u.shape)
-    y = xy[:, 1].reshape(u.shape)
+    x, y = _corner_rays(camera)
     T_bf_from_cf = invert(T_cf_from_bf)
     R, t = T_bf_from_cf[:3, :3], T_bf_from_cf[:3, 3]
     dz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
@@ -298,11 +295,25 @@ def render(
         tex, tx0, ty0 = board.texture(ppm)
     background = 0.6 * 0.5 * (_BLACK + _WHITE)
     S = int(supersample)
-    acc = np.zeros((camera.height, camera.width))
+    acc = np.full((camera.height, camera.width), background * S * S)
+    # Supersample only the window where the printed board can be (with a one-pixel margin).
+    x0e, y0e, x1e, y1e = board.extent_mm()
+    with np.errstate(invalid="ignore"):
+        on = (x0e <= X) & (X <= x1e) & (y0e <= Y) & (Y <= y1e)
+    rows, cols = np.flatnonzero(on.any(axis=1)), np.flatnonzero(on.any(axis=0))
+    if rows.size == 0:
+        r0 = r1 = c0 = c1 = 0
+    else:
+        r0, r1 = max(rows[0] - 2, 0), min(rows[-1] + 2, camera.height)
+        c0, c1 = max(cols[0] - 2, 0), min(cols[-1] + 2, camera.width)
+    Xw, Yw = X[r0 : r1 + 1, c0 : c1 + 1], Y[r0 : r1 + 1, c0 : c1 + 1]
+    window = np.zeros((r1 - r0, c1 - c0))
     for fy in (np.arange(S) + 0.5) / S:
         for fx in (np.arange(S) + 0.5) / S:
-            Xs = _bilinear(X, fx, fy)
-            Ys = _bilinear(Y, fx, fy)
+            if window.size == 0:
+                break
+            Xs = _bilinear(Xw, fx, fy)
+            Ys = _bilinear(Yw, fx, fy)
             if board.kind == "charuco":
                 g = cv2.remap(
                     tex,
@@ -314,12 +325,25 @@ def render(
                 ).astype(float)
             else:
                 g = board.grey_at(Xs, Ys)
-            acc += np.where(np.isfinite(g), g, background)
+            window += np.where(np.isfinite(g), g, background)
+    acc[r0:r1, c0:c1] = window
     img = acc / (S * S)
     if blur_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+        img = np.asarray(cv2.GaussianBlur(img, (0, 0), blur_px), dtype=float)
     img = img + rng.normal(0.0, noise_grey, img.shape)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@lru_cache(maxsize=8)
+def _corner_rays(camera: CameraModel) -> tuple[Array, Array]:
+    """Undistorted normalised coordinates of every pixel corner ``["H+1", "W+1"]`` (cached:
+    undistorting a whole image grid costs more than the rest of a render)."""
+    u, v = np.meshgrid(np.arange(camera.width + 1.0) - 0.5, np.arange(camera.height + 1.0) - 0.5)
+    xy = camera.undistort_normalized(np.stack([u.ravel(), v.ravel()], axis=1))
+    x, y = xy[:, 0].reshape(u.shape), xy[:, 1].reshape(u.shape)
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
 
 
 def _bilinear(G: Array, fx: float, fy: float) -> Array:

@@ -21,7 +21,7 @@ from mvpose_core.camera import CameraModel
 from mvpose_core.station import Intrinsics, Pose, StationConfig
 from mvpose_core.transforms import Array
 
-FORMAT = "mvpose-calibration/1"
+FORMAT: Literal["mvpose-calibration/1"] = "mvpose-calibration/1"
 
 
 class CalibrationFileError(ValueError):

@@ -19,16 +19,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from mvpose_core.calibration.boards import BoardSpec, Detection
 from mvpose_core.calibration.errors import CalibrationError
 from mvpose_core.calibration.intrinsics import board_pose, require_samples, split_detections
+from mvpose_core.calibration.joint import HandEyeProblem, Mount, refine, sigma_of_x
 from mvpose_core.calibration.robotposes import check_motion, match_ids
 from mvpose_core.camera import CameraModel
 from mvpose_core.transforms import (
@@ -37,11 +36,9 @@ from mvpose_core.transforms import (
     compose,
     invert,
     make_transform,
-    rotvec_to_matrix,
     transform_error,
 )
 
-Mount = Literal["robot", "fixed"]
 METHODS: dict[str, int] = {
     "tsai": cv2.CALIB_HAND_EYE_TSAI,
     "park": cv2.CALIB_HAND_EYE_PARK,
@@ -57,26 +54,7 @@ class HandEyeOptions:
     max_translation_mm: float = 3000.0  # a camera farther than this from the flange is implausible
     agree_mm: float = 2.0  # methods further than this from the refined answer are flagged
     agree_deg: float = 0.2
-
-
-@dataclass(frozen=True)
-class HandEyeProblem:
-    """Everything the solvers need; every mapping is keyed by sample id, then camera id."""
-
-    mount: Mount
-    board: BoardSpec
-    cameras: dict[str, CameraModel]  # first key is the reference camera CF0
-    T_cfc_from_cf0: dict[str, Array]
-    robot_poses: dict[str, Array]  # T_rf_from_gf per sample
-    detections: dict[str, dict[str, Detection]]  # sample → camera → detection (found only)
-
-    @property
-    def reference(self) -> str:
-        return next(iter(self.cameras))
-
-    def chain(self, sid: str) -> Array:
-        A = self.robot_poses[sid]
-        return invert(A) if self.mount == "robot" else A
+    refine_intrinsics: bool = True  # refine intrinsics with X and Y (robot poses pin the scale)
 
 
 @dataclass(frozen=True)
@@ -87,18 +65,6 @@ class MethodCheck:
     status: str  # "ok", "NaN", "implausible: ...", "disagrees: ..."
     deg: float = float("nan")
     mm: float = float("nan")
-
-
-@dataclass(frozen=True)
-class Refined:
-    """Result of the joint reprojection refinement over a set of samples."""
-
-    X: Array
-    Y: Array
-    cov: Array  # 12x12: X (rotation rad about X's target axes, translation mm), then Y
-    sigma_px: float  # noise estimated from the residuals
-    residuals: dict[str, Array]  # sample → ["N", 2] px over all cameras
-    depth_mm: float  # mean distance camera–board
 
 
 @dataclass(frozen=True)
@@ -117,6 +83,8 @@ class HandEyeResult:
     per_sample_rms_px: dict[str, float]
     residuals: dict[str, Array]
     cov: Array
+    cameras: dict[str, CameraModel]  # intrinsics after the joint refinement
+    T_cfc_from_cf0: dict[str, Array]  # rig after the joint refinement
     rejected: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -184,76 +152,6 @@ def solve_axxb(chains: Sequence[Array], T_cf_from_bf: Sequence[Array], method: s
     return make_transform(Rotation.from_matrix(R).as_matrix(), t.reshape(3))
 
 
-# --------------------------------------------------------------------------- refinement
-
-
-def _perturb(T0: Array, p: Array) -> Array:
-    return make_transform(rotvec_to_matrix(p[:3]) @ T0[:3, :3], T0[:3, 3] + p[3:])
-
-
-def refine(
-    problem: HandEyeProblem, X0: Array, Y0: Array, ids: Sequence[str] | None = None
-) -> Refined:
-    """Minimise the reprojection error of every corner of every camera over X and Y jointly."""
-    ids = sorted(problem.detections) if ids is None else list(ids)
-    obs = [
-        (sid, cid, problem.detections[sid][cid])
-        for sid in ids
-        for cid in problem.cameras
-        if cid in problem.detections[sid]
-    ]
-    chains = {sid: problem.chain(sid) for sid in ids}
-    pts = {(sid, cid): d.object_points(problem.board) for sid, cid, d in obs}
-
-    def predict(p: Array) -> list[Array]:
-        X = _perturb(X0, p[:6])
-        Y = _perturb(Y0, p[6:])
-        iX = invert(X)
-        out = []
-        for sid, cid, _ in obs:
-            T = compose(problem.T_cfc_from_cf0[cid], iX, chains[sid], Y)
-            out.append(problem.cameras[cid].project(apply(T, pts[(sid, cid)])))
-        return out
-
-    def fun(p: Array) -> Array:
-        return np.concatenate(
-            [(uv - d.uv).ravel() for uv, (_, _, d) in zip(predict(p), obs, strict=True)]
-        )
-
-    sol = least_squares(
-        fun, np.zeros(12), method="lm", x_scale=np.tile(np.r_[[1e-3] * 3, [1.0] * 3], 2)
-    )
-    X = _perturb(X0, sol.x[:6])
-    Y = _perturb(Y0, sol.x[6:])
-    m = sol.fun.size
-    dof = max(m - 12, 1)
-    sigma2 = float(sol.fun @ sol.fun) / dof
-    J = sol.jac
-    cov = sigma2 * np.linalg.pinv(J.T @ J)
-    res: dict[str, list[Array]] = {}
-    for uv, (sid, _, d) in zip(predict(sol.x), obs, strict=True):
-        res.setdefault(sid, []).append(uv - d.uv)
-    depths = [
-        compose(problem.T_cfc_from_cf0[cid], invert(X), chains[sid], Y)[2, 3] for sid, cid, _ in obs
-    ]
-    return Refined(
-        X=X,
-        Y=Y,
-        cov=cov,
-        sigma_px=float(np.sqrt(sigma2)),
-        residuals={sid: np.concatenate(r) for sid, r in res.items()},
-        depth_mm=float(np.mean(depths)),
-    )
-
-
-def sigma_of_x(cov: Array) -> tuple[float, float]:
-    """1σ of X as (mm, deg): RSS of the translation and rotation standard deviations, which is the
-    expected RMS of the translation and angle errors."""
-    return float(np.sqrt(np.trace(cov[3:6, 3:6]))), float(
-        np.degrees(np.sqrt(np.trace(cov[:3, :3])))
-    )
-
-
 # --------------------------------------------------------------------------- driver
 
 
@@ -310,7 +208,7 @@ def calibrate_handeye(
         Y0 = T_rf_from_bf
     else:
         Y0 = mean_transform([compose(invert(problem.chain(s)), X0, B[s]) for s in ids])
-    r = refine(problem, X0, Y0)
+    r = refine(problem, X0, Y0, intrinsics=options.refine_intrinsics)
     for name, X in plausible.items():
         deg, mm = transform_error(X, r.X)
         ok = deg <= options.agree_deg and mm <= options.agree_mm
@@ -331,6 +229,8 @@ def calibrate_handeye(
         },
         residuals=r.residuals,
         cov=r.cov,
+        cameras=r.cameras,
+        T_cfc_from_cf0=r.T_cfc_from_cf0,
         rejected=dict(rejected or {}),
     )
 

@@ -107,7 +107,7 @@ def calibrate_intrinsics(
         # Partial views and fixed aspect need a start; OpenCV's own planar initialisation.
         K0 = cv2.initCameraMatrix2D(obj, img, (w, h))
         flags |= cv2.CALIB_USE_INTRINSIC_GUESS
-    rms, K, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
+    rms, K, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
         obj, img, (w, h), K0, None, flags=flags, criteria=_CRITERIA
     )
     n = {4: 4, 5: 5, 8: 8}[options.n_distortion]

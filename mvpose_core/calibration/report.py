@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from mvpose_core.calibration.handeye import HandEyeProblem, HandEyeResult, refine
+from mvpose_core.calibration.handeye import HandEyeResult
 from mvpose_core.calibration.intrinsics import IntrinsicsResult
+from mvpose_core.calibration.joint import HandEyeProblem, refine
 from mvpose_core.calibration.stereo import StereoResult
 from mvpose_core.transforms import Array, transform_error
 

@@ -102,17 +102,18 @@ def make_station_scene(
     spacing_mm: float = 300.0,
     height_mm: float = 1300.0,
     board: BoardSpec | None = None,
+    camera: CameraModel | None = None,
 ) -> StationScene:
     """Cameras in a row ``spacing_mm`` apart, ``height_mm`` above the floor of RF, looking down
     and slightly inwards; each placement is seen by at least two cameras."""
     board = board or BoardSpec("chessboard", 11, 8, 35.0)
-    cam = lab_camera()
+    cam = camera or lab_camera()
     xs = (np.arange(n_cameras) - (n_cameras - 1) / 2) * spacing_mm
     cams = {f"cam{k + 1}": cam for k in range(n_cameras)}
     T_rf_from_cf = {}
     for k, x in enumerate(xs):
         # Looking down (CF z = -RF z), toed in towards the middle of the row.
-        tilt = -np.degrees(np.arctan2(x, height_mm)) * 0.5
+        tilt = np.degrees(np.arctan2(x, height_mm)) * 0.5
         R = zyx_to_matrix(90.0, 0.0, 180.0) @ zyx_to_matrix(0.0, 0.0, tilt)
         T_rf_from_cf[f"cam{k + 1}"] = make_transform(R, [1500.0 + x, 200.0, height_mm])
     centre = board.object_points.mean(axis=0)
@@ -126,7 +127,11 @@ def make_station_scene(
             rng.uniform(-180, 180), rng.uniform(-25, 25), 180.0 + rng.uniform(-25, 25)
         )
         pos = np.array(
-            [1500.0 + rng.uniform(xs[0], xs[-1]), 200.0 + rng.normal(0, 60), rng.uniform(0, 300)]
+            [
+                1500.0 + rng.uniform(xs[0], xs[-1]),
+                200.0 + rng.normal(0, 0.05 * height_mm),
+                rng.uniform(0, 0.25 * height_mm),
+            ]
         )
         T = make_transform(R, pos - R @ centre)
         scene = StationScene(board, cams, T_rf_from_cf, {"x": T})
@@ -158,6 +163,8 @@ def make_scene(
     camera: CameraModel | None = None,
     distance_mm: tuple[float, float] = (650.0, 900.0),
     max_tilt_deg: float = 35.0,
+    baseline_mm: float = 300.0,
+    converge_mm: float = 1000.0,
 ) -> CalibScene:
     """Views of the board from a cone of directions (tilt ≤ ``max_tilt_deg``) and random roll,
     at distances in ``distance_mm``, aimed at the board centre with a little scatter."""
@@ -167,8 +174,10 @@ def make_scene(
     rel = {"left": np.eye(4)}
     if stereo:
         cameras["right"] = cam
-        # 300 mm baseline, the right camera toed in to cross the left axis at 1 m (lab rig).
-        rel["right"] = invert(make_transform(zyx_to_matrix(0, -16.7, 0), [300.0, 0, 0]))
+        # Lab rig by default: 300 mm baseline, the right camera toed in to cross the left
+        # camera's axis at 1 m.
+        toe = -np.degrees(np.arctan2(baseline_mm, converge_mm))
+        rel["right"] = invert(make_transform(zyx_to_matrix(0, toe, 0), [baseline_mm, 0, 0]))
     centre = board.object_points.mean(axis=0)
     if mount == "robot":
         X = make_transform(zyx_to_matrix(90.0, 0.5, -1.0), [12.0, 118.0, 176.0])  # T_gf_from_cf0

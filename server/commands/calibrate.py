@@ -46,14 +46,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             help="distortion terms for intrinsics (default 5)",
         )
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument("--rig", help="rig id (default: the station rig holding the cameras)")
         if name in ("handeye", "station"):
             p.add_argument("--poses", type=Path, help="robot flange poses per sample (CSV or JSON)")
             p.add_argument(
                 "--convention",
                 help="robot convention of the pose files (fanuc, yaskawa, kuka, abb, ur)",
             )
-            p.add_argument("--rig", help="rig id (default: the station rig holding the cameras)")
         if name == "handeye":
+            p.add_argument(
+                "--fix-intrinsics",
+                action="store_true",
+                help="hold the intrinsics in the final joint refinement",
+            )
             p.add_argument(
                 "--board-pose",
                 type=Path,
@@ -131,7 +136,7 @@ def _detect_all(
                         f"{path}: image is {size[0]}x{size[1]}, camera {cid!r} others are "
                         f"{sizes[cid][0]}x{sizes[cid][1]}"
                     )
-                dets[cid][sid] = detect(img, board)
+                dets[cid][sid] = detect(np.asarray(img, dtype=np.uint8), board)
                 bar.update(1)
     return dets, sizes
 
@@ -181,7 +186,8 @@ def _intrinsics(ctx: dict[str, Any], args: argparse.Namespace, reports: list) ->
         if base is not None and cid in base.cameras and args.step != "intrinsics":
             c = base.cameras[cid]
             i = c.intrinsics
-            models[cid] = CameraModel(i.fx, i.fy, i.cx, i.cy, *c.image_size, tuple(c.distortion))
+            w, h = c.image_size
+            models[cid] = CameraModel(i.fx, i.fy, i.cx, i.cy, w, h, tuple(c.distortion))
             continue
         res = calibrate_intrinsics(cid, dets, ctx["board"], ctx["sizes"][cid], opt)
 
@@ -220,14 +226,10 @@ def _step_stereo(args: argparse.Namespace) -> int:
     res = calibrate_stereo(c1, c2, d1, d2, ctx["board"], models[c1], models[c2])
 
     def solve(ids: list[str]) -> Any:
+        # Repeatability of the relative pose alone (intrinsics held): the joint solve is slow.
+        sub1, sub2 = {i: d1[i] for i in ids}, {i: d2[i] for i in ids}
         return calibrate_stereo(
-            c1,
-            c2,
-            {i: d1[i] for i in ids},
-            {i: d2[i] for i in ids},
-            ctx["board"],
-            models[c1],
-            models[c2],
+            c1, c2, sub1, sub2, ctx["board"], res.model1, res.model2, refine_intrinsics=False
         )
 
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, c1)]))
@@ -247,7 +249,7 @@ def _board_depths(ctx: dict[str, Any], models: dict[str, Any], cid: str) -> list
 
 
 def _step_handeye(args: argparse.Namespace) -> int:
-    from mvpose_core.calibration.handeye import build_problem, calibrate_handeye
+    from mvpose_core.calibration.handeye import HandEyeOptions, build_problem, calibrate_handeye
     from mvpose_core.calibration.report import handeye_report
     from mvpose_core.calibration.robotposes import load_robot_poses
     from mvpose_core.calibration.stereo import calibrate_stereo
@@ -281,8 +283,13 @@ def _step_handeye(args: argparse.Namespace) -> int:
         if "board" not in bp:
             raise CliError(f"{args.board_pose}: expected one pose with id 'board', got {list(bp)}")
         T_rf_from_bf = bp["board"]
-    res = calibrate_handeye(problem, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
+    # Intrinsics taken from --base were chosen by the engineer: hold them. Otherwise refine them
+    # with the hand-eye, where the robot poses pin the focal length down better.
+    from_base = ctx["base"] is not None and all(c in ctx["base"].cameras for c in cams)
+    opt = HandEyeOptions(refine_intrinsics=not (from_base or args.fix_intrinsics))
+    res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
     reports.append((handeye_report(problem, res), res.residuals))
+    models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
     rig = _rig(
         res.X @ invert(T_rig_from_ref), None, {c: T_rig_from_ref @ invert(rel[c]) for c in cams}

@@ -60,6 +60,10 @@ def test_chain_intrinsics_stereo_handeye_meets_acceptance(lab) -> None:
     assert mm < 0.2 and deg < 0.02, (deg, mm)
     assert all(c.status == "ok" for c in he.methods.values()), he.methods
     assert 0.07 < he.sigma_px < 0.13  # 0.1 px per coordinate, estimated from the residuals
+    for cid, m in he.cameras.items():  # intrinsics refined with the robot poses
+        assert abs(m.fx / true.fx - 1) < 1e-3, cid
+    refined_baseline = float(np.linalg.norm(he.T_cfc_from_cf0["right"][:3, 3]))
+    assert abs(refined_baseline - true_baseline) < 0.1
 
 
 def test_reported_sigma_matches_spread_over_trials() -> None:

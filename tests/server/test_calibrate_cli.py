@@ -227,3 +227,144 @@ def test_bad_board_and_wrong_header(data, tmp_path: Path, capsys) -> None:
         == 2
     )
     assert "does not match the fanuc convention" in capsys.readouterr().err
+
+
+def _render_all(root: Path, scene_cams: dict, poses: dict, board: BoardSpec, rng) -> None:
+    """Write IMAGES/<camera>/<sample>.png for T_cf_from_bf given per (camera, sample)."""
+    for cid, cam in scene_cams.items():
+        (root / cid).mkdir(parents=True, exist_ok=True)
+        for sid in poses:
+            cv2.imwrite(str(root / cid / f"{sid}.png"), render(board, cam, poses[sid](cid), rng))
+
+
+def test_stereo_from_images(tmp_path: Path) -> None:
+    rng = np.random.default_rng(8)
+    board = BoardSpec.parse(BOARD)
+    scene = make_scene(
+        rng,
+        n_poses=8,
+        board=board,
+        camera=CAM,
+        distance_mm=(380, 450),
+        baseline_mm=100.0,
+        converge_mm=420.0,
+    )
+    poses = {sid: (lambda cid, sid=sid: scene.T_cf_from_bf(cid, sid)) for sid in scene.robot_poses}
+    _render_all(tmp_path / "images", scene.cameras, poses, board, rng)
+    out = tmp_path / "stereo.json"
+    assert (
+        _run(
+            "stereo",
+            "--images",
+            tmp_path / "images",
+            "--board",
+            BOARD,
+            "--out",
+            out,
+            "--no-progress",
+        )
+        == 0
+    )
+    cal = load_calibration(out)
+    rig = cal.rigs["rig"]
+    T_rig_from_right = rig.T_rig_from_cf["right"].matrix  # rig frame = left camera
+    T_right_from_left = np.linalg.inv(T_rig_from_right)
+    assert abs(np.linalg.norm(T_right_from_left[:3, 3]) - 100.0) < 0.1
+    deg, mm = transform_error(T_right_from_left, scene.T_cfc_from_cf0["right"])
+    assert mm < 0.5 and deg < 0.05
+
+
+def _station_yaml(path: Path, scene) -> Path:
+    """A two-camera fixed station with nominal (uncalibrated) poses 20 mm / 1° off."""
+    import yaml
+
+    from mvpose_core.calibration.files import pose
+
+    cams, rigs = [], []
+    for cid, T in scene.T_rf_from_cf.items():
+        cams.append(
+            {
+                "id": cid,
+                "driver": {"kind": "sim"},
+                "image_size": [CAM.width, CAM.height],
+                "intrinsics": {"fx": 890.0, "fy": 890.0, "cx": 400.0, "cy": 300.0},
+            }
+        )
+        nominal = pose(T).model_dump(mode="json")
+        nominal["xyz"][0] += 20.0
+        nominal["wpr"][2] += 1.0
+        rigs.append(
+            {
+                "id": f"rig_{cid}",
+                "mount": "fixed",
+                "cameras": [{"camera": cid}],
+                "T_rf_from_rig": nominal,
+            }
+        )
+    data = {
+        "name": "bench",
+        "cameras": cams,
+        "rigs": rigs,
+        "views": [{"id": 1, "rigs": [r["id"] for r in rigs]}],
+        "recipes": [
+            {
+                "name": "plate",
+                "mark_diameter_mm": 10.0,
+                "marks": [{"id": f"m{k}", "position": [100.0 * k, 0.0, 0.0]} for k in range(3)],
+                "sightings": [{"view": 1, "camera": "cam1", "marks": ["m0", "m1", "m2"]}],
+                "T_rf_from_pf0": {"xyz": [1500.0, 200.0, 0.0]},
+            }
+        ],
+    }
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_station_from_images_applies_to_the_station_file(tmp_path: Path) -> None:
+    from mvpose_core.calibration.files import apply_calibration
+    from mvpose_core.calibration.synthetic import make_station_scene
+    from mvpose_core.scene import view_cameras
+    from mvpose_core.station import load_station
+    from mvpose_core.transforms import compose, invert
+
+    rng = np.random.default_rng(4)
+    board = BoardSpec.parse(BOARD)
+    scene = make_station_scene(
+        rng, n_placements=8, n_cameras=2, spacing_mm=150.0, height_mm=550.0, board=board, camera=CAM
+    )
+    poses = {
+        sid: (lambda cid, T=T: compose(invert(scene.T_rf_from_cf[cid]), T))
+        for sid, T in scene.T_rf_from_bf.items()
+    }
+    _render_all(tmp_path / "images", scene.cameras, poses, board, rng)
+    lines = ["id,X,Y,Z,W,P,R"] + [
+        sid + "," + ",".join(f"{v:.5f}" for v in to_robot(T, "fanuc"))
+        for sid, T in scene.T_rf_from_bf.items()
+    ]
+    (tmp_path / "board_poses.csv").write_text("\n".join(lines) + "\n")
+    station_file = _station_yaml(tmp_path / "station.yaml", scene)
+    out = tmp_path / "station.json"
+    assert (
+        _run(
+            "station",
+            "--images",
+            tmp_path / "images",
+            "--board",
+            BOARD,
+            "--station",
+            station_file,
+            "--board-poses",
+            tmp_path / "board_poses.csv",
+            "--convention",
+            "fanuc",
+            "--out",
+            out,
+            "--no-progress",
+        )
+        == 0
+    )
+    calibrated = apply_calibration(load_station(station_file), load_calibration(out))
+    for vc in view_cameras(calibrated):
+        deg, mm = transform_error(vc.T_rf_from_cf, scene.T_rf_from_cf[vc.camera_id])
+        assert mm < 0.5 and deg < 0.05, (vc.camera_id, deg, mm)
+        assert abs(vc.model.fx / CAM.fx - 1) < 3e-3
