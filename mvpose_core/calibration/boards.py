@@ -299,7 +299,8 @@ def render(
     # Supersample only the window where the printed board can be (with a one-pixel margin).
     x0e, y0e, x1e, y1e = board.extent_mm()
     with np.errstate(invalid="ignore"):
-        on = (x0e <= X) & (X <= x1e) & (y0e <= Y) & (Y <= y1e)
+        bx, by = X, Y  # lower-case names: ruff reads upper-case ones as constants
+        on = (bx >= x0e) & (bx <= x1e) & (by >= y0e) & (by <= y1e)
     rows, cols = np.flatnonzero(on.any(axis=1)), np.flatnonzero(on.any(axis=0))
     if rows.size == 0:
         r0 = r1 = c0 = c1 = 0
