@@ -10,6 +10,7 @@ from typing import Any
 
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter
 
 from mvpose_core.simulation.montecarlo import PointSummary
 from mvpose_core.simulation.planning import Accuracy, StationPlan
@@ -41,7 +42,7 @@ def read_csv(path: Path) -> list[PointSummary]:
 
 def plot_study(path: Path, study: Study, rows: Sequence[PointSummary], command: str) -> None:
     """RMS rotation and translation error against x; bound dotted, the paper's values in red."""
-    fig = Figure(figsize=(11, 4.4), layout="constrained")
+    fig = Figure(figsize=(11, 5.6), layout="constrained")
     axes = fig.subplots(1, 2)
     log = study.name == "views"  # hand-eye error spans two decades there
     for ax, (field, bound, unit) in zip(
@@ -90,10 +91,13 @@ def plot_study(path: Path, study: Study, rows: Sequence[PointSummary], command: 
         ax.set_ylabel(f"RMS {unit}")
         if log:
             ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+            ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
         else:
             ax.set_ylim(bottom=0)
         ax.grid(True, alpha=0.3)
-    axes[1].legend(fontsize=7, loc="best")
+    handles, labels = axes[1].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=7, frameon=False)
     fig.suptitle(f"{study.title}\n{command}", fontsize=9)
     fig.savefig(path, dpi=110)
 

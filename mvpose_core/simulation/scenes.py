@@ -85,6 +85,17 @@ def random_layout(
     if n_marks < 1:
         raise ValueError(f"n_marks must be ≥ 1, got {n_marks}")
     half = np.array(size_mm) / 2.0
+    # Hexagonal packing is the densest layout: more marks than that cannot be placed at all.
+    densest = (
+        (size_mm[0] + min_spacing_mm)
+        * (size_mm[1] + min_spacing_mm)
+        / (math.sqrt(3.0) / 2.0 * min_spacing_mm**2)
+    )
+    if n_marks > densest:
+        raise ValueError(
+            f"cannot place {n_marks} marks {min_spacing_mm} mm apart on a {size_mm} mm part "
+            f"(at most {int(densest)})"
+        )
     kept = np.empty((0, 3))
     # Dart throwing: candidates are drawn in batches and accepted in order if far enough from
     # every mark accepted before (the same law as one candidate at a time, far fewer numpy calls).
