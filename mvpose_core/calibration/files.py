@@ -251,3 +251,21 @@ def apply_calibration(station: StationConfig, calib: CalibrationFile) -> Station
                 )
             in_rig[cid]["T_rig_from_cf"] = p.model_dump()
     return StationConfig.model_validate(data)
+
+
+def calibrated_station(
+    station: StationConfig, station_path: str | Path | None = None
+) -> tuple[StationConfig, CalibrationRef | None]:
+    """The station with its ``calibration:`` file applied (a relative path is taken from the
+    station file's folder), and the reference every measurement should record."""
+    if station.calibration is None:
+        return station, None
+    path = Path(station.calibration)
+    if not path.is_absolute() and station_path is not None:
+        path = Path(station_path).parent / path
+    calib = load_calibration(path)
+    if calib.station is not None and calib.station != station.name:
+        raise CalibrationFileError(
+            f"{path}: calibration is for station {calib.station!r}, not {station.name!r}"
+        )
+    return apply_calibration(station, calib), calib.ref

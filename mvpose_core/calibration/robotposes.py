@@ -23,6 +23,8 @@ from mvpose_core.transforms import (
 
 #: An industrial flange never works within this distance of the robot base origin (mm).
 _MIN_REACH_MM = 50.0
+#: No industrial robot reaches this far (mm); a track-mounted one would need its own frame.
+_MAX_REACH_MM = 20_000.0
 
 
 def parse_robot_poses(
@@ -123,14 +125,18 @@ def _parse_json(
 
 
 def check_units(poses: Mapping[str, Array], conv: RobotConvention, source: str) -> None:
-    """Flange positions all within a few cm of the base are metres written where mm belong."""
+    """Flange positions all within a few cm of the base, or tens of metres away, are a length
+    unit mix-up (metres where mm belong, or mm where a UR pose wants metres)."""
     reach = max(float(np.linalg.norm(T[:3, 3])) for T in poses.values())
-    if reach < _MIN_REACH_MM:
-        unit = "m" if conv is not RobotConvention.UR else "km (UR poses are in metres)"
+    expects = "metres" if conv is RobotConvention.UR else "mm"
+    if reach < _MIN_REACH_MM or reach > _MAX_REACH_MM:
+        small = reach < _MIN_REACH_MM
+        ur = conv is RobotConvention.UR
+        looks = {(True, True): "km", (True, False): "mm", (False, True): "m"}.get((ur, small), "µm")
         raise CalibrationError(
             f"{source}: robot poses in the wrong unit? the farthest flange position is "
-            f"{reach:.3f} mm from the base in the {conv.value} convention, which expects "
-            f"{'metres' if conv is RobotConvention.UR else 'mm'}; the file looks like {unit}"
+            f"{reach:.3f} mm from the base when read in the {conv.value} convention, which "
+            f"expects {expects}; the file looks like {looks}"
         )
 
 

@@ -126,3 +126,19 @@ def test_handeye_report_with_a_bad_robot_pose(tmp_path: Path) -> None:
     png = save_residual_plot(tmp_path / "r.png", rep, result.residuals)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert "OUTLIER sample 004" in rep.text()
+
+
+def test_station_file_refers_to_its_calibration(tmp_path: Path) -> None:
+    from mvpose_core.calibration.files import calibrated_station
+    from mvpose_core.station import dump_station, parse_station
+
+    save_calibration(tmp_path / "cal" / "lab.json", _calib())
+    station = load_station(LAB).model_copy(update={"calibration": "cal/lab.json"})
+    (tmp_path / "lab.yaml").write_text(dump_station(station))
+    reloaded = load_station(tmp_path / "lab.yaml")
+    applied, ref = calibrated_station(reloaded, tmp_path / "lab.yaml")
+    assert ref == _calib().ref
+    assert applied.camera("left").intrinsics == _calib().cameras["left"].intrinsics
+    other = parse_station({**reloaded.model_dump(mode="json"), "name": "other"})
+    with pytest.raises(CalibrationFileError, match="for station 'lab', not 'other'"):
+        calibrated_station(other, tmp_path / "lab.yaml")

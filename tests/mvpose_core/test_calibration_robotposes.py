@@ -1,0 +1,70 @@
+"""Robot-pose files: every convention, CSV and JSON, and the errors commissioning meets."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mvpose_core.calibration.errors import CalibrationError
+from mvpose_core.calibration.robotposes import parse_robot_poses
+from mvpose_core.transforms import RobotConvention, make_transform, to_robot, zyx_to_matrix
+
+POSES = {
+    "a01": make_transform(zyx_to_matrix(10.0, -20.0, 175.0), [1200.0, -300.0, 900.0]),
+    "a02": make_transform(zyx_to_matrix(-35.0, 5.0, -170.0), [1350.0, 120.0, 1010.0]),
+}
+
+
+def _csv(conv: RobotConvention, scale: float = 1.0) -> str:
+    rows = [",".join(["id", *conv.labels])]
+    for sid, T in POSES.items():
+        v = to_robot(T, conv)
+        v[:3] *= scale
+        rows.append(sid + "," + ",".join(repr(float(x)) for x in v))
+    return "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize("conv", list(RobotConvention))
+def test_csv_in_every_convention(conv: RobotConvention) -> None:
+    got = parse_robot_poses(_csv(conv), conv)
+    assert list(got) == list(POSES)
+    for sid, T in POSES.items():
+        np.testing.assert_allclose(got[sid], T, atol=1e-9)
+
+
+def test_json_mapping_and_list_forms() -> None:
+    conv = RobotConvention.ABB
+    as_map = {
+        "convention": "abb",
+        "poses": {s: to_robot(T, conv).tolist() for s, T in POSES.items()},
+    }
+    as_list = [{"id": s, "pose": to_robot(T, conv).tolist()} for s, T in POSES.items()]
+    for text, given in ((json.dumps(as_map), None), (json.dumps(as_list), "abb")):
+        got = parse_robot_poses(text, given)
+        np.testing.assert_allclose(got["a02"], POSES["a02"], atol=1e-9)
+
+
+def test_metres_where_mm_are_expected() -> None:
+    with pytest.raises(CalibrationError, match="wrong unit.*looks like m"):
+        parse_robot_poses(_csv(RobotConvention.FANUC, scale=0.001), "fanuc")
+
+
+def test_mm_where_ur_expects_metres() -> None:
+    with pytest.raises(CalibrationError, match="expects metres; the file looks like mm"):
+        parse_robot_poses(_csv(RobotConvention.UR, scale=1000.0), "ur")
+
+
+def test_errors_name_the_problem() -> None:
+    with pytest.raises(CalibrationError, match="does not match the kuka convention"):
+        parse_robot_poses(_csv(RobotConvention.FANUC), "kuka")
+    with pytest.raises(CalibrationError, match="needs a robot convention"):
+        parse_robot_poses(_csv(RobotConvention.FANUC), None)
+    dup = _csv(RobotConvention.FANUC) + _csv(RobotConvention.FANUC).splitlines()[1] + "\n"
+    with pytest.raises(CalibrationError, match="'a01' appears twice"):
+        parse_robot_poses(dup, "fanuc")
+    with pytest.raises(CalibrationError, match="file says convention 'abb' but 'kuka'"):
+        parse_robot_poses(json.dumps({"convention": "abb", "poses": {}}), "kuka")
+    with pytest.raises(CalibrationError, match="line 2: not a number"):
+        parse_robot_poses("id,X,Y,Z,W,P,R\na,1,2,x,4,5,6\n", "fanuc")
