@@ -68,3 +68,15 @@ def test_errors_name_the_problem() -> None:
         parse_robot_poses(json.dumps({"convention": "abb", "poses": {}}), "kuka")
     with pytest.raises(CalibrationError, match="line 2: not a number"):
         parse_robot_poses("id,X,Y,Z,W,P,R\na,1,2,x,4,5,6\n", "fanuc")
+
+
+def test_the_example_in_the_calibration_guide_parses() -> None:
+    from pathlib import Path
+
+    guide = Path(__file__).resolve().parents[2] / "docs" / "calibration.md"
+    text = guide.read_text()
+    start = text.index("id,X,Y,Z,W,P,R\n001")
+    block = text[start : text.index("```", start)]
+    poses = parse_robot_poses(block, "fanuc")
+    assert list(poses) == ["001", "002"]
+    assert np.linalg.norm(poses["001"][:3, 3]) > 1000.0
