@@ -151,3 +151,37 @@ def test_stereo_check_refuses_unknown_cameras(lab) -> None:  # type: ignore[no-u
     cams, _ = lab
     with pytest.raises(ValueError, match="unknown cameras"):
         stereo_check({"v9/nope": [MarkDetection.missing("M1", "x")]}, cams)
+
+
+def test_stereo_check_with_three_cameras_drops_only_the_odd_one_out() -> None:
+    from mvpose_core.scene import ViewCamera, project_recipe_marks
+    from mvpose_core.transforms import make_transform
+
+    cam, recipe = plate_scene()
+    cams = [
+        ViewCamera(
+            view=1,
+            camera_id=name,
+            model=cam.model,
+            T_rf_from_cf=make_transform(np.eye(3), [x, y, 0]),
+        )
+        for name, x, y in (("a", 0.0, 0.0), ("b", 120.0, 0.0), ("c", 0.0, 120.0))
+    ]
+    T = recipe.T_rf_from_pf0.matrix
+    dets = {
+        c.key: [
+            MarkDetection(mark_id=p.mark_id, found=True, uv=p.uv)
+            for p in project_recipe_marks(c, recipe, T, only_sighted=False)
+        ]
+        for c in cams
+    }
+    dets["v1/c"] = [
+        replace(d, uv=d.uv + [6.0, 0.0]) if d.mark_id == "M1" else d for d in dets["v1/c"]
+    ]
+    kept, failures = stereo_check(dets, cams)
+    assert sorted((f.camera_a, f.camera_b) for f in failures) == [
+        ("v1/a", "v1/c"),
+        ("v1/b", "v1/c"),
+    ]
+    dropped = {(k, d.mark_id) for k, ds in kept.items() for d in ds if not d.found}
+    assert dropped == {("v1/c", "M1")}
