@@ -56,9 +56,8 @@ class RenderedImage:
     """A rendered frame and its truth."""
 
     image: np.ndarray  # uint8 [H, W]
-    centres: dict[
-        str, np.ndarray
-    ]  # true projected CIRCLE centre (uv, [2]) of each mark in the image
+    # True projected CIRCLE centre (uv, [2]) of each mark drawn in the image.
+    centres: dict[str, np.ndarray]
     occluded: tuple[str, ...] = ()  # marks drawn partially hidden (a detector must miss them)
 
 
@@ -86,11 +85,11 @@ def render_view(
     centres: dict[str, np.ndarray] = {}
     footprints: dict[str, tuple[Array, float]] = {}  # (uv, radius px) of drawn marks
     for pm in marks:
-        box = _draw_mark(albedo, model, pm, radius_mm, mark_albedo, bg_albedo, options.supersample)
-        if box is None:
+        r_px = _draw_mark(albedo, model, pm, radius_mm, mark_albedo, bg_albedo, options.supersample)
+        if r_px is None:
             continue
         centres[pm.mark_id] = pm.uv.copy()
-        footprints[pm.mark_id] = (pm.uv, 0.5 * max(box[2] - box[0], box[3] - box[1]) - 2.5)
+        footprints[pm.mark_id] = (pm.uv, r_px)
 
     occluded = tuple(m for m in options.occluded if m in centres)
     for mid in occluded:
@@ -128,8 +127,8 @@ def _draw_mark(
     mark_albedo: float,
     bg_albedo: float,
     ss: int,
-) -> tuple[int, int, int, int] | None:
-    """Paint one mark's anti-aliased coverage into ``albedo``; its pixel box, or None if unseen."""
+) -> float | None:
+    """Paint one mark's anti-aliased coverage into ``albedo``; its radius in px, None if unseen."""
     H, W = albedo.shape
     rim_uv = model.project(rim_points(pm, radius_mm))
     u0, v0 = np.floor(rim_uv.min(axis=0)).astype(int) - 2
@@ -155,7 +154,7 @@ def _draw_mark(
         cover[edge] = inside.mean(axis=1)
     patch = albedo[v0:v1, u0:u1]
     patch[:] = patch + (mark_albedo - bg_albedo) * cover.astype(np.float32)
-    return u0, v0, u1, v1
+    return float(np.max(np.linalg.norm(rim_uv - pm.uv, axis=1)))
 
 
 # ----------------------------------------------------------------------------- photometry
