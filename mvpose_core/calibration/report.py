@@ -12,6 +12,7 @@ import numpy as np
 from mvpose_core.calibration.handeye import HandEyeResult
 from mvpose_core.calibration.intrinsics import IntrinsicsResult
 from mvpose_core.calibration.joint import HandEyeProblem, refine
+from mvpose_core.calibration.station import StationResult
 from mvpose_core.calibration.stereo import StereoResult
 from mvpose_core.transforms import Array, transform_error
 
@@ -112,16 +113,17 @@ def leave_one_out(
 
 
 def handeye_report(
-    problem: HandEyeProblem, result: HandEyeResult, loo: bool = True
+    problem: HandEyeProblem, result: HandEyeResult, loo: bool = True, intrinsics: bool = True
 ) -> CalibrationReport:
-    """Report of a hand-eye calibration; leave-one-out re-runs the joint refinement."""
+    """Report of a hand-eye calibration; leave-one-out re-runs the joint refinement (with the
+    intrinsics refined or held, as in the calibration itself)."""
     f = problem.cameras[result.reference].fx
     rep = None
     if loo and len(result.per_sample_rms_px) >= 4:
         ids = sorted(result.per_sample_rms_px)
 
         def solve(subset: list[str]) -> dict[str, float]:
-            r = refine(problem, result.X, result.Y, subset)
+            r = refine(problem, result.X, result.Y, subset, intrinsics=intrinsics)
             deg, mm = transform_error(r.X, result.X)
             return {"hand_eye_mm": mm, "hand_eye_deg": deg}
 
@@ -201,6 +203,26 @@ def stereo_report(
             "T_cf2_from_cf1 xyz mm": [round(float(x), 4) for x in res.T_cf2_from_cf1[:3, 3]],
         },
         repeatability=rep,
+    )
+
+
+def station_report(res: StationResult, depth_mm: float, fx: float) -> CalibrationReport:
+    """Report of a fixed-station calibration: the camera groups and how well the robot-frame
+    measurements agree with the rigid station."""
+    v = np.array(list(res.per_sample_rms_px.values()))
+    rms = float(np.sqrt(np.mean(v**2)))
+    return CalibrationReport(
+        kind="station (fixed cameras)",
+        per_sample_rms_px=res.per_sample_rms_px,
+        rms_px=rms,
+        working_distance_mm=depth_mm,
+        error_mm_at_working_distance=rms * depth_mm / fx,
+        outliers=find_outliers(res.per_sample_rms_px),
+        rejected=dict(res.rejected),
+        result={
+            "camera groups": [sorted(g.T_ref_from_cf) for g in res.groups],
+            "RF placement RMS mm (per group)": res.placement_rms_mm,
+        },
     )
 
 

@@ -288,7 +288,7 @@ def _step_handeye(args: argparse.Namespace) -> int:
     from_base = ctx["base"] is not None and all(c in ctx["base"].cameras for c in cams)
     opt = HandEyeOptions(refine_intrinsics=not (from_base or args.fix_intrinsics))
     res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
-    reports.append((handeye_report(problem, res), res.residuals))
+    reports.append((handeye_report(problem, res, intrinsics=opt.refine_intrinsics), res.residuals))
     models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
     rig = _rig(
@@ -299,7 +299,7 @@ def _step_handeye(args: argparse.Namespace) -> int:
 
 def _step_station(args: argparse.Namespace) -> int:
     from mvpose_core.calibration.handeye import build_problem, calibrate_handeye
-    from mvpose_core.calibration.report import CalibrationReport, find_outliers
+    from mvpose_core.calibration.report import station_report
     from mvpose_core.calibration.robotposes import load_robot_poses
     from mvpose_core.calibration.station import board_poses_from_robot, calibrate_station
     from mvpose_core.transforms import invert
@@ -331,26 +331,7 @@ def _step_station(args: argparse.Namespace) -> int:
     residuals = {s: r for g in res.groups for s, r in g.residuals.items()}
     ref = next(iter(models))
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, ref)]))
-    reports.append(
-        (
-            CalibrationReport(
-                kind="station (fixed cameras)",
-                per_sample_rms_px=res.per_sample_rms_px,
-                rms_px=float(np.sqrt(np.mean([v**2 for v in res.per_sample_rms_px.values()]))),
-                working_distance_mm=depth,
-                error_mm_at_working_distance=float(np.mean(list(res.per_sample_rms_px.values())))
-                * depth
-                / models[ref].fx,
-                outliers=find_outliers(res.per_sample_rms_px),
-                rejected=res.rejected,
-                result={
-                    "camera groups": [sorted(g.T_ref_from_cf) for g in res.groups],
-                    "RF placement RMS mm (per group)": res.placement_rms_mm,
-                },
-            ),
-            residuals,
-        )
-    )
+    reports.append((station_report(res, depth, models[ref].fx), residuals))
     station = ctx["station"]
     rigs = {}
     for rig in station.rigs:

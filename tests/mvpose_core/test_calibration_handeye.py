@@ -70,7 +70,7 @@ def test_reported_sigma_matches_spread_over_trials() -> None:
     rng = np.random.default_rng(99)
     scene = make_scene(rng, n_poses=15, mount="robot", stereo=False)
     errs, sig = [], []
-    for _ in range(25):
+    for _ in range(20):
         det = scene.observe(rng, 0.1)
         problem, _ = build_problem("robot", scene.board, scene.cameras, scene.robot_poses, det)
         he = calibrate_handeye(problem)
