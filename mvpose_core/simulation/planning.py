@@ -220,12 +220,11 @@ def _monte_carlo(
                 obs, cameras, marks, EstimateOptions(), sigma, initial_T_rf_from_pf=T0
             )
         except PoseInputError:
+            r = None
+        if r is None or not r.info.converged:
             failed += 1
-            continue
-        if not r.info.converged:
-            failed += 1
-            continue
-        errors.append(transform_error(compose(r.T_rf_from_pf, G), compose(T, G)))
+        else:
+            errors.append(transform_error(compose(r.T_rf_from_pf, G), compose(T, G)))
         if progress is not None and (i + 1) % 100 == 0:
             progress(100)
     if progress is not None and trials % 100:

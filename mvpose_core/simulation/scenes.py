@@ -26,12 +26,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mvpose_core.camera import CameraModel
-from mvpose_core.refine import so3_exp
 from mvpose_core.scene import ViewCamera
 from mvpose_core.synth import random_displacement
-from mvpose_core.transforms import Array, compose, make_transform, zyx_to_matrix
+from mvpose_core.transforms import Array, make_transform, zyx_to_matrix
 from mvpose_core.uncertainty import LayoutEntry
 
 #: the paper's cameras: 16 mm lens, 5.5 µm pixels, 2048 x 2048
@@ -137,22 +137,6 @@ def split_marks(positions: Array, n_views: int) -> list[list[int]]:
     return [sightings[bounds[v] : bounds[v + 1]] for v in range(n_views)]
 
 
-def _cross(a: Array, b: Array) -> Array:
-    # np.cross costs ~10 µs of axis handling per call for two 3-vectors; this is the hot path.
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
-
-
-def look_at(eye: Array, target: Array, up_hint: Array) -> Array:
-    """``T_a_from_cam`` of a camera at ``eye`` looking at ``target`` (z forward, y down)."""
-    z = target - eye
-    z = z / math.sqrt(float(z @ z))
-    x = _cross(up_hint, z)
-    x = x / math.sqrt(float(x @ x))
-    return make_transform(np.column_stack([x, _cross(z, x), z]), eye)
-
-
 def stereo_rig() -> tuple[Array, Array]:
     """``T_rig_from_cf`` of the left and right camera: toed in to converge at the standoff."""
     half = BASELINE_MM / 2.0
@@ -162,29 +146,43 @@ def stereo_rig() -> tuple[Array, Array]:
     return left, right
 
 
-def view_pose_pf(target_pf: Array, motion: Motion, rng: np.random.Generator) -> Array:
-    """``T_pf_from_rig`` of one view looking at ``target_pf`` from the standoff."""
+def view_poses_pf(targets_pf: Array, motion: Motion, rng: np.random.Generator) -> Array:
+    """``T_pf_from_rig`` ``[V, 4, 4]`` of views looking at ``targets_pf`` ``[V, 3]``."""
+    n = targets_pf.shape[0]
     if motion == "translate":
-        direction = np.array([0.0, 0.0, 1.0])
-        up = np.array([0.0, 1.0, 0.0])
+        direction = np.tile([0.0, 0.0, 1.0], (n, 1))
+        up = np.tile([0.0, 1.0, 0.0], (n, 1))
     elif motion == "rotate":
-        tilt = math.radians(rng.uniform(10.0, 25.0))
-        azimuth = rng.uniform(0.0, 2.0 * math.pi)
-        direction = np.array(
-            [math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth), math.cos(tilt)]
+        tilt = np.radians(rng.uniform(10.0, 25.0, n))
+        azimuth = rng.uniform(0.0, 2.0 * math.pi, n)
+        direction = np.column_stack(
+            [np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)]
         )
-        roll = math.radians(rng.uniform(60.0, 120.0))
-        up = np.array([math.cos(roll), math.sin(roll), 0.0])
+        roll = np.radians(rng.uniform(60.0, 120.0, n))
+        up = np.column_stack([np.cos(roll), np.sin(roll), np.zeros(n)])
     else:
         raise ValueError(f"motion must be 'rotate' or 'translate', got {motion!r}")
-    return look_at(target_pf + STANDOFF_MM * direction, target_pf, up)
+    # Look at the targets, z forward and y down in the image; all views in one numpy call each.
+    z = -direction
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = np.stack([x, np.cross(z, x), z], axis=2)
+    T[:, :3, 3] = targets_pf + STANDOFF_MM * direction
+    T[:, 3, 3] = 1.0
+    return T
 
 
-def rig_error(rng: np.random.Generator, rot_deg: float, trans_mm: float) -> Array:
-    """A random rigid error ``Exp(ω, v)``, N(0, σ²) per axis (σ in deg and mm)."""
-    w = rng.normal(0.0, math.radians(rot_deg), 3) if rot_deg > 0 else np.zeros(3)
-    v = rng.normal(0.0, trans_mm, 3) if trans_mm > 0 else np.zeros(3)
-    return make_transform(so3_exp(w), v)
+def rig_errors(rng: np.random.Generator, n: int, rot_deg: float, trans_mm: float) -> Array:
+    """``n`` random rigid errors ``Exp(ω, v)`` ``[n, 4, 4]``, N(0, σ²) per axis (deg, mm)."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    if rot_deg > 0:
+        T[:, :3, :3] = Rotation.from_rotvec(
+            rng.normal(0.0, math.radians(rot_deg), (n, 3))
+        ).as_matrix()
+    if trans_mm > 0:
+        T[:, :3, 3] = rng.normal(0.0, trans_mm, (n, 3))
+    return T
 
 
 def build_trial(
@@ -202,27 +200,23 @@ def build_trial(
     """
     groups = list(groups) if groups is not None else split_marks(marks_pf, n_views)
     ids = [f"M{i + 1}" for i in range(len(marks_pf))]
-    T_true = compose(T_RF_FROM_PF0, random_displacement(rng, DISPLACEMENT_MM, DISPLACEMENT_DEG))
-    T_rig_from_cfs = stereo_rig()
+    T_true = T_RF_FROM_PF0 @ random_displacement(rng, DISPLACEMENT_MM, DISPLACEMENT_DEG)
+    targets = np.array([marks_pf[list(g)].mean(axis=0) for g in groups])
+    # Views are planned on the taught part pose: the robot does not know the displacement.
+    T_rf_from_rig = T_RF_FROM_PF0 @ view_poses_pf(targets, motion, rng)
+    err = np.concatenate(
+        [np.eye(4)[None], rig_errors(rng, len(groups) - 1, handeye_deg, handeye_mm)]
+    )
+    T_rf_from_rig_believed = T_rf_from_rig @ err
+    rig = np.stack(stereo_rig())  # [2, 4, 4] T_rig_from_cf
+    T_true_cf = T_rf_from_rig[:, None] @ rig[None]  # [V, 2, 4, 4]
+    T_believed_cf = T_rf_from_rig_believed[:, None] @ rig[None]
     true: list[ViewCamera] = []
     believed: list[ViewCamera] = []
     layout: list[LayoutEntry] = []
-    for v, group in enumerate(groups, start=1):
-        target = marks_pf[list(group)].mean(axis=0)
-        # Views are planned on the taught part pose: the robot does not know the displacement.
-        T_rf_from_rig = compose(T_RF_FROM_PF0, view_pose_pf(target, motion, rng))
-        err = rig_error(rng, handeye_deg, handeye_mm) if v > 1 else np.eye(4)
-        T_rf_from_rig_believed = compose(T_rf_from_rig, err)
-        for pos, (cid, T_rig_from_cf) in enumerate(
-            zip(("left", "right"), T_rig_from_cfs, strict=True)
-        ):
-            true.append(
-                ViewCamera(v, cid, CAMERA, compose(T_rf_from_rig, T_rig_from_cf), "stereo", pos)
-            )
-            believed.append(
-                ViewCamera(
-                    v, cid, CAMERA, compose(T_rf_from_rig_believed, T_rig_from_cf), "stereo", pos
-                )
-            )
-            layout.extend((v, cid, ids[m]) for m in dict.fromkeys(group))
+    for v, group in enumerate(groups):
+        for pos, cid in enumerate(("left", "right")):
+            true.append(ViewCamera(v + 1, cid, CAMERA, T_true_cf[v, pos], "stereo", pos))
+            believed.append(ViewCamera(v + 1, cid, CAMERA, T_believed_cf[v, pos], "stereo", pos))
+            layout.extend((v + 1, cid, ids[m]) for m in dict.fromkeys(group))
     return Trial(dict(zip(ids, marks_pf, strict=True)), layout, true, believed, T_true)

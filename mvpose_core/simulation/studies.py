@@ -104,7 +104,7 @@ PAPER_STD = (0.01, 0.1)  # "std of rotation and translation errors about 0.01° 
 
 NOISE_PX = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
 MARK_COUNTS = (4, 6, 8, 10, 12, 14, 16, 18, 20)
-VIEW_COUNTS = (1, 2, 3, 4, 5, 6, 8, 10, 13, 16, 20)
+VIEW_COUNTS = (1, 2, 3, 4, 6, 8, 12, 16, 20)
 TRANSLATION_NOISE_PX = (0.5, 1.0, 1.5, 2.0)
 MOTIONS: tuple[Motion, ...] = ("translate", "rotate")
 

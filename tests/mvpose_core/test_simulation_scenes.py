@@ -13,9 +13,9 @@ from mvpose_core.simulation.scenes import (
     PART_SIZE_MM,
     STANDOFF_MM,
     build_trial,
-    look_at,
     random_layout,
     split_marks,
+    view_poses_pf,
 )
 from mvpose_core.simulation.studies import (
     HANDEYE_LEVELS,
@@ -51,15 +51,18 @@ def test_split_marks_sees_every_mark(n_views: int) -> None:
     assert len(seen) == max(18, n_views)  # each mark once until there are more views than marks
 
 
-def test_look_at_is_a_rotation_pointing_at_the_target() -> None:
-    eye, target = np.array([100.0, -50.0, 900.0]), np.array([10.0, 20.0, 0.0])
-    T = look_at(eye, target, np.array([0.0, 1.0, 0.0]))
-    R = T[:3, :3]
-    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
-    assert np.linalg.det(R) == pytest.approx(1.0)
-    p_cam = invert(T) @ np.append(target, 1.0)
-    np.testing.assert_allclose(p_cam[:2], 0.0, atol=1e-9)
-    assert p_cam[2] == pytest.approx(np.linalg.norm(target - eye))
+@pytest.mark.parametrize("motion", ["rotate", "translate"])
+def test_views_are_rotations_looking_at_their_targets(motion: str) -> None:
+    targets = np.array([[100.0, -50.0, 10.0], [-400.0, 200.0, -20.0], [0.0, 0.0, 0.0]])
+    T = view_poses_pf(targets, motion, np.random.default_rng(4))  # type: ignore[arg-type]
+    for Ti, target in zip(T, targets, strict=True):
+        R = Ti[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        p_rig = invert(Ti) @ np.append(target, 1.0)
+        np.testing.assert_allclose(p_rig[:2], 0.0, atol=1e-9)  # on the optical axis
+        assert p_rig[2] == pytest.approx(STANDOFF_MM)
+        assert Ti[2, 3] > target[2]  # above the part, looking down at it
 
 
 def test_noiseless_trial_is_recovered_exactly_and_marks_are_in_front() -> None:
