@@ -55,6 +55,7 @@ class HandEyeOptions:
     agree_mm: float = 2.0  # methods further than this from the refined answer are flagged
     agree_deg: float = 0.2
     refine_intrinsics: bool = True  # refine intrinsics with X and Y (robot poses pin the scale)
+    max_rms_px: float = 2.0  # above this after refinement the poses do not fit the images
 
 
 @dataclass(frozen=True)
@@ -209,6 +210,14 @@ def calibrate_handeye(
     else:
         Y0 = mean_transform([compose(invert(problem.chain(s)), X0, B[s]) for s in ids])
     r = refine(problem, X0, Y0, intrinsics=options.refine_intrinsics)
+    all_res = np.concatenate(list(r.residuals.values()))
+    rms = float(np.sqrt(np.mean(np.sum(all_res * all_res, axis=1))))
+    if rms > options.max_rms_px:
+        raise CalibrationError(
+            f"{what}: the robot poses do not fit the images: reprojection RMS {rms:.1f} px after "
+            f"refinement (limit {options.max_rms_px:g} px); wrong robot convention, a TCP "
+            "instead of the flange, or poses exported inverted (T_gf_from_rf)?"
+        )
     for name, X in plausible.items():
         deg, mm = transform_error(X, r.X)
         ok = deg <= options.agree_deg and mm <= options.agree_mm

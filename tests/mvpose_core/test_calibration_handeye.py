@@ -204,13 +204,47 @@ def test_robot_poses_in_metres() -> None:
 
 
 def test_inverted_robot_poses_are_caught_by_the_cross_check() -> None:
-    """Poses exported as T_gf_from_rf by mistake: the solvers disagree or the fit is poor."""
+    """Poses exported as T_gf_from_rf by mistake: no calibration comes out of it."""
     rng = np.random.default_rng(6)
     scene = make_scene(rng, n_poses=10, stereo=False)
     det = scene.observe(rng, 0.1)
     wrong = {sid: invert(A) for sid, A in scene.robot_poses.items()}
-    try:
-        he = calibrate_handeye(_problem(scene, det, wrong))
-    except CalibrationError:
-        return
-    assert he.rms_px > 5.0 or any(c.status != "ok" for c in he.methods.values())
+    with pytest.raises(CalibrationError, match="robot poses do not fit the images"):
+        calibrate_handeye(_problem(scene, det, wrong))
+
+
+def test_rotations_about_one_axis_only() -> None:
+    from mvpose_core.calibration.robotposes import check_motion
+
+    base = make_transform(zyx_to_matrix(0.0, 0.0, 180.0), [1200.0, 0.0, 900.0])
+    poses = {
+        f"{k:03d}": compose(
+            base, make_transform(zyx_to_matrix(15.0 * k, 0.0, 0.0), [30.0 * k, 0, 0])
+        )
+        for k in range(6)
+    }
+    cams = {sid: invert(A) for sid, A in poses.items()}  # any camera motion of similar size
+    with pytest.raises(CalibrationError, match="every robot rotation is about one axis"):
+        check_motion(poses, cams, "hand-eye")
+
+
+def test_board_carried_by_the_robot_places_a_fixed_station() -> None:
+    """Eye-to-hand on one camera gives the board on the flange; the station follows from it."""
+    from mvpose_core.calibration.station import board_poses_from_robot, calibrate_station
+    from mvpose_core.calibration.synthetic import make_station_scene
+
+    rng = np.random.default_rng(17)
+    scene = make_station_scene(rng, n_placements=12)
+    T_gf_from_bf = make_transform(zyx_to_matrix(0.0, 0.0, 180.0), [-100.0, -80.0, 120.0])
+    robot = {s: compose(T, invert(T_gf_from_bf)) for s, T in scene.T_rf_from_bf.items()}
+    det = scene.observe(rng, 0.1)
+    best = max(det, key=lambda c: sum(d is not None for d in det[c].values()))
+    problem, _ = build_problem(
+        "fixed", scene.board, {best: scene.cameras[best]}, robot, {best: det[best]}
+    )
+    he = calibrate_handeye(problem)
+    assert transform_error(he.Y, T_gf_from_bf)[1] < 0.5
+    res = calibrate_station(scene.board, scene.cameras, det, board_poses_from_robot(robot, he.Y))
+    for c in scene.cameras:
+        deg, mm = transform_error(res.T_rf_from_cf[c], scene.T_rf_from_cf[c])
+        assert mm < 0.5 and deg < 0.02, (c, deg, mm)
