@@ -26,7 +26,7 @@ import numpy as np
 from bench.timing import Timing, check
 
 ROOT = Path(__file__).resolve().parents[1]
-N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "300"))
+N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "200"))
 TRIGGER_PERIOD_S = 0.05  # one trigger every 50 ms: faster than any line, slow enough to settle
 TOKEN = "mvp_bench-station-token-0000000000000000000000"
 
@@ -75,6 +75,7 @@ async def _main() -> int:
     from mvpose_core.station import load_station
     from mvpose_core.synth import random_displacement
     from server.loopback import running_station
+    from server.pipeline import PipelineOptions, auto_detect_processes
     from server.runtime import RuntimeOptions
     from server.settings import Settings
 
@@ -85,9 +86,14 @@ async def _main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         # OK frames are archived 1 in 10**6 here: PNG encoding of 4 × 4 MP frames (~0.2 s of CPU)
         # belongs to the archive thread between parts, not to a 50 ms trigger loop.
-        settings = Settings(data_dir=Path(tmp), bootstrap_token=TOKEN, images_ok_every=10**6)
-        opts = RuntimeOptions(sim_seed=7, sim_render=RenderOptions())
-        async with running_station(station, settings, opts) as lb:
+        settings = Settings(station=ROOT / "deploy" / "stations" / "station1.yaml",
+                            data_dir=Path(tmp), bootstrap_token=TOKEN, images_ok_every=10**6)
+        # As `mvpose serve` runs it on this machine (MVPOSE_DETECT_PROCESSES overrides).
+        procs = int(os.environ.get("MVPOSE_DETECT_PROCESSES", auto_detect_processes()))
+        print(f"  detection: {procs or 'threads, no'} worker processes", flush=True)
+        opts = RuntimeOptions(sim_seed=7, sim_render=RenderOptions(),
+                              pipeline=PipelineOptions(detect_processes=procs))
+        async with running_station(settings, opts) as lb:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
             await _run("warm-up", lb, 20)

@@ -14,7 +14,7 @@ from drivers.plc.registers import Status
 from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
 from server.loopback import Loopback, TriggerRow, move_part, running_station, trigger
-from server.pipeline import reason_name
+from server.pipeline import PipelineOptions, auto_detect_processes, reason_name
 from server.runtime import RuntimeOptions
 from server.settings import Settings
 
@@ -58,7 +58,10 @@ def run_station_demo(
 async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, seed: int,
                 port: int, token: str, max_mm: float, max_deg: float) -> int:
     rng = np.random.default_rng(seed)
-    async with running_station(settings, RuntimeOptions(sim_seed=seed), http_port=port) as lb:
+    # The pipeline as `mvpose serve` runs it on this machine.
+    options = RuntimeOptions(
+        sim_seed=seed, pipeline=PipelineOptions(detect_processes=auto_detect_processes()))
+    async with running_station(settings, options, http_port=port) as lb:
         rt = lb.runtime
         recipe = rt.active.config
         tol = recipe.tolerances

@@ -21,6 +21,7 @@ runtime's trigger thread, never on an event loop.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -41,6 +42,7 @@ from mvpose_core.measure import Measurement, measure
 from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array
+from server.detect_pool import DetectPool
 from server.store.schemas import (
     CameraDetections,
     Detection,
@@ -85,13 +87,23 @@ class ActiveRecipe:
     number: int  # what the PLC selects it by: 1-based position in the station file
 
 
+def auto_detect_processes() -> int:
+    """Detection processes for this machine: none below 4 cores, where the extra processes only
+    wait for a core (measured, docs/performance.md); else half the cores, at most 4."""
+    cores = os.cpu_count() or 1
+    return 0 if cores < 4 else min(4, cores // 2)
+
+
 @dataclass(frozen=True)
 class PipelineOptions:
     # The first pass detects without perspective correction: the correction needs the pose,
     # and the one at the estimate (second pass) is the one that counts.
     detect: DetectOptions = DetectOptions(correct_perspective=False)
     estimate: EstimateOptions = EstimateOptions()
-    detect_workers: int = 2
+    detect_workers: int = 2  # threads, when detect_processes is 0
+    # Worker processes for detection (server.detect_pool); 0 = threads in this process. The
+    # threads serialise on the GIL; `mvpose serve` uses processes (see docs/performance.md).
+    detect_processes: int = 0
     recorrect: bool = True  # second pass with the perspective correction at the estimated pose
     store_reserve_ms: float = 3.0  # at least this much of the deadline is kept for the write
     capture_share: float = 0.6  # the capture may use at most this share of the deadline
@@ -153,11 +165,14 @@ class Pipeline:
         self.options = options
         self.deadline_s = station.deadline_ms / 1000.0
         self._pool = ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
+        self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._procs is not None:
+            self._procs.close()
 
     # ------------------------------------------------------------------ capture + detect
     def view_cameras(self, view: int, flange_pose: Array | None) -> dict[str, ViewCamera]:
@@ -186,10 +201,13 @@ class Pipeline:
                 continue  # this camera sees nothing of this part in this view
             if isinstance(res, Frame):
                 vcap.frames[cid] = res.image
-                jobs[cid] = self._pool.submit(
-                    detect_marks, res.image, vc, recipe, recipe.T_rf_from_pf0.matrix,
-                    self.options.detect,
-                )
+                prior = recipe.T_rf_from_pf0.matrix
+                if self._procs is not None:
+                    jobs[cid] = self._procs.submit(vc, res.image, recipe, prior,
+                                                   self.options.detect)
+                else:
+                    jobs[cid] = self._pool.submit(detect_marks, res.image, vc, recipe, prior,
+                                                  self.options.detect)
             else:
                 err = res if isinstance(res, DriverError) else DriverError(f"no result for {cid!r}")
                 vcap.camera_errors[cid] = str(err)

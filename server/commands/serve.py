@@ -33,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", type=Path,
                         help="SQLite database and image archive "
                         "(default: $MVPOSE_DATA_DIR or ./var)")
+    parser.add_argument("--detect-processes", type=int, default=None,
+                        help="worker processes for mark detection (0 = threads in the server "
+                        "process; default: none below 4 cores, else half the cores, at most 4)")
     parser.add_argument("--log-level", default="info",
                         choices=["debug", "info", "warning", "error"])
 
@@ -44,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     from mvpose_core.station import StationFileError, load_station
     from server.app import create_app
+    from server.pipeline import PipelineOptions, auto_detect_processes
     from server.runtime import RuntimeOptions, StationRuntime
     from server.settings import Settings
 
@@ -71,7 +75,13 @@ def run(args: argparse.Namespace) -> int:
     port = args.port if args.port is not None else _env_int("MVPOSE_PORT", 8000)
     plc_host = args.plc_host or os.environ.get("MVPOSE_PLC_HOST") or "127.0.0.1"
     plc_port = args.plc_port if args.plc_port is not None else _env_int("MVPOSE_PLC_PORT", 502)
-    runtime = StationRuntime(station, RuntimeOptions(plc_host=plc_host, plc_port=plc_port))
+    if args.detect_processes is None:
+        args.detect_processes = auto_detect_processes()
+    if args.detect_processes < 0:
+        raise CliError(f"--detect-processes must be >= 0, got {args.detect_processes}")
+    runtime = StationRuntime(station, RuntimeOptions(
+        plc_host=plc_host, plc_port=plc_port,
+        pipeline=PipelineOptions(detect_processes=args.detect_processes)))
     app = create_app(settings, runtime)
     print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 "
           f"(docs /docs), Modbus/TCP {plc_host}:{plc_port}", flush=True)

@@ -183,3 +183,41 @@ async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -
     with pytest.raises(RuntimeError, match="failed to start"):
         async with running_station(settings, runtime_options(), http_port=0):
             pass
+
+
+async def test_detection_in_worker_processes_matches_detection_in_process(tmp_path: Path) -> None:
+    from multiprocessing import shared_memory
+
+    from mvpose_core.detect import detect_marks
+    from server.pipeline import PipelineOptions
+    from server.runtime import RuntimeOptions
+
+    opts = PipelineOptions(detect_processes=2)
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    rt_opts = RuntimeOptions(sim_seed=0, sim_render=runtime_options().sim_render, pipeline=opts)
+    async with running_station(settings, rt_opts, http_port=None) as lb:
+        rt = lb.runtime
+        recipe = rt.active.config
+        T = _at(recipe, np.random.default_rng(8))
+        await move_part(rt, lb.twin, T)
+        status, row = await trigger(lb.twin, recipe, 5, T)
+        assert status.result_code == 0 and row is not None
+        assert row.trans_err_mm < recipe.tolerances.translation_mm
+        rec = rt.services.store.measurements.get(rt.last.measurement_id).record
+        blocks = [b.name for b in rt.pipeline._procs._blocks.values()]
+        assert len(blocks) == 4
+        cams = rt.pipeline.view_cameras(1, None)
+        for cd in rec.detections:
+            here = detect_marks(rt.scene.frame(cd.camera_id), cams[cd.camera_id], recipe,
+                                recipe.T_rf_from_pf0.matrix, opts.detect)
+            from mvpose_core.detect import correct_centres
+
+            here = correct_centres(here, cams[cd.camera_id], recipe,
+                                   np.array(rec.T_rf_from_pf))
+            got = {d.mark_id: d.uv for d in cd.detections}
+            for d in here:
+                # The second pass corrected at the final pose's predecessor: same to 1e-3 px.
+                np.testing.assert_allclose(got[d.mark_id], d.uv, atol=1e-3)
+    for name in blocks:  # the shared-memory blocks are gone with the runtime
+        with pytest.raises(FileNotFoundError):
+            shared_memory.SharedMemory(name=name)
