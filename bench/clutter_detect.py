@@ -8,6 +8,7 @@ slots, specular spots) and one partly occluded mark per image, for parts displac
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -24,6 +25,7 @@ STATIONS = Path(__file__).resolve().parents[1] / "deploy" / "stations"
 
 def main(rounds: int = 8) -> int:
     bad = 0
+    errors: list[np.ndarray] = []
     for name in ("lab", "station1", "station2"):
         station = load_station(STATIONS / f"{name}.yaml")
         recipe = station.recipe()
@@ -46,7 +48,8 @@ def main(rounds: int = 8) -> int:
                         occluded += 1
                         occluded_taken += d.found
                         if not d.found:
-                            key = (d.reason or "?").split(" ")[0].rstrip(":")  # the kind only
+                            # The kind of reason only: "size 35.0 px outside [...]" -> "size".
+                            key = re.split(r"[:(\d]", d.reason or "?")[0].strip()
                             reasons[key] = reasons.get(key, 0) + 1
                         continue
                     seen += 1
@@ -54,11 +57,18 @@ def main(rounds: int = 8) -> int:
                         missed += 1
                     elif np.linalg.norm(d.uv - r.centres[d.mark_id]) > 0.1:
                         false += 1
+                    else:
+                        errors.append(d.uv - r.centres[d.mark_id])
         print(
             f"{name:<9} visible marks {seen:4d}: false {false}, missed {missed};  "
             f"occluded {occluded:3d}: accepted {occluded_taken}, rejected as {reasons}"
         )
         bad += false + occluded_taken
+    e = np.array(errors)
+    print(
+        f"found marks: centre error std u/v {e[:, 0].std():.4f}/{e[:, 1].std():.4f} px, "
+        f"max |e| {np.abs(e).max():.4f} px, n={len(e)}"
+    )
     return 1 if bad else 0
 
 
