@@ -51,7 +51,7 @@ class CalibrationReport:
         """A short human-readable summary (the CLI prints it)."""
         lines = [
             f"{self.kind}: {len(self.per_sample_rms_px)} samples used, "
-            f"{len(self.rejected)} left out",
+            f"{len(set(self.rejected) - set(self.per_sample_rms_px))} left out",
             f"  reprojection RMS {self.rms_px:.3f} px = {self.error_mm_at_working_distance:.3f} mm "
             f"at the working distance {self.working_distance_mm:.0f} mm",
         ]
@@ -68,7 +68,9 @@ class CalibrationReport:
         for sid in self.outliers:
             lines.append(f"  OUTLIER sample {sid}: {self.per_sample_rms_px[sid]:.3f} px")
         for sid, why in self.rejected.items():
-            lines.append(f"  left out sample {sid}: {why}")
+            # A sample some cameras missed is still used with the others (see build_problem).
+            used = sid in self.per_sample_rms_px
+            lines.append(f"  {'partly used' if used else 'left out'} sample {sid}: {why}")
         return "\n".join(lines)
 
 
@@ -77,7 +79,7 @@ def _fmt(v: Any) -> str:
 
 
 def find_outliers(
-    per_sample: Mapping[str, float], factor: float = 4.0, min_excess_px: float = 0.05
+    per_sample: Mapping[str, float], factor: float = 4.0, min_excess_px: float = 0.1
 ) -> list[str]:
     """Samples whose RMS is far above the others: above median + ``factor``·(robust σ), above
     1.5× the median and at least ``min_excess_px`` above it (so differences at the level of

@@ -250,7 +250,7 @@ def _board_depths(ctx: dict[str, Any], models: dict[str, Any], cid: str) -> list
 
 def _step_handeye(args: argparse.Namespace) -> int:
     from mvpose_core.calibration.handeye import HandEyeOptions, build_problem, calibrate_handeye
-    from mvpose_core.calibration.report import handeye_report
+    from mvpose_core.calibration.report import handeye_report, stereo_report
     from mvpose_core.calibration.robotposes import load_robot_poses
     from mvpose_core.calibration.stereo import calibrate_stereo
     from mvpose_core.transforms import invert
@@ -265,6 +265,10 @@ def _step_handeye(args: argparse.Namespace) -> int:
     ref = cams[0]
     rel = {ref: np.eye(4)}
     for other in cams[1:]:
+        known = _rig_relation(ctx["base"], ref, other)
+        if known is not None:
+            rel[other] = known  # the stereo result of --base
+            continue
         st = calibrate_stereo(
             ref,
             other,
@@ -274,6 +278,8 @@ def _step_handeye(args: argparse.Namespace) -> int:
             models[ref],
             models[other],
         )
+        depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, ref)]))
+        reports.append((stereo_report(st, depth), None))
         models[ref], models[other] = st.model1, st.model2
         rel[other] = st.T_cf2_from_cf1
     problem, rejected = build_problem("robot", ctx["board"], models, poses, ctx["dets"], rel)
@@ -366,6 +372,17 @@ def _rig_frame(
         raise CliError(f"rig {rig.id!r} is {rig.mount}-mounted; this step calibrates {mount} rigs")
     T = next(rc.T_rig_from_cf.matrix for rc in rig.cameras if rc.camera == ref)
     return rig.id, T
+
+
+def _rig_relation(base: Any, ref: str, other: str) -> np.ndarray | None:
+    """``T_cfo_from_cfref`` from an earlier calibration's rig holding both cameras, if any."""
+    if base is None:
+        return None
+    for rig in base.rigs.values():
+        poses = rig.T_rig_from_cf
+        if ref in poses and other in poses:
+            return np.linalg.inv(poses[other].matrix) @ poses[ref].matrix
+    return None
 
 
 def _rig(T_gf_from_rig: Any, T_rf_from_rig: Any, T_rig_from_cf: dict[str, Any]) -> Any:
