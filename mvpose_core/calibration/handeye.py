@@ -50,8 +50,11 @@ METHODS: dict[str, int] = {
 
 @dataclass(frozen=True)
 class HandEyeOptions:
+    """Limits of the hand-eye solve; the defaults suit industrial robots and 0.05–0.5 px images."""
+
     min_samples: int = 5
     max_translation_mm: float = 3000.0  # a camera farther than this from the flange is implausible
+    max_fixed_distance_mm: float = 20000.0  # same for a fixed camera and the robot base
     agree_mm: float = 2.0  # methods further than this from the refined answer are flagged
     agree_deg: float = 0.2
     refine_intrinsics: bool = True  # refine intrinsics with X and Y (robot poses pin the scale)
@@ -156,6 +159,28 @@ def solve_axxb(chains: Sequence[Array], T_cf_from_bf: Sequence[Array], method: s
 # --------------------------------------------------------------------------- driver
 
 
+def screen(
+    candidates: Mapping[str, Array | None], mount: Mount, options: HandEyeOptions
+) -> tuple[dict[str, MethodCheck], dict[str, Array]]:
+    """Mark NaN and implausible solver answers; return the checks and the plausible answers."""
+    checks: dict[str, MethodCheck] = {}
+    plausible: dict[str, Array] = {}
+    robot = mount == "robot"
+    limit = options.max_translation_mm if robot else options.max_fixed_distance_mm
+    for name, X in candidates.items():
+        if X is None:
+            checks[name] = MethodCheck(None, "NaN")
+        elif np.linalg.norm(X[:3, 3]) > limit:
+            checks[name] = MethodCheck(
+                X,
+                f"implausible: camera {np.linalg.norm(X[:3, 3]):.0f} mm from the "
+                f"{'flange' if mount == 'robot' else 'robot base'}",
+            )
+        else:
+            plausible[name] = X
+    return checks, plausible
+
+
 def calibrate_handeye(
     problem: HandEyeProblem,
     options: HandEyeOptions = HandEyeOptions(),
@@ -181,19 +206,7 @@ def calibrate_handeye(
                 f"{what}: the board-in-robot-frame method is for robot-mounted cameras"
             )
         candidates["paper_eq10"], _ = handeye_board_in_robot(problem.robot_poses, B, T_rf_from_bf)
-    checks: dict[str, MethodCheck] = {}
-    plausible: dict[str, Array] = {}
-    for name, X in candidates.items():
-        if X is None:
-            checks[name] = MethodCheck(None, "NaN")
-        elif np.linalg.norm(X[:3, 3]) > options.max_translation_mm:
-            checks[name] = MethodCheck(
-                X,
-                f"implausible: camera {np.linalg.norm(X[:3, 3]):.0f} mm from the "
-                f"{'flange' if problem.mount == 'robot' else 'robot base'}",
-            )
-        else:
-            plausible[name] = X
+    checks, plausible = screen(candidates, problem.mount, options)
     if not plausible:
         raise CalibrationError(
             f"{what}: no solver gave a plausible answer: "

@@ -248,3 +248,24 @@ def test_board_carried_by_the_robot_places_a_fixed_station() -> None:
     for c in scene.cameras:
         deg, mm = transform_error(res.T_rf_from_cf[c], scene.T_rf_from_cf[c])
         assert mm < 0.5 and deg < 0.02, (c, deg, mm)
+
+
+def test_nan_and_implausible_solver_answers_are_screened_out() -> None:
+    from mvpose_core.calibration.handeye import HandEyeOptions, screen, solve_axxb
+
+    rng = np.random.default_rng(1)
+    scene = make_scene(rng, n_poses=6, stereo=False)
+    ids = sorted(scene.robot_poses)
+    chains = [invert(scene.robot_poses[s]) for s in ids]
+    boards = [scene.T_cf_from_bf("left", s) for s in ids]
+    assert transform_error(solve_axxb(chains, boards, "park"), scene.X)[1] < 1e-6
+    boards[2] = boards[2].copy()
+    boards[2][0, 3] = np.nan  # one corrupt board pose
+    assert solve_axxb(chains, boards, "tsai") is None
+    far = make_transform(np.eye(3), [0.0, 0.0, 5000.0])
+    checks, plausible = screen({"a": None, "b": far, "c": scene.X}, "robot", HandEyeOptions())
+    assert checks["a"].status == "NaN"
+    assert checks["b"].status == "implausible: camera 5000 mm from the flange"
+    assert list(plausible) == ["c"]
+    # A fixed camera 5 m from the robot base is normal in a body shop.
+    assert "b" in screen({"b": far}, "fixed", HandEyeOptions())[1]
