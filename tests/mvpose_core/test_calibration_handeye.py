@@ -269,3 +269,28 @@ def test_nan_and_implausible_solver_answers_are_screened_out() -> None:
     assert list(plausible) == ["c"]
     # A fixed camera 5 m from the robot base is normal in a body shop.
     assert "b" in screen({"b": far}, "fixed", HandEyeOptions())[1]
+
+
+def test_charuco_partial_views_calibrate_by_corner_id() -> None:
+    from mvpose_core.calibration.boards import BoardSpec
+
+    rng = np.random.default_rng(31)
+    board = BoardSpec.parse("charuco:12x9:30:22")
+    # Close views: the board runs off the image, so many views hold only some corners.
+    scene = make_scene(rng, n_poses=12, stereo=False, board=board, distance_mm=(380.0, 480.0))
+    det = scene.observe(rng, 0.1)["left"]
+    partial = [s for s, d in det.items() if d is not None and len(d) < board.n_corners]
+    assert partial, "the scene should contain partial views"
+    true = scene.cameras["left"]
+    res = calibrate_intrinsics("left", det, board, (true.width, true.height))
+    assert abs(res.camera.fx / true.fx - 1) < 1e-3
+    assert res.rms_px < 0.2
+
+
+def test_stereo_needs_the_same_samples_in_both_cameras(lab) -> None:
+    scene, det = lab
+    right = dict(det["right"])
+    del right["002"]
+    cam = scene.cameras["left"]
+    with pytest.raises(CalibrationError, match=r"only 'left': \['002'\]"):
+        calibrate_stereo("left", "right", det["left"], right, scene.board, cam, cam)
