@@ -24,7 +24,10 @@ class Timing:
         return float(np.percentile(self.samples_ms, 99))
 
     def line(self, ref: Timing | None = None) -> str:
-        s = f"{self.name:<52} median {self.median:9.3f} ms   p99 {self.p99:9.3f} ms   n={len(self.samples_ms)}"
+        s = (
+            f"{self.name:<52} median {self.median:9.3f} ms   p99 {self.p99:9.3f} ms"
+            f"   n={len(self.samples_ms)}"
+        )
         if ref is not None and ref.median > 0:
             s += f"   ratio {self.median / ref.median:6.2f}x vs {ref.name}"
         return s

@@ -88,7 +88,7 @@ def sighted_marks(recipe: RecipeConfig, view: int, camera_id: str) -> list[str]:
 
 @dataclass(frozen=True)
 class ProjectedMark:
-    """Where a mark's centre lands in an image (truth for the renderer, windows for the detector)."""
+    """Where a mark's centre lands in an image (renderer truth, detector windows)."""
 
     mark_id: str
     uv: Array  # [2] distorted pixel of the circle's centre
@@ -101,7 +101,11 @@ def project_recipe_marks(
     cam: ViewCamera, recipe: RecipeConfig, T_rf_from_pf: Array, only_sighted: bool = True
 ) -> list[ProjectedMark]:
     """Project the recipe's marks into one view camera for a part at ``T_rf_from_pf``."""
-    ids = sighted_marks(recipe, cam.view, cam.camera_id) if only_sighted else [m.id for m in recipe.marks]
+    ids = (
+        sighted_marks(recipe, cam.view, cam.camera_id)
+        if only_sighted
+        else [m.id for m in recipe.marks]
+    )
     if not ids:
         return []
     marks = [recipe.marks[recipe.mark_index(i)] for i in ids]
@@ -112,6 +116,8 @@ def project_recipe_marks(
     n_cf = normals @ T_cf_from_pf[:3, :3].T
     uv = cam.model.project(p_cf)
     return [
-        ProjectedMark(mark_id=m.id, uv=uv[k], depth_mm=float(p_cf[k, 2]), p_cf=p_cf[k], n_cf=n_cf[k])
+        ProjectedMark(
+            mark_id=m.id, uv=uv[k], depth_mm=float(p_cf[k, 2]), p_cf=p_cf[k], n_cf=n_cf[k]
+        )
         for k, m in enumerate(marks)
     ]

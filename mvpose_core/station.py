@@ -56,7 +56,9 @@ class Pose(_Model):
     @classmethod
     def from_matrix(cls, T: Array) -> Pose:
         v = matrix_to_xyzwpr(T)
-        return cls(xyz=(float(v[0]), float(v[1]), float(v[2])), wpr=(float(v[3]), float(v[4]), float(v[5])))
+        return cls(
+            xyz=(float(v[0]), float(v[1]), float(v[2])), wpr=(float(v[3]), float(v[4]), float(v[5]))
+        )
 
 
 # ------------------------------------------------------------------------------- cameras
@@ -67,7 +69,9 @@ class SimFault(_Model):
 
     kind: Literal["none", "timeout", "disconnect", "corrupt"] = "none"
     every_n: int = Field(0, ge=0, description="inject on every n-th grab (0 = never)")
-    down_ms: float = Field(0.0, ge=0, description="disconnect: how long the camera cannot be reopened")
+    down_ms: float = Field(
+        0.0, ge=0, description="disconnect: how long the camera cannot be reopened"
+    )
 
 
 class DriverConfig(_Model):
@@ -122,9 +126,7 @@ class CameraConfig(_Model):
     @model_validator(mode="after")
     def _check(self) -> CameraConfig:
         if len(self.distortion) not in (4, 5, 8):
-            raise ValueError(
-                f"distortion needs 4, 5 or 8 coefficients, got {len(self.distortion)}"
-            )
+            raise ValueError(f"distortion needs 4, 5 or 8 coefficients, got {len(self.distortion)}")
         if self.image_size[0] <= 0 or self.image_size[1] <= 0:
             raise ValueError(f"image_size must be positive, got {list(self.image_size)}")
         return self
@@ -133,8 +135,12 @@ class CameraConfig(_Model):
     def model(self) -> CameraModel:
         i = self.intrinsics
         return CameraModel(
-            fx=i.fx, fy=i.fy, cx=i.cx, cy=i.cy,
-            width=self.image_size[0], height=self.image_size[1],
+            fx=i.fx,
+            fy=i.fy,
+            cx=i.cx,
+            cy=i.cy,
+            width=self.image_size[0],
+            height=self.image_size[1],
             dist=tuple(self.distortion),
         )
 
@@ -159,7 +165,9 @@ class RigConfig(_Model):
     @model_validator(mode="after")
     def _check(self) -> RigConfig:
         if self.mount == "robot" and (self.T_gf_from_rig is None or self.T_rf_from_rig is not None):
-            raise ValueError("a robot-mounted rig needs T_gf_from_rig (hand-eye) and no T_rf_from_rig")
+            raise ValueError(
+                "a robot-mounted rig needs T_gf_from_rig (hand-eye) and no T_rf_from_rig"
+            )
         if self.mount == "fixed" and (self.T_rf_from_rig is None or self.T_gf_from_rig is not None):
             raise ValueError("a fixed rig needs T_rf_from_rig and no T_gf_from_rig")
         ids = [c.camera for c in self.cameras]
@@ -241,7 +249,9 @@ class RecipeConfig(_Model):
         for s in self.sightings:
             unknown = [m for m in s.marks if m not in known]
             if unknown:
-                raise ValueError(f"sighting view {s.view} camera {s.camera!r} names unknown marks {unknown}")
+                raise ValueError(
+                    f"sighting view {s.view} camera {s.camera!r} names unknown marks {unknown}"
+                )
         tm = self.tolerances.min_marks
         if tm is not None and tm > len(ids):
             raise ValueError(f"tolerances.min_marks = {tm} exceeds the {len(ids)} marks")
@@ -289,7 +299,9 @@ class StationConfig(_Model):
                 if rc.camera not in cams:
                     raise ValueError(f"rig {r.id!r} names unknown camera {rc.camera!r}")
                 if rc.camera in seen:
-                    raise ValueError(f"camera {rc.camera!r} is in rigs {seen[rc.camera]!r} and {r.id!r}")
+                    raise ValueError(
+                        f"camera {rc.camera!r} is in rigs {seen[rc.camera]!r} and {r.id!r}"
+                    )
                 seen[rc.camera] = r.id
         _unique([str(v.id) for v in self.views], "view")
         for v in self.views:
@@ -309,12 +321,16 @@ class StationConfig(_Model):
                 if view is None:
                     raise ValueError(f"recipe {rec.name!r}: sighting names unknown view {s.view}")
                 if s.camera not in cams:
-                    raise ValueError(f"recipe {rec.name!r}: sighting names unknown camera {s.camera!r}")
+                    raise ValueError(
+                        f"recipe {rec.name!r}: sighting names unknown camera {s.camera!r}"
+                    )
                 if seen.get(s.camera) not in view.rigs:
                     raise ValueError(
                         f"recipe {rec.name!r}: camera {s.camera!r} is not in view {s.view}"
                     )
-        if self.default_recipe is not None and self.default_recipe not in {r.name for r in self.recipes}:
+        if self.default_recipe is not None and self.default_recipe not in {
+            r.name for r in self.recipes
+        }:
             raise ValueError(f"default_recipe {self.default_recipe!r} is not a recipe")
         return self
 
@@ -392,7 +408,9 @@ def _format_loc(loc: tuple[Any, ...], data: Any) -> str:
 def parse_station(data: Any, source: str = "<memory>") -> StationConfig:
     """Validate a station description; errors name the source, the field and the value."""
     if not isinstance(data, dict):
-        raise StationFileError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+        raise StationFileError(
+            f"{source}: expected a mapping at the top level, got {type(data).__name__}"
+        )
     try:
         return StationConfig.model_validate(data)
     except ValidationError as err:

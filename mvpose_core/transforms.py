@@ -1,4 +1,4 @@
-"""Rigid transforms with frame-named variables, rotation parametrisations and robot pose conventions.
+"""Rigid transforms with frame-named variables, rotation parametrisations, robot pose conventions.
 
 The convention, stated once for the whole project
 --------------------------------------------------
@@ -29,12 +29,13 @@ ur         X Y Z Rx Ry Rz (m, rad)     rotation vector (axis × angle)
 Gimbal lock: the Euler conventions lose one degree of freedom when the middle angle (P, resp. B)
 is ±90°. There the first angle (W, resp. C) is set to 0 and the whole rotation about the vertical
 axis is put into the last angle (R, resp. A), so the output is unique and still round-trips to the
-same matrix. Away from ±90° the middle angle is returned in [-90°, 90°] and the others in (-180°, 180°].
+same matrix. Away from ±90° the middle angle is returned in [-90°, 90°] and the others in
+(-180°, 180°].
 """
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 from typing import Final
 
 import numpy as np
@@ -47,7 +48,7 @@ Array = NDArray[np.float64]
 _GIMBAL_EPS: Final = 1e-10
 
 
-class RobotConvention(str, Enum):
+class RobotConvention(StrEnum):
     """How a robot controller writes a pose (see the module docstring for the formulas)."""
 
     FANUC = "fanuc"

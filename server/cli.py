@@ -14,7 +14,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("server.commands.serve", "run the station server for a station file"),
     "simulate": ("server.commands.simulate", "accuracy studies and station planning"),
     "calibrate": ("server.commands.calibrate", "camera, stereo, hand-eye and station calibration"),
-    "validate": ("server.commands.validate", "commissioning validation against ground-truth offsets"),
+    "validate": (
+        "server.commands.validate",
+        "commissioning validation against ground-truth offsets",
+    ),
 }
 
 
