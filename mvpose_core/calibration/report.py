@@ -14,7 +14,7 @@ from mvpose_core.calibration.intrinsics import IntrinsicsResult
 from mvpose_core.calibration.joint import HandEyeProblem, refine
 from mvpose_core.calibration.station import StationResult
 from mvpose_core.calibration.stereo import StereoResult
-from mvpose_core.transforms import Array, transform_error
+from mvpose_core.transforms import Array, matrix_to_rotvec, transform_error
 
 
 @dataclass(frozen=True)
@@ -26,6 +26,7 @@ class Repeatability:
     std: dict[str, float]  # per quantity: standard deviation over the leave-one-out results
     max_dev: dict[str, float]  # per quantity: largest deviation from the all-samples result
     most_influential: str  # sample whose removal moves the result most
+    runs: dict[str, dict[str, float]] = field(default_factory=dict)  # left-out sample → values
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,7 @@ def leave_one_out(
         std={k: float(np.std(vals[k], ddof=1)) for k in keys},
         max_dev={k: float(dev[k].max()) for k in keys},
         most_influential=ids[int(np.argmax(total))],
+        runs=runs,
     )
 
 
@@ -120,17 +122,31 @@ def handeye_report(
     """Report of a hand-eye calibration; leave-one-out re-runs the joint refinement (with the
     intrinsics refined or held, as in the calibration itself)."""
     f = problem.cameras[result.reference].fx
+    name = "T_gf_from_cf" if result.mount == "robot" else "T_rf_from_cf"
     rep = None
+    sigma = {
+        f"{name} translation mm": result.sigma_mm,
+        f"{name} rotation deg": result.sigma_deg,
+        "detector noise px (from residuals)": result.sigma_px,
+    }
     if loo and len(result.per_sample_rms_px) >= 4:
         ids = sorted(result.per_sample_rms_px)
 
         def solve(subset: list[str]) -> dict[str, float]:
             r = refine(problem, result.X, result.Y, subset, intrinsics=intrinsics)
             deg, mm = transform_error(r.X, result.X)
-            return {"hand_eye_mm": mm, "hand_eye_deg": deg}
+            dt = r.X[:3, 3] - result.X[:3, 3]
+            dr = np.degrees(matrix_to_rotvec(r.X[:3, :3] @ result.X[:3, :3].T))
+            return {"hand_eye_mm": mm, "hand_eye_deg": deg, **_components(dt, dr)}
 
         rep = leave_one_out(ids, solve, {"hand_eye_mm": 0.0, "hand_eye_deg": 0.0})
-    name = "T_gf_from_cf" if result.mount == "robot" else "T_rf_from_cf"
+        # Jackknife standard error: unlike the covariance it also sees errors that differ from
+        # sample to sample, such as robot pose errors.
+        n = len(ids)
+        for part, p in (("translation mm", "t"), ("rotation deg", "r")):
+            v = np.array([[rep.runs[s][f"{p}{a}"] for a in "xyz"] for s in ids])
+            ss = float(np.sum((v - v.mean(axis=0)) ** 2))
+            sigma[f"{name} {part} (jackknife)"] = float(np.sqrt((n - 1) / n * ss))
     return CalibrationReport(
         kind=f"handeye ({result.mount})",
         per_sample_rms_px=result.per_sample_rms_px,
@@ -139,15 +155,18 @@ def handeye_report(
         error_mm_at_working_distance=result.rms_px * result.depth_mm / f,
         outliers=find_outliers(result.per_sample_rms_px),
         rejected=dict(result.rejected),
-        sigma={
-            f"{name} translation mm": result.sigma_mm,
-            f"{name} rotation deg": result.sigma_deg,
-            "detector noise px (from residuals)": result.sigma_px,
-        },
+        sigma=sigma,
         result={f"{name} xyz mm": [round(float(x), 4) for x in result.X[:3, 3]]},
         methods={k: v.status for k, v in result.methods.items()},
         repeatability=rep,
     )
+
+
+def _components(dt: Array, dr: Array) -> dict[str, float]:
+    return {
+        **{f"t{a}": float(v) for a, v in zip("xyz", dt, strict=True)},
+        **{f"r{a}": float(v) for a, v in zip("xyz", dr, strict=True)},
+    }
 
 
 def intrinsics_report(

@@ -142,3 +142,41 @@ def test_station_file_refers_to_its_calibration(tmp_path: Path) -> None:
     other = parse_station({**reloaded.model_dump(mode="json"), "name": "other"})
     with pytest.raises(CalibrationFileError, match="for station 'lab', not 'other'"):
         calibrated_station(other, tmp_path / "lab.yaml")
+
+
+def test_jackknife_sigma_sees_robot_pose_errors_the_covariance_misses() -> None:
+    """0.2 mm / 0.02° robot pose errors: the covariance 1σ (pixel noise model) is far too small,
+    the leave-one-out jackknife 1σ matches the real spread."""
+    from mvpose_core.calibration.handeye import HandEyeOptions
+    from mvpose_core.transforms import compose, rotvec_to_matrix
+
+    rng = np.random.default_rng(5)
+    scene = make_scene(rng, n_poses=12, stereo=False)
+    opt = HandEyeOptions(refine_intrinsics=False)
+    errs, cov, jack = [], [], []
+    for _ in range(10):
+        det = scene.observe(rng, 0.1)
+        noisy = {
+            s: compose(
+                A,
+                make_transform(
+                    rotvec_to_matrix(rng.normal(0, np.radians(0.02), 3)), rng.normal(0, 0.2, 3)
+                ),
+            )
+            for s, A in scene.robot_poses.items()
+        }
+        problem, _ = build_problem("robot", scene.board, scene.cameras, noisy, det)
+        result = calibrate_handeye(problem, opt)
+        rep = handeye_report(problem, result, intrinsics=False)
+        errs.append(transform_error(result.X, scene.X))
+        cov.append((result.sigma_deg, result.sigma_mm))
+        jack.append(
+            (
+                rep.sigma["T_gf_from_cf rotation deg (jackknife)"],
+                rep.sigma["T_gf_from_cf translation mm (jackknife)"],
+            )
+        )
+    spread = np.sqrt(np.mean(np.square(errs), axis=0))
+    ratio = spread / np.mean(jack, axis=0)
+    assert np.all(ratio > 1 / 1.5) and np.all(ratio < 1.5), (spread, np.mean(jack, axis=0))
+    assert np.all(spread > 3 * np.mean(cov, axis=0))
