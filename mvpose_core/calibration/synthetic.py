@@ -59,6 +59,17 @@ def observe_board(
 ) -> Detection | None:
     """What a detector would report: projected corners plus noise; chessboards and circle grids
     are found whole or not at all, ChArUco corners one by one."""
+    exact = exact_detection(board, cam, T_cf_from_bf, min_corners)
+    if exact is None:
+        return None
+    noise = rng.normal(0.0, noise_px, exact.uv.shape)
+    return Detection(exact.ids, exact.uv + noise)
+
+
+def exact_detection(
+    board: BoardSpec, cam: CameraModel, T_cf_from_bf: Array, min_corners: int = 6
+) -> Detection | None:
+    """The corners in view, projected without noise (None when the board would not be found)."""
     p = apply(T_cf_from_bf, board.object_points)
     ok = p[:, 2] > 1.0
     uv = np.full((p.shape[0], 2), -1e9)
@@ -69,7 +80,7 @@ def observe_board(
         return None
     if ids.size < min_corners:
         return None
-    return Detection(ids.astype(np.int64), uv[ids] + rng.normal(0.0, noise_px, (ids.size, 2)))
+    return Detection(ids.astype(np.int64), uv[ids])
 
 
 @dataclass(frozen=True)
@@ -134,9 +145,8 @@ def make_station_scene(
             ]
         )
         T = make_transform(R, pos - R @ centre)
-        scene = StationScene(board, cams, T_rf_from_cf, {"x": T})
-        seen = scene.observe(np.random.default_rng(0), 0.0)
-        if sum(seen[c]["x"] is not None for c in cams) >= 2:
+        seen = [exact_detection(board, cams[c], compose(invert(T_rf_from_cf[c]), T)) for c in cams]
+        if sum(d is not None for d in seen) >= 2:
             placements[f"{len(placements) + 1:03d}"] = T
     return StationScene(board, cams, T_rf_from_cf, placements)
 
@@ -218,7 +228,7 @@ def make_scene(
             A = compose(X, T_cf0_from_bf, invert(Y))
         sid = f"{len(poses) + 1:03d}"
         scene = CalibScene(mount, board, cameras, rel, X, Y, {sid: A})
-        seen = scene.observe(np.random.default_rng(0), 0.0)
-        if all(seen[c][sid] is not None for c in cameras):
+        seen = [exact_detection(board, cameras[c], scene.T_cf_from_bf(c, sid)) for c in cameras]
+        if all(d is not None for d in seen):
             poses[sid] = A
     return CalibScene(mount, board, cameras, rel, X, Y, poses)
