@@ -120,7 +120,7 @@ def make_calibration(
     draft = CalibrationFile(
         id=f"{station or 'calibration'}-{kind}-{stamp}",
         created=when.isoformat(timespec="seconds"),
-        kind=kind,  # type: ignore[arg-type]
+        kind=kind,
         station=station,
         inputs=inputs,
         cameras=cameras or {},
