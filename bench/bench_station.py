@@ -22,11 +22,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench.timing import Timing, check
 
 ROOT = Path(__file__).resolve().parents[1]
 N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "200"))
+IDLE_IDS, LOAD_IDS = 20_000, 30_000  # trigger ids of the two phases
 TRIGGER_PERIOD_S = 0.05  # one trigger every 50 ms: faster than any line, slow enough to settle
 TOKEN = "mvp_bench-station-token-0000000000000000000000"
 
@@ -53,7 +55,7 @@ _LOAD = textwrap.dedent("""
 """)
 
 
-async def _run(label: str, lb: object, n: int) -> tuple[Timing, Timing, int]:
+async def _run(label: str, lb: object, n: int, first_id: int) -> tuple[Timing, Timing, int]:
     from drivers.plc.registers import Status
 
     twin = lb.twin  # type: ignore[attr-defined]
@@ -62,7 +64,7 @@ async def _run(label: str, lb: object, n: int) -> tuple[Timing, Timing, int]:
     for i in range(n):
         t_next = time.monotonic() + TRIGGER_PERIOD_S
         t = time.perf_counter()
-        status = await twin.cycle(10_000 + i, 0, timeout=5.0)
+        status = await twin.cycle(first_id + i, 0, timeout=5.0)
         rt[i] = (time.perf_counter() - t) * 1e3
         server[i] = status.processing_ms
         nok += status.result_code != 0 or not status.has(Status.RESULT_VALID)
@@ -86,8 +88,15 @@ async def _main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         # OK frames are archived 1 in 10**6 here: PNG encoding of 4 × 4 MP frames (~0.2 s of CPU)
         # belongs to the archive thread between parts, not to a 50 ms trigger loop.
-        settings = Settings(station=ROOT / "deploy" / "stations" / "station1.yaml",
-                            data_dir=Path(tmp), bootstrap_token=TOKEN, images_ok_every=10**6)
+        # The station file with a 1 s deadline: this measures the latency; with 50 ms a slow
+        # trigger on a loaded machine would become a NOK whose four frames are then archived
+        # (PNG), which loads the machine further and skews every later sample.
+        data = yaml.safe_load((ROOT / "deploy" / "stations" / "station1.yaml").read_text())
+        data["deadline_ms"] = 1000.0
+        station_path = Path(tmp) / "station1.yaml"
+        station_path.write_text(yaml.safe_dump(data, sort_keys=False))
+        settings = Settings(station=station_path, data_dir=Path(tmp), bootstrap_token=TOKEN,
+                            images_ok_every=10**6)
         # As `mvpose serve` runs it on this machine (MVPOSE_DETECT_PROCESSES overrides).
         procs = int(os.environ.get("MVPOSE_DETECT_PROCESSES", auto_detect_processes()))
         print(f"  detection: {procs or 'threads, no'} worker processes", flush=True)
@@ -96,8 +105,8 @@ async def _main() -> int:
         async with running_station(settings, opts) as lb:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
-            await _run("warm-up", lb, 20)
-            quiet_s, quiet_rt, nok_q = await _run("idle REST", lb, N_TRIGGERS)
+            await _run("warm-up", lb, 20, 1)
+            quiet_s, quiet_rt, nok_q = await _run("idle REST", lb, N_TRIGGERS, IDLE_IDS)
             load = subprocess.Popen(
                 [sys.executable, "-c", _LOAD, lb.base_url, TOKEN, "50"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -105,15 +114,20 @@ async def _main() -> int:
             try:
                 await asyncio.sleep(1.0)  # the load is running before the first trigger
                 t0 = time.monotonic()
-                busy_s, busy_rt, nok_b = await _run("50 REST req/s", lb, N_TRIGGERS)
+                busy_s, busy_rt, nok_b = await _run("50 REST req/s", lb, N_TRIGGERS, LOAD_IDS)
                 load_s = time.monotonic() - t0
             finally:
                 load.terminate()
                 out, err = load.communicate(timeout=10)
+            lb.runtime.wait_idle(300)
+            stages = _stages(lb.runtime)
             lines = [ln.split() for ln in out.splitlines() if ln.strip()]
             sent, errors = (int(lines[-1][0]), int(lines[-1][1])) if lines else (0, 0)
     for t in (quiet_s, busy_s, quiet_rt, busy_rt):
         print(t.line())
+    print("  stages from the records (ms):")
+    for line in stages:
+        print("   ", line)
     print(f"  REST load: {sent} requests in ~{load_s + 1:.0f} s ({errors} errors); "
           f"NOK results: {nok_q} idle, {nok_b} loaded")
     ok = check("p99 trigger -> RESULT_VALID (roundtrip, idle)", quiet_rt.p99, 20.0)
@@ -123,6 +137,25 @@ async def _main() -> int:
         print("  MISSED: every trigger must be OK and every REST request answered")
         ok = False
     return 0 if ok else 1
+
+
+def _stages(runtime: object) -> list[str]:
+    """Median and p99 of each stage timing the records hold, idle and under REST load."""
+    from server.store.schemas import MeasurementFilter
+
+    per: dict[str, dict[str, list[float]]] = {"idle": {}, "load": {}}
+    for m in runtime.services.store.measurements.iterate(MeasurementFilter()):  # type: ignore[attr-defined]
+        tid = m.record.trigger_id
+        phase = "idle" if IDLE_IDS <= tid < LOAD_IDS else "load" if tid >= LOAD_IDS else None
+        if phase:
+            for k, v in m.record.timings_ms.items():
+                per[phase].setdefault(k, []).append(v)
+    out = []
+    for k in per["idle"]:
+        a, b = np.array(per["idle"][k]), np.array(per["load"].get(k, [np.nan]))
+        out.append(f"{k:<8} idle p50 {np.median(a):6.2f} p99 {np.percentile(a, 99):6.2f}   "
+                   f"loaded p50 {np.median(b):6.2f} p99 {np.percentile(b, 99):6.2f}")
+    return out
 
 
 def main() -> int:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
 import time
 from collections.abc import AsyncIterator, Mapping, Sequence
@@ -71,6 +72,17 @@ class RuntimeOptions:
     sim_seed: int = 0  # the simulated scene's generator (kind: sim cameras)
     sim_render: Any = None  # drivers.cameras.RenderOptions for the simulated scene
     camera_ready_s: float = 10.0
+    # Simulated cameras: render the part at the recipe's reference pose at start-up, so that a
+    # served simulated station has something to measure (tests and the demo move it themselves).
+    sim_part_at_reference: bool = False
+
+
+def _lower_priority() -> None:
+    """Nice the calling thread (Linux: a thread is a task with its own nice value): PNG encoding
+    of archived frames releases the GIL and must yield the CPU to the next trigger."""
+    # Not Linux, or not permitted: the archive then runs at normal priority.
+    with contextlib.suppress(AttributeError, OSError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
 
 
 @dataclass
@@ -154,7 +166,8 @@ class StationRuntime:
             options=self.options.pipeline,
         )
         self._trigger_exec = ThreadPoolExecutor(1, thread_name_prefix="trigger")
-        self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive")
+        self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive",
+                                                initializer=_lower_priority)
         ready = threading.Event()
         self._thread = threading.Thread(target=self._loop_main, args=(ready,), name="station-loop",
                                         daemon=True)
@@ -240,6 +253,8 @@ class StationRuntime:
             assert self.active is not None
             scene = SimScene(self.station, self.active.config,
                              np.random.default_rng(self.options.sim_seed), self.options.sim_render)
+            if self.options.sim_part_at_reference:
+                scene.set_part_pose(self.active.config.T_rf_from_pf0.matrix)
         self.scene = scene
         cams = [make_camera(c, scene) for c in self.station.cameras]
         self.capture = CaptureGroup(cams)

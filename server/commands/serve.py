@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.detect_processes < 0:
         raise CliError(f"--detect-processes must be >= 0, got {args.detect_processes}")
     runtime = StationRuntime(station, RuntimeOptions(
-        plc_host=plc_host, plc_port=plc_port,
+        plc_host=plc_host, plc_port=plc_port, sim_part_at_reference=True,
         pipeline=PipelineOptions(detect_processes=args.detect_processes)))
     app = create_app(settings, runtime)
     print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 "
