@@ -63,6 +63,7 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         sim_seed=seed, pipeline=PipelineOptions(detect_processes=auto_detect_processes()))
     async with running_station(settings, options, http_port=port) as lb:
         rt = lb.runtime
+        assert rt.active is not None and rt.services is not None  # started
         recipe = rt.active.config
         tol = recipe.tolerances
         print(f"station {rt.station.name}: {len(rt.station.cameras)} simulated cameras, "
@@ -109,14 +110,15 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
 async def _trigger_part(lb: Loopback, recipe: object, tid: int, T: np.ndarray) -> TriggerRow | None:
     """One part: a trigger per view (robot-mounted rigs) or one trigger (fixed cameras)."""
     rt = lb.runtime
-    views = sorted({s.view for s in rt.active.config.sightings})
+    assert rt.active is not None
+    rc = rt.active.config
+    views = sorted({s.view for s in rc.sightings})
     if not rt.station.robot_mounted:
-        return (await trigger(lb.twin, rt.active.config, tid, T, part_id=f"DEMO-{tid}"))[1]
+        return (await trigger(lb.twin, rc, tid, T, part_id=f"DEMO-{tid}"))[1]
     row = None
     for view in views:
         rt.scene.set_view(view)
-        status, row = await trigger(lb.twin, rt.active.config, tid, T, view_index=view,
-                                    part_id=f"DEMO-{tid}")
+        status, row = await trigger(lb.twin, rc, tid, T, view_index=view, part_id=f"DEMO-{tid}")
         if status.has(Status.RESULT_VALID):
             return row
     return row

@@ -43,6 +43,7 @@ from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array
 from server.detect_pool import DetectPool
+from server.recipes import ActiveRecipe
 from server.store.schemas import (
     CameraDetections,
     Detection,
@@ -75,16 +76,6 @@ def reason_name(code: int) -> str:
         except ValueError:
             continue
     return f"CODE_{code}"
-
-
-@dataclass(frozen=True)
-class ActiveRecipe:
-    """A recipe as the station uses it now: its content (taught reference included) and version."""
-
-    config: RecipeConfig
-    version: int  # the store's version number (goes into every record)
-    sha256: str
-    number: int  # what the PLC selects it by: 1-based position in the station file
 
 
 def auto_detect_processes() -> int:
@@ -300,7 +291,7 @@ class Pipeline:
         store_ms = (time.monotonic() - t) * 1e3
         self._store_ms.append(store_ms)
         processing_ms = (time.monotonic() - t0) * 1e3
-        plc_offset = (0.0,) * 6
+        plc_offset: tuple[float, ...] = (0.0,) * 6
         if ok and meas is not None:  # never an offset with a NOK code
             plc_offset = pose_to_plc(meas.offset.tolist(), rc.robot_convention)
         outcome = TriggerOutcome(

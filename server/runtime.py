@@ -39,22 +39,18 @@ import numpy as np
 from fastapi import APIRouter
 
 from drivers.cameras import CaptureGroup, make_camera
-from drivers.plc.codecs import plc_to_pose
 from drivers.plc.seam import PlcConfig, TriggerOutcome, TriggerRequest
 from drivers.plc.server import PlcServer
-from mvpose_core.station import Pose, RecipeConfig, StationConfig
-from mvpose_core.transforms import Array, from_robot
+from mvpose_core.station import StationConfig
 from server.pipeline import (
-    ActiveRecipe,
     Pipeline,
     PipelineOptions,
     StationReason,
     TriggerResult,
-    ViewCapture,
-    reason_name,
 )
-from server.state import Services, recipe_content
-from server.store.schemas import MeasurementRecord
+from server.recipes import ActiveRecipe, RecipeBook
+from server.state import Services
+from server.triggers import LastResult, TriggerRunner
 
 log = logging.getLogger(__name__)
 
@@ -85,20 +81,6 @@ def _lower_priority() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
 
 
-@dataclass
-class LastResult:
-    trigger_id: int
-    part_id: str | None
-    recipe: str
-    result: str
-    reason_code: int
-    reason: str
-    message: str
-    processing_ms: float
-    measurement_id: int | None
-    at: datetime
-
-
 class StationRuntime:
     """One station's hardware and pipeline; the app's Runtime and the PLC's handler."""
 
@@ -110,19 +92,14 @@ class StationRuntime:
         self.capture: CaptureGroup | None = None
         self.pipeline: Pipeline | None = None
         self.plc: PlcServer | None = None
-        self.recipes: dict[str, ActiveRecipe] = {}
-        self.active: ActiveRecipe | None = None
-        self.last: LastResult | None = None
+        self.book: RecipeBook | None = None
+        self.runner: TriggerRunner | None = None
         self.started_at: datetime | None = None
-        self._sequence: list[ViewCapture] = []
-        self._teach_armed = False
-        self._lock = threading.Lock()  # recipes / active / last, read by REST threads
         self._trigger_exec: ThreadPoolExecutor | None = None
         self._archive_exec: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._watch: asyncio.Task[None] | None = None
-        self.counts: dict[str, int] = {"triggers": 0, "ok": 0, "nok": 0, "views": 0}
 
     # ------------------------------------------------------------------ app protocol
     def routers(self) -> Sequence[APIRouter]:
@@ -155,7 +132,7 @@ class StationRuntime:
                 f"station's file, got {services.settings.station}")
         self.services = services
         calib = self._apply_calibration(services.settings.station)
-        self._load_recipes()
+        self.book = RecipeBook(self.station, services.store)
         self._open_cameras()
         assert self.capture is not None
         self.pipeline = Pipeline(
@@ -168,6 +145,8 @@ class StationRuntime:
         self._trigger_exec = ThreadPoolExecutor(1, thread_name_prefix="trigger")
         self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive",
                                                 initializer=_lower_priority)
+        self.runner = TriggerRunner(self.station, self.pipeline, self.book, services,
+                                    self._archive_exec)
         ready = threading.Event()
         self._thread = threading.Thread(target=self._loop_main, args=(ready,), name="station-loop",
                                         daemon=True)
@@ -263,20 +242,20 @@ class StationRuntime:
             log.warning("camera %s not up at start (%s); it keeps reconnecting", cid, err)
 
     # ------------------------------------------------------------------ recipes
-    def _load_recipes(self) -> None:
-        """The active stored version of every recipe of the station file (seeded at start-up)."""
-        assert self.services is not None
-        versions = self.services.store.versions
-        recipes = {}
-        for number, rc in enumerate(self.station.recipes, start=1):
-            info, content = versions.content("recipe", rc.name)
-            cfg = RecipeConfig.model_validate({**content, "version": info.version})
-            recipes[rc.name] = ActiveRecipe(cfg, info.version, info.sha256, number)
-        with self._lock:
-            self.recipes = recipes
-            default = self.station.recipe().name
-            current = self.active.config.name if self.active else default
-            self.active = recipes[current]
+    @property
+    def active(self) -> ActiveRecipe | None:
+        """The selected recipe."""
+        return self.book.selected if self.book else None
+
+    def activate_recipe(self, name: str, version: int | None, by: str) -> ActiveRecipe:
+        """Select recipe ``name``; with ``version``, activate that stored version first."""
+        assert self.book is not None and self.runner is not None
+        self.runner.sequence = []
+        return self.book.select(name, version, by)
+
+    def teach_from_measurement(self, measurement_id: int, by: str) -> ActiveRecipe:
+        assert self.book is not None
+        return self.book.teach_from_measurement(measurement_id, by)
 
     async def _start_watch(self) -> None:
         self._watch = asyncio.create_task(self._watch_versions(), name="recipe-versions")
@@ -291,78 +270,28 @@ class StationRuntime:
             await self.plc.stop()
 
     async def _watch_versions(self, period_s: float = 1.0) -> None:
-        """Pick up recipe versions activated through the REST API (server/api/versions.py)."""
+        """Pick up recipe versions activated through the REST API, between triggers."""
+        assert self.book is not None
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(period_s)
             try:
-                await loop.run_in_executor(self._trigger_exec, self._reload_if_changed)
+                await loop.run_in_executor(self._trigger_exec, self.book.reload_if_changed)
             except RuntimeError:
                 return  # the executor is shut down: the runtime stops
             except Exception:
                 log.exception("recipe versions could not be checked")
-
-    def _reload_if_changed(self) -> None:
-        assert self.services is not None
-        active = {s.name: s.active_version for s in self.services.store.versions.names("recipe")}
-        if any(active.get(n) != r.version for n, r in self.recipes.items()):
-            self._load_recipes()
-
-    def recipe_by_number(self, number: int) -> ActiveRecipe | None:
-        for r in self.recipes.values():
-            if r.number == number:
-                return r
-        return None
-
-    def activate_recipe(self, name: str, version: int | None, by: str) -> ActiveRecipe:
-        """Select recipe ``name``; with ``version``, activate that stored version first."""
-        assert self.services is not None
-        if name not in self.recipes:
-            raise KeyError(f"station {self.station.name!r} has no recipe {name!r}")
-        if version is not None:
-            self.services.store.versions.activate("recipe", name, version, by)
-        self._load_recipes()
-        with self._lock:
-            self.active = self.recipes[name]
-            return self.active
-
-    def teach(self, recipe: str, T_rf_from_pf: Array, by: str, comment: str) -> ActiveRecipe:
-        """Store ``T_rf_from_pf`` as the recipe's new reference (zero offset): a new version."""
-        assert self.services is not None
-        current = self.recipes[recipe].config
-        new = current.model_copy(update={"T_rf_from_pf0": Pose.from_matrix(T_rf_from_pf)})
-        content = recipe_content(RecipeConfig.model_validate(new.model_dump()))
-        versions = self.services.store.versions
-        info = versions.add("recipe", recipe, content, by, comment=comment)
-        versions.activate("recipe", recipe, info.version, by)
-        self._load_recipes()
-        log.info("recipe %s: reference taught (%s), version %d", recipe, comment, info.version)
-        return self.recipes[recipe]
-
-    def teach_from_measurement(self, measurement_id: int, by: str) -> ActiveRecipe:
-        """Teach from a stored OK measurement's pose (REST)."""
-        assert self.services is not None
-        stored = self.services.store.measurements.get(measurement_id)
-        rec = stored.record
-        if rec.result != "OK" or rec.T_rf_from_pf is None:
-            raise ValueError(f"measurement {measurement_id} is {rec.result} ({rec.reason}): "
-                             "only an OK measurement can be taught")
-        if rec.recipe not in self.recipes:
-            raise KeyError(f"measurement {measurement_id} is of unknown recipe {rec.recipe!r}")
-        return self.teach(rec.recipe, np.array(rec.T_rf_from_pf), by,
-                          f"taught from measurement {measurement_id} (seq {stored.seq})")
 
     # ------------------------------------------------------------------ PLC handler
     def convention_code(self) -> int:
         return self.active.config.robot_convention.code if self.active else 0
 
     async def select_recipe(self, recipe: int) -> int:
-        found = self.recipe_by_number(recipe)
+        assert self.book is not None
+        found = self.book.by_number(recipe)
         if found is None:
             return int(StationReason.UNKNOWN_RECIPE)
-        with self._lock:
-            self.active = found
-            self._sequence = []
+        self.activate_recipe(found.config.name, None, "plc")
         return 0
 
     async def teach_reference(self) -> int:
@@ -371,28 +300,32 @@ class StationRuntime:
 
     def arm_teach(self) -> None:
         """The next final OK result becomes the active recipe's reference."""
-        self._teach_armed = True
+        assert self.runner is not None
+        self.runner.teach_armed = True
 
     async def reset(self) -> None:
-        await asyncio.get_running_loop().run_in_executor(self._trigger_exec, self._sequence.clear)
+        assert self.runner is not None
+        await asyncio.get_running_loop().run_in_executor(self._trigger_exec,
+                                                         self.runner.sequence.clear)
 
     async def measure(self, request: TriggerRequest) -> TriggerOutcome:
         t0 = time.monotonic()
         at = datetime.now(UTC)
         loop = asyncio.get_running_loop()
-        result = await loop.run_in_executor(self._trigger_exec, self._run, request, t0, at)
+        assert self.runner is not None
+        result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0, at)
         return result.outcome
 
     # ------------------------------------------------------------------ REST entry points
     def trigger(self, part_id: str | None = None, view_index: int = 0,
                 timeout_s: float = 10.0) -> TriggerResult:
         """A commissioning trigger over REST: same thread and pipeline as a PLC trigger."""
-        if self._trigger_exec is None or self.active is None:
+        if self._trigger_exec is None or self.active is None or self.runner is None:
             raise RuntimeError("runtime not started")
         req = TriggerRequest(trigger_id=REST_TRIGGER_ID, view_index=view_index, robot_pose=None,
                              part_id=part_id or "", recipe=self.active.number)
         fut: Future[TriggerResult] = self._trigger_exec.submit(
-            self._run, req, time.monotonic(), datetime.now(UTC))
+            self.runner.run, req, time.monotonic(), datetime.now(UTC))
         return fut.result(timeout=timeout_s)
 
     def wait_idle(self, timeout_s: float = 10.0) -> None:
@@ -401,92 +334,12 @@ class StationRuntime:
             if ex is not None:
                 ex.submit(lambda: None).result(timeout=timeout_s)
 
-    # ------------------------------------------------------------------ the trigger thread
-    def _run(self, req: TriggerRequest, t0: float, at: datetime) -> TriggerResult:
-        assert self.pipeline is not None
-        self.counts["triggers"] += 1
-        recipe = self.recipe_by_number(req.recipe) if req.recipe else self.active
-        if recipe is None:
-            return self._reject(req, t0, at, self.active, StationReason.UNKNOWN_RECIPE,
-                                f"recipe number {req.recipe} is not in the station file")
-        views = sorted({s.view for s in recipe.config.sightings})
-        view = req.view_index or (views[0] if len(views) == 1 else 0)
-        if view not in views:
-            self._sequence = []
-            return self._reject(req, t0, at, recipe, StationReason.UNKNOWN_VIEW,
-                                f"view index {req.view_index} not among the recipe's views {views}")
-        flange = None
-        if req.robot_pose is not None and self.station.robot_mounted:
-            conv = recipe.config.robot_convention
-            flange = from_robot(plc_to_pose(req.robot_pose, conv), conv)
-        vcap = self.pipeline.capture_view(view, req.trigger_id, recipe.config, flange, t0)
-        if view == views[0]:
-            self._sequence = []
-        self._sequence = [v for v in self._sequence if v.view != view] + [vcap]
-        if view != views[-1]:
-            self.counts["views"] += 1
-            return TriggerResult(
-                outcome=TriggerOutcome(result_code=0, processing_ms=(time.monotonic() - t0) * 1e3,
-                                       views_done=len(self._sequence), final=False),
-                record=None, stored=None, measurement=None, frames={}, message="view done")
-        seq, self._sequence = self._sequence, []
-        result = self.pipeline.conclude(trigger_id=req.trigger_id, part_id=req.part_id or None,
-                                        triggered_at=at, t0=t0, recipe=recipe, views=seq)
-        self._after(result, recipe)
-        return result
-
-    def _reject(self, req: TriggerRequest, t0: float, at: datetime, recipe: ActiveRecipe | None,
-                code: StationReason, message: str) -> TriggerResult:
-        """A trigger the pipeline cannot run: still one NOK record, and its code to the PLC."""
-        assert self.services is not None
-        rc = recipe or next(iter(self.recipes.values()))
-        calib = self.pipeline.calibration if self.pipeline else None
-        record = MeasurementRecord(
-            station=self.station.name, trigger_id=req.trigger_id, part_id=req.part_id or None,
-            triggered_at=at, recipe=rc.config.name, recipe_version=rc.version,
-            calibration_id=calib[0] if calib else None,
-            calibration_hash=calib[1] if calib else None, T_rf_from_pf=None,
-            software_version=self.services.software_version,
-            result="NOK", reason_code=int(code), reason=code.name, message=message[:500],
-            timings_ms={"total": (time.monotonic() - t0) * 1e3},
-        )
-        stored = self.services.record_measurement(record)
-        result = TriggerResult(
-            outcome=TriggerOutcome(result_code=int(code),
-                                   processing_ms=(time.monotonic() - t0) * 1e3),
-            record=record, stored=stored, measurement=None, frames={}, message=message)
-        self._after(result, rc)
-        return result
-
-    def _after(self, result: TriggerResult, recipe: ActiveRecipe) -> None:
-        rec, stored = result.record, result.stored
-        assert rec is not None
-        ok = rec.result == "OK"
-        self.counts["ok" if ok else "nok"] += 1
-        with self._lock:
-            self.last = LastResult(
-                trigger_id=rec.trigger_id, part_id=rec.part_id, recipe=rec.recipe,
-                result=rec.result, reason_code=rec.reason_code,
-                reason=reason_name(rec.reason_code), message=result.message,
-                processing_ms=result.outcome.processing_ms,
-                measurement_id=stored.id if stored else None, at=rec.triggered_at)
-        if self._teach_armed and ok and rec.T_rf_from_pf is not None:
-            self._teach_armed = False
-            self.teach(recipe.config.name, np.array(rec.T_rf_from_pf), "plc",
-                       f"taught by PLC command from trigger {rec.trigger_id}")
-        if rec.images and stored is not None and self._archive_exec is not None:
-            assert self.services is not None
-            self._archive_exec.submit(self._archive, stored.id, rec, result.frames)
-
-    def _archive(self, measurement_id: int, rec: MeasurementRecord,
-                 frames: dict[tuple[int, str], np.ndarray]) -> None:
-        assert self.services is not None
-        try:
-            self.services.images.write(measurement_id, rec.images, rec.result == "OK", frames)
-        except Exception:
-            log.exception("measurement %d: archiving its frames failed", measurement_id)
-
     # ------------------------------------------------------------------ status
+    @property
+    def last(self) -> LastResult | None:
+        """The last final result (read by REST threads)."""
+        return self.runner.last if self.runner else None
+
     def status(self) -> dict[str, Any]:
         plc: dict[str, Any] = {"running": self.plc is not None}
         if self.plc is not None:
@@ -496,9 +349,9 @@ class StationRuntime:
                 rejected_connections=st.rejected_connections, timeouts=st.timeouts,
                 handler_errors=st.handler_errors, last_errors=list(st.last_errors[-5:]),
             )
-        with self._lock:
-            last = self.last
-            active = self.active
+        last = self.last
+        active = self.active
+        runner = self.runner
         return {
             "station": self.station.name,
             "state": self.plc.state.name if self.plc else "STOPPED",
@@ -508,10 +361,10 @@ class StationRuntime:
                 "name": active.config.name, "version": active.version, "number": active.number,
                 "sha256": active.sha256,
             },
-            "teach_armed": self._teach_armed,
+            "teach_armed": bool(runner and runner.teach_armed),
             "cameras": self.capture.status() if self.capture else {},
             "plc": plc,
-            "counts": dict(self.counts),
-            "sequence_views": [v.view for v in self._sequence],
+            "counts": dict(runner.counts) if runner else {},
+            "sequence_views": [v.view for v in runner.sequence] if runner else [],
             "last_result": None if last is None else last.__dict__,
         }
