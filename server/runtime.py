@@ -39,6 +39,7 @@ import numpy as np
 from fastapi import APIRouter
 
 from drivers.cameras import CaptureGroup, make_camera
+from drivers.plc import registers
 from drivers.plc.seam import PlcConfig, TriggerOutcome, TriggerRequest
 from drivers.plc.server import PlcServer
 from mvpose_core.station import StationConfig
@@ -344,10 +345,18 @@ class StationRuntime:
         plc: dict[str, Any] = {"running": self.plc is not None}
         if self.plc is not None:
             st = self.plc.stats
+            image = self.plc.input_registers()
             plc.update(
                 port=self.plc_port, state=self.plc.state.name, connections=st.connections,
                 rejected_connections=st.rejected_connections, timeouts=st.timeouts,
                 handler_errors=st.handler_errors, last_errors=list(st.last_errors[-5:]),
+                # Heartbeats: ours counts up every tick; the PLC's is watched (ONLINE while it
+                # changes within the watchdog time).
+                server_heartbeat=image[registers.IR_HEARTBEAT],
+                plc_online=bool(image[registers.IR_STATUS] & registers.Status.ONLINE),
+                error_code=image[registers.IR_ERROR_CODE],
+                watchdog_trips=st.handshake.watchdog_trips,
+                missed_triggers=st.handshake.missed_triggers,
             )
         last = self.last
         active = self.active

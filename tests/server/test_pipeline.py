@@ -6,6 +6,8 @@ with station 1's simulated cameras and talks to it as the PLC does, through the 
 
 from __future__ import annotations
 
+import asyncio
+import time
 from pathlib import Path
 from typing import Any
 
@@ -143,6 +145,12 @@ async def test_rest_trigger_teach_and_plc_teach_make_new_recipe_versions(tmp_pat
             assert state["recipe"]["version"] == 3
             assert state["last_result"]["trigger_id"] == 22
             assert state["cameras"] and all(s.startswith("up") for s in state["cameras"].values())
+            assert state["plc"]["plc_online"] and state["plc"]["watchdog_trips"] == 0
+            beat = state["plc"]["server_heartbeat"]
+            deadline = time.monotonic() + 5
+            while (await api.get("/station/status")).json()["plc"]["server_heartbeat"] == beat:
+                assert time.monotonic() < deadline, "the server heartbeat does not change"
+                await asyncio.sleep(0.02)
 
 
 async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -> None:
