@@ -140,3 +140,25 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
     )
     assert helped.returncode == 0, helped.stdout + helped.stderr
     assert "--station" in helped.stdout
+
+
+def test_compose_files_run_the_image_on_an_example_station_with_known_settings() -> None:
+    import yaml
+
+    from server.settings import Settings
+
+    known = {f"MVPOSE_{name.upper()}" for name in Settings.model_fields}
+    known |= {"MVPOSE_HOST", "MVPOSE_PORT", "MVPOSE_PLC_HOST", "MVPOSE_PLC_PORT"}  # serve's
+    files = sorted((ROOT / "deploy").glob("compose.*.yaml"))
+    assert {f.name for f in files} == {f"compose.{p.stem}.yaml"
+                                      for p in (ROOT / "deploy" / "stations").glob("*.yaml")}
+    for f in files:
+        doc = yaml.safe_load(f.read_text())
+        svc = doc["services"]["mvpose"]
+        assert svc["build"]["dockerfile"] == "Dockerfile" and svc["network_mode"] == "host"
+        unknown = set(svc["environment"]) - known
+        assert not unknown, f"{f.name}: environment variables nothing reads: {unknown}"
+        mounts = [v.split(":") for v in svc["volumes"]]
+        station = next(src for src, dst, *_ in mounts if dst == "/etc/mvpose/station.yaml")
+        assert (ROOT / "deploy" / station).is_file(), f"{f.name}: no station file {station}"
+        assert doc["services"]["postgres"]["profiles"] == ["postgres"]
