@@ -122,6 +122,7 @@ def plan_report(plan: StationPlan) -> str:
         return f"{a.rot_deg:.3f}° {a.trans_mm:.3f} mm"
 
     tol = plan.tolerance
+    he = plan.handeye
     left = (
         fig(plan.bound_left_only)
         if plan.bound_left_only is not None or plan.robot_mounted
@@ -134,7 +135,13 @@ def plan_report(plan: StationPlan) -> str:
         f"  Cramér–Rao bound, all cameras       {fig(plan.bound)}",
         f"  Cramér–Rao bound, left camera only  {left}",
         f"  Monte Carlo, {plan.trials} trials{' ' * max(0, 15 - len(str(plan.trials)))}"
-        f"{fig(plan.monte_carlo)}" + (f"  ({plan.failed} failed)" if plan.failed else ""),
+        f"{fig(plan.monte_carlo)}"
+        + (f"  ({plan.failed} failed)" if plan.failed else "")
+        + (
+            f"  with hand-eye {he.name} ({he.rot_deg}°/{he.trans_mm} mm per view)"
+            if he.rot_deg or he.trans_mm
+            else ""
+        ),
         f"  tolerance                           {tol.rot_deg:g}° {tol.trans_mm:g} mm",
         f"verdict: {'MEETS' if plan.meets_tolerances else 'DOES NOT MEET'} the recipe tolerances",
         "if one is lost (worst first; bound at the grasp point, load = share of tolerance):",

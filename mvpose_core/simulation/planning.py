@@ -20,6 +20,8 @@ import numpy as np
 from mvpose_core.estimate import EstimateOptions, PoseInputError, estimate_pose
 from mvpose_core.initial import COLLINEAR_RATIO, collinearity
 from mvpose_core.scene import ViewCamera, project_recipe_marks, sighted_marks, view_cameras
+from mvpose_core.simulation.scenes import rig_errors
+from mvpose_core.simulation.studies import HANDEYE_LEVELS, HandEyeLevel
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import Array, compose, transform_error
@@ -80,6 +82,7 @@ class StationPlan:
     trials: int
     failed: int
     tolerance: Accuracy
+    handeye: HandEyeLevel  # flange pose error in the Monte Carlo
     losses: tuple[LossImpact, ...]  # worst first
     warnings: tuple[str, ...]
 
@@ -140,13 +143,23 @@ def plan_station(
     sigma_px: float | None = None,
     trials: int = 2000,
     progress: Callable[[int], None] | None = None,
+    handeye: HandEyeLevel = HANDEYE_LEVELS["zero"],
 ) -> StationPlan:
-    """Predict ``recipe``'s accuracy on ``station`` (σ defaults to the recipe's detector noise)."""
+    """Predict ``recipe``'s accuracy on ``station`` (σ defaults to the recipe's detector noise).
+
+    ``handeye`` adds, in the Monte Carlo only, an independent error of each robot view's flange
+    pose relative to the first view (as in the views study); the bound stays pixel-noise only.
+    """
     sigma = recipe.detector_noise_px if sigma_px is None else float(sigma_px)
     if not (np.isfinite(sigma) and sigma > 0):
         raise PlanningError(f"detector noise must be a positive number of pixels, got {sigma_px}")
     if trials < 1:
         raise PlanningError(f"trials must be ≥ 1, got {trials}")
+    if (handeye.rot_deg > 0 or handeye.trans_mm > 0) and not station.robot_mounted:
+        raise PlanningError(
+            f"station {station.name!r} has no robot-mounted rig: hand-eye level "
+            f"{handeye.name!r} does not apply"
+        )
     cameras, layout = recipe_layout(station, recipe)
     marks = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T0 = recipe.T_rf_from_pf0.matrix
@@ -177,7 +190,9 @@ def plan_station(
             losses.append(LossImpact(kind, name, b))  # type: ignore[arg-type]
     losses.sort(key=lambda x: -np.inf if x.bound is None else -x.bound.load(tol))
 
-    errors, failed = _monte_carlo(station, recipe, cameras, marks, rng, sigma, trials, progress)
+    errors, failed = _monte_carlo(
+        station, recipe, cameras, marks, rng, sigma, trials, progress, handeye
+    )
     mc = Accuracy(*map(float, np.sqrt(np.mean(errors**2, axis=0)))) if len(errors) else None
     return StationPlan(
         station=station.name,
@@ -193,6 +208,7 @@ def plan_station(
         trials=trials,
         failed=failed,
         tolerance=tol,
+        handeye=handeye,
         losses=tuple(losses),
         warnings=tuple(_outside_image(cameras, recipe, T0)),
     )
@@ -207,6 +223,7 @@ def _monte_carlo(
     sigma: float,
     trials: int,
     progress: Callable[[int], None] | None,
+    handeye: HandEyeLevel,
 ) -> tuple[Array, int]:
     T0 = recipe.T_rf_from_pf0.matrix
     G = recipe.T_pf_from_grasp.matrix
@@ -214,7 +231,10 @@ def _monte_carlo(
     failed = 0
     for i in range(trials):
         T = compose(T0, random_displacement(rng, PLAN_DISPLACEMENT_MM, PLAN_DISPLACEMENT_DEG))
-        obs = synthetic_observations(station, recipe, T, rng, sigma, require_in_image=False)
+        flanges = _flange_errors(station, rng, handeye)
+        obs = synthetic_observations(
+            station, recipe, T, rng, sigma, flanges, require_in_image=False
+        )
         try:
             r = estimate_pose(
                 obs, cameras, marks, EstimateOptions(), sigma, initial_T_rf_from_pf=T0
@@ -230,6 +250,17 @@ def _monte_carlo(
     if progress is not None and trials % 100:
         progress(trials % 100)
     return np.array(errors).reshape(-1, 2), failed
+
+
+def _flange_errors(
+    station: StationConfig, rng: np.random.Generator, level: HandEyeLevel
+) -> dict[int, Array] | None:
+    """True flange poses of the robot views after the first, each off by its own random error."""
+    if level.rot_deg == 0 and level.trans_mm == 0:
+        return None
+    views = [v for v in station.views if v.T_rf_from_gf is not None]
+    err = rig_errors(rng, len(views), level.rot_deg, level.trans_mm)
+    return {v.id: v.T_rf_from_gf.matrix @ err[i] for i, v in enumerate(views) if i > 0}  # type: ignore[union-attr]
 
 
 def _outside_image(cameras: Sequence[ViewCamera], recipe: RecipeConfig, T0: Array) -> list[str]:

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from mvpose_core.simulation.montecarlo import run_points, summarise
 from mvpose_core.simulation.planning import PlanningError, plan_station
-from mvpose_core.simulation.studies import STUDIES, get_study
+from mvpose_core.simulation.studies import HANDEYE_LEVELS, STUDIES, get_study
 from mvpose_core.station import StationFileError, load_station
 from server.cli import CliError
 from server.simulation_output import plan_report, plot_study, write_csv
@@ -43,6 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PX",
         help="plan: σ of a mark centre in px (default: the recipe's detector_noise_px)",
     )
+    parser.add_argument(
+        "--handeye",
+        metavar="LEVEL",
+        help="plan, robot-mounted rigs: add hand-eye/robot error per view to the Monte Carlo: "
+        + ", ".join(f"{k} ({v.rot_deg}°/{v.trans_mm} mm)" for k, v in HANDEYE_LEVELS.items()),
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -57,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--workers must be at least 1, got {args.workers}")
     if args.study == "plan":
         return _plan(args)
-    for name in ("station", "recipe", "detector_noise"):
+    for name in ("station", "recipe", "detector_noise", "handeye"):
         if getattr(args, name) is not None:
             raise CliError(
                 f"--{name.replace('_', '-')} applies to 'plan' only, not to study {args.study!r}"
@@ -120,12 +126,20 @@ def _plan(args: argparse.Namespace) -> int:
         recipe = station.recipe(args.recipe)
     except KeyError as err:
         raise CliError(str(err.args[0])) from None
+    level = HANDEYE_LEVELS["zero"]
+    if args.handeye is not None:
+        if args.handeye not in HANDEYE_LEVELS:
+            raise CliError(
+                f"unknown hand-eye level {args.handeye!r}; "
+                f"choose one of: {', '.join(HANDEYE_LEVELS)}"
+            )
+        level = HANDEYE_LEVELS[args.handeye]
     rng = np.random.default_rng(args.seed)
     with tqdm(
         total=args.trials, unit="trial", desc="plan", disable=args.no_progress, file=sys.stderr
     ) as bar:
         try:
-            plan = plan_station(station, recipe, rng, noise, args.trials, bar.update)
+            plan = plan_station(station, recipe, rng, noise, args.trials, bar.update, level)
         except PlanningError as err:
             raise CliError(str(err)) from None
     print(plan_report(plan))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mvpose_core.simulation.planning import PlanningError, grasp_bound, plan_station, recipe_layout
+from mvpose_core.simulation.studies import HANDEYE_LEVELS
 from mvpose_core.station import StationConfig, load_station, parse_station
 
 STATIONS = Path(__file__).resolve().parents[2] / "deploy" / "stations"
@@ -90,3 +91,21 @@ def test_undetermined_pose_and_bad_noise_are_refused() -> None:
     for bad in (-1.0, 0.0, float("nan")):
         with pytest.raises(PlanningError, match="detector noise must be a positive"):
             plan_station(lab, lab.recipe(), np.random.default_rng(0), sigma_px=bad, trials=10)
+
+
+def test_hand_eye_error_enters_the_monte_carlo_of_robot_stations_only() -> None:
+    lab = _load("lab")
+    zero = plan_station(lab, lab.recipe(), np.random.default_rng(3), trials=100)
+    high = plan_station(
+        lab, lab.recipe(), np.random.default_rng(3), trials=100, handeye=HANDEYE_LEVELS["high"]
+    )
+    assert high.bound == zero.bound  # the bound is pixel noise only
+    assert zero.monte_carlo is not None and high.monte_carlo is not None
+    # 0.2°/1 mm per view against a 0.1 px detector: calibration dominates by an order of magnitude
+    assert high.monte_carlo.trans_mm > 10 * zero.monte_carlo.trans_mm
+    assert zero.meets_tolerances and not high.meets_tolerances
+    st1 = _load("station1")
+    with pytest.raises(PlanningError, match="no robot-mounted rig"):
+        plan_station(
+            st1, st1.recipe(), np.random.default_rng(0), trials=5, handeye=HANDEYE_LEVELS["low"]
+        )

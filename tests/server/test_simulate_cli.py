@@ -111,6 +111,7 @@ def _undetermined_station(tmp_path: Path) -> Path:
         ),
         (["plan", "--station", "MISSING"], "cannot read station file"),
         (["plan", "--station", "UNDETERMINED"], "pose not determined: 2 distinct marks"),
+        (["plan", "--station", "LAB", "--handeye", "medium"], "unknown hand-eye level 'medium'"),
     ],
 )
 def test_bad_arguments_give_one_line_errors(
@@ -127,3 +128,26 @@ def test_bad_arguments_give_one_line_errors(
     assert rc == 2
     assert message in err
     assert len(err.splitlines()) == 1 and err.startswith("mvpose simulate: error:")
+
+
+def test_docs_figures_come_from_the_current_studies() -> None:
+    """docs/simulation.md's CSVs match today's study definitions (rerun the command if not)."""
+    doc = (ROOT / "docs" / "simulation.md").read_text(encoding="utf-8")
+    assert "mvpose simulate all --trials 2000 --out docs/figures" in doc
+    for name in ("noise", "marks", "views", "translation-only"):
+        study = get_study(name)
+        rows = read_csv(ROOT / "docs" / "figures" / f"{name}.csv")
+        assert {(r.series, r.x) for r in rows} == {(p.series, p.x) for p in study.points}, name
+        assert all(r.trials == 2000 for r in rows)
+        assert f"figures/{name}.png" in doc and (ROOT / "docs" / "figures" / f"{name}.png").exists()
+
+
+def test_docs_plan_example_matches_the_command(capsys: pytest.CaptureFixture[str]) -> None:
+    doc = (ROOT / "docs" / "simulation.md").read_text(encoding="utf-8")
+    station2 = str(ROOT / "deploy" / "stations" / "station2.yaml")
+    main(["simulate", "plan", "--station", station2, "--trials", "20", "--no-progress"])
+    out = capsys.readouterr().out.splitlines()
+    # the bound and the ranking are deterministic; the Monte Carlo line depends on the trials
+    for line in out:
+        if "Cramér–Rao" in line or "camera top " in line or line.startswith("station "):
+            assert line in doc, line
