@@ -106,16 +106,19 @@ async def _main() -> int:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
             await _run("warm-up", lb, 20, 1)
+            cpu0, wall0 = time.process_time(), time.monotonic()
             quiet_s, quiet_rt, nok_q = await _run("idle REST", lb, N_TRIGGERS, IDLE_IDS)
+            cpu_idle = (time.process_time() - cpu0) / (time.monotonic() - wall0)
             load = subprocess.Popen(
                 [sys.executable, "-c", _LOAD, lb.base_url, TOKEN, "50"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             )
             try:
                 await asyncio.sleep(1.0)  # the load is running before the first trigger
-                t0 = time.monotonic()
+                t0, cpu0 = time.monotonic(), time.process_time()
                 busy_s, busy_rt, nok_b = await _run("50 REST req/s", lb, N_TRIGGERS, LOAD_IDS)
                 load_s = time.monotonic() - t0
+                cpu_busy = (time.process_time() - cpu0) / load_s
             finally:
                 load.terminate()
                 out, err = load.communicate(timeout=10)
@@ -130,6 +133,8 @@ async def _main() -> int:
         print("   ", line)
     print(f"  REST load: {sent} requests in ~{load_s + 1:.0f} s ({errors} errors); "
           f"NOK results: {nok_q} idle, {nok_b} loaded")
+    print(f"  server process CPU (all threads, twin included): {cpu_idle:.2f} cores idle, "
+          f"{cpu_busy:.2f} cores under REST load")
     ok = check("p99 trigger -> RESULT_VALID (roundtrip, idle)", quiet_rt.p99, 20.0)
     ok &= check("p99 trigger -> RESULT_VALID (roundtrip, 50 REST req/s)", busy_rt.p99, 20.0)
     ok &= check("p99 increase under REST load (x1.2 of idle)", busy_rt.p99, 1.2 * quiet_rt.p99)
