@@ -182,7 +182,10 @@ class Pipeline:
         vcap = ViewCapture(view=view, trigger_id=trigger_id, flange_pose=flange_pose, cameras=cams)
         budget = max(0.001, self.deadline_s * self.options.capture_share - (time.monotonic() - t0))
         t = time.monotonic()
-        grabbed = self.capture.grab_all(budget, camera_ids=list(cams))
+        try:
+            grabbed: dict[str, object] = dict(self.capture.grab_all(budget, camera_ids=list(cams)))
+        except DriverError as group_err:  # the group itself failed: so did each of its cameras
+            grabbed = {cid: group_err for cid in cams}
         vcap.timings_ms["capture"] = (time.monotonic() - t) * 1e3
         jobs = {}
         t = time.monotonic()
@@ -200,10 +203,11 @@ class Pipeline:
                     jobs[cid] = self._pool.submit(detect_marks, res.image, vc, recipe, prior,
                                                   self.options.detect)
             else:
-                err = res if isinstance(res, DriverError) else DriverError(f"no result for {cid!r}")
-                vcap.camera_errors[cid] = str(err)
+                failed = res if isinstance(res, DriverError) else DriverError(
+                    f"camera {cid!r}: no result")
+                vcap.camera_errors[cid] = str(failed)
                 vcap.detections[cid] = [
-                    MarkDetection.missing(m, f"camera: {err}")
+                    MarkDetection.missing(m, f"camera: {failed}")
                     for m in sighted_marks(recipe, view, cid)
                 ]
         for cid, fut in jobs.items():
