@@ -7,15 +7,15 @@ Threads, and why:
   queued on that loop can delay reading a trigger or publishing a result.
 - ``trigger``: one worker that runs every trigger (PLC or REST) in order, so measurements never
   overlap and the robot-mounted sequence needs no lock.
-- ``detect-*``: per-image detection (OpenCV releases the GIL), see server.pipeline.
-- ``archive``: PNG writes of archived frames, after the PLC has its answer.
+- ``detect-*``: per-image detection threads, or worker processes (server.detect_pool) on
+  machines with 4+ cores; see docs/performance.md for why.
+- ``archive``: PNG writes of archived frames, after the PLC has its answer, niced.
 - one thread per camera inside drivers.cameras.CaptureGroup.
 
 The runtime is the PLC handler (drivers.plc.seam.PlcHandler): ``measure``, ``select_recipe``,
-``teach_reference``, ``reset``. Recipes are numbered for the PLC by their position in the station
-file (1-based). Their content comes from the store's active version, so a reference taught by PLC
-command or REST survives restarts; a teach stores a new version (hash, time, author) and
-activates it, like a calibration.
+``teach_reference``, ``reset``. What a trigger does around the pipeline (recipe, view, the
+robot-mounted sequence, teaching) is server.triggers; the recipes and their stored versions are
+server.recipes.
 """
 
 from __future__ import annotations
