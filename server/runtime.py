@@ -132,6 +132,17 @@ class StationRuntime:
                 f"runtime of station {self.station.name!r} needs settings.station to be that "
                 f"station's file, got {services.settings.station}")
         self.services = services
+        try:
+            self._start(services)
+        except BaseException:
+            self.stop()  # whatever did open (camera threads, pools, the loop) closes again
+            raise
+        self.started_at = datetime.now(UTC)
+        assert self.capture is not None
+        log.info("station %s: PLC link on %s:%d, cameras %s", self.station.name,
+                 self.options.plc_host, self.plc_port, self.capture.status())
+
+    def _start(self, services: Services) -> None:
         calib = self._apply_calibration(services.settings.station)
         self.book = RecipeBook(self.station, services.store)
         self._open_cameras()
@@ -158,18 +169,12 @@ class StationRuntime:
             measure_timeout_s=self.station.deadline_ms / 1000.0 + 1.0,
             initial_recipe=self.active.number if self.active else 0,
         )
-        self.plc = PlcServer(self, cfg)
-        try:
-            asyncio.run_coroutine_threadsafe(
-                self.plc.start(self.options.plc_host, self.options.plc_port), self._loop
-            ).result(timeout=10)
-        except Exception:
-            self.stop()
-            raise
+        plc = PlcServer(self, cfg)
+        asyncio.run_coroutine_threadsafe(
+            plc.start(self.options.plc_host, self.options.plc_port), self._loop
+        ).result(timeout=10)
+        self.plc = plc
         asyncio.run_coroutine_threadsafe(self._start_watch(), self._loop).result(timeout=5)
-        self.started_at = datetime.now(UTC)
-        log.info("station %s: PLC link on %s:%d, cameras %s", self.station.name,
-                 self.options.plc_host, self.plc_port, self.capture.status())
 
     def stop(self) -> None:
         """Stop the PLC link, finish the running trigger and archive writes, close the cameras."""
