@@ -57,9 +57,10 @@ def find_candidates(
         w, h = (u1 - u0) // scale, (v1 - v0) // scale
         if w < 8 or h < 8:
             return []
-        # Linear (2x2 average) rather than area resampling: 5x cheaper, and only candidates
-        # are looked for here; the measurement uses full-resolution pixels.
-        roi = cv2.resize(roi[: h * scale, : w * scale], (w, h), interpolation=cv2.INTER_LINEAR)
+        # Every scale-th pixel, no averaging: only candidates are looked for here (the blobs
+        # keep a radius of at least 2.5 coarse px) and the measurement uses full-resolution
+        # pixels; area or linear resampling of these large windows costs 4-10x more.
+        roi = np.ascontiguousarray(roi[scale // 2 : h * scale : scale, scale // 2 : w * scale : scale])
     r_lo, r_hi = radius_range[0] / scale, radius_range[1] / scale
     # Black (white) top-hat: closing with a square too big to fit inside a mark erases the marks
     # and keeps what is larger (panel edges, illumination, big holes); the difference is the marks.
@@ -97,7 +98,7 @@ def find_candidates(
         if area < 0.7 * np.pi * a * b:
             continue
         a, b = a + 1.0, b + 1.0  # the peeled pixel
-        centre = np.array([cx, cy]) * scale + (scale - 1) / 2.0 + np.array([u0, v0])
+        centre = np.array([cx, cy]) * scale + scale // 2 + np.array([u0, v0])
         out.append(
             Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale)
         )

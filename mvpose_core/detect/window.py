@@ -38,9 +38,7 @@ def detect_marks(
     H, W = image.shape
     results: dict[str, MarkDetection] = {}
     live: list[MarkPrediction] = []
-    cands: list[tuple[int, Candidate]] = []  # (index in live, blob) — one entry per distinct blob
-    seen: list[tuple[float, float]] = []
-    scale = 8
+    boxes: list[tuple[int, int, int, int]] = []
     for p in preds:
         mid = p.mark.mark_id
         if not p.facing:
@@ -56,15 +54,32 @@ def detect_marks(
             continue
         results[mid] = MarkDetection.missing(mid, "nothing mark-like in window")
         live.append(p)
-        s = coarse_scale(p.radius_range[0])
+        boxes.append(box)
+    cands: list[tuple[int, Candidate]] = []  # (index in live, blob) — one entry per distinct blob
+    scale = 8
+    for members, region in _merge_windows(boxes):
+        # Large tolerances make the windows of one camera's marks overlap almost entirely:
+        # search their union once instead of the same pixels once per mark.
+        lo = min(live[k].radius_range[0] for k in members)
+        hi = max(live[k].radius_range[1] for k in members)
+        s = coarse_scale(lo)
         scale = min(scale, s)
-        for c in find_candidates(
-            image, box, dark, p.radius_range, options.min_contrast, s, options.max_candidates
-        ):
+        found = find_candidates(
+            image,
+            region,
+            dark,
+            (lo, hi),
+            options.min_contrast,
+            s,
+            options.max_candidates * len(members),
+        )
+        for c in found:
             cu, cv = float(c.ellipse.centre[0]), float(c.ellipse.centre[1])
-            if not any(abs(cu - ou) < 2.0 and abs(cv - ov) < 2.0 for ou, ov in seen):
-                seen.append((cu, cv))  # overlapping windows see the same blob once
-                cands.append((len(live) - 1, c))
+            # The blob belongs to the nearest mark whose own window holds it.
+            inside = [k for k in members if _holds(boxes[k], cu, cv)]
+            if inside:
+                k = min(inside, key=lambda j: math.hypot(cu - live[j].uv[0], cv - live[j].uv[1]))
+                cands.append((k, c))
     if not cands:
         return [results[p.mark.mark_id] for p in preds]
     r_max = max(c.ellipse.radius for _, c in cands)
@@ -96,6 +111,37 @@ def detect_marks(
             )
     _assign(live, accepted, results, options)
     return [results[p.mark.mark_id] for p in preds]
+
+
+def _holds(box: tuple[int, int, int, int], u: float, v: float) -> bool:
+    return box[0] <= u < box[2] and box[1] <= v < box[3]
+
+
+def _merge_windows(
+    boxes: list[tuple[int, int, int, int]], min_overlap: float = 0.5
+) -> list[tuple[list[int], tuple[int, int, int, int]]]:
+    """Groups of windows to search together, each with the bounding box of its members.
+
+    Two windows join a group when their intersection covers at least ``min_overlap`` of the
+    smaller one, so merging never searches much more area than the windows themselves.
+    """
+    groups: list[tuple[list[int], tuple[int, int, int, int]]] = []
+    for k, b in enumerate(boxes):
+        area_b = (b[2] - b[0]) * (b[3] - b[1])
+        for members, g in groups:
+            iw = min(b[2], g[2]) - max(b[0], g[0])
+            ih = min(b[3], g[3]) - max(b[1], g[1])
+            area_g = (g[2] - g[0]) * (g[3] - g[1])
+            if iw > 0 and ih > 0 and iw * ih >= min_overlap * min(area_b, area_g):
+                members.append(k)
+                groups[groups.index((members, g))] = (
+                    members,
+                    (min(b[0], g[0]), min(b[1], g[1]), max(b[2], g[2]), max(b[3], g[3])),
+                )
+                break
+        else:
+            groups.append(([k], b))
+    return groups
 
 
 def coarse_scale(min_radius_px: float) -> int:
