@@ -10,7 +10,7 @@ import numpy as np
 from mvpose_core.estimate import EstimateOptions, Observation, PoseResult, estimate_pose
 from mvpose_core.gate import GateInputs, GateVerdict, evaluate_gate
 from mvpose_core.offset import FrameOffset, frame_offsets
-from mvpose_core.scene import view_cameras
+from mvpose_core.scene import ViewCamera, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array, RobotConvention
 from mvpose_core.uncertainty import covariance_in_frame, sigma_figures
@@ -47,6 +47,7 @@ def measure(
     options: EstimateOptions = EstimateOptions(),  # noqa: B008 - frozen, immutable default
     *,
     initial_T_rf_from_pf: np.ndarray | None = None,
+    cameras: Sequence[ViewCamera] | None = None,
 ) -> Measurement:
     """Estimate the part pose from one trigger's observations and judge it.
 
@@ -54,11 +55,14 @@ def measure(
     The recipe's detector noise is the a-priori σ; its taught pose is the start of last resort.
     ``initial_T_rf_from_pf`` is a warm start tried first (e.g. the pose measured just before a
     centre correction of the same images).
+    ``cameras`` are the view cameras already posed for these ``flange_poses`` (the pipeline keeps
+    them per trigger); without them they are built from the station description.
     Input the estimator cannot use raises :class:`mvpose_core.estimate.PoseInputError`, whose
     ``reason`` is the gate code to report; a pose that exists but fails a tolerance comes back
     with ``gate.ok = False``.
     """
-    cameras = view_cameras(station, flange_poses)
+    if cameras is None:
+        cameras = view_cameras(station, flange_poses)
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
     pose = estimate_pose(

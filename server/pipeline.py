@@ -247,7 +247,9 @@ class Pipeline:
         try:
             t = time.monotonic()
             obs = [o for v in views for o in v.observations()]
-            meas = measure(self.station, rc, obs, flange or None, self.options.estimate)
+            cams = [vc for v in views for vc in v.cameras.values()]
+            meas = measure(self.station, rc, obs, flange or None, self.options.estimate,
+                           cameras=cams)
             timings["measure"] = (time.monotonic() - t) * 1e3
             if self.options.recorrect:
                 t = time.monotonic()
@@ -257,7 +259,7 @@ class Pipeline:
                                                             meas.T_rf_from_pf)
                 obs = [o for v in views for o in v.observations()]
                 meas = measure(self.station, rc, obs, flange or None, self.options.estimate,
-                               initial_T_rf_from_pf=meas.T_rf_from_pf)
+                               initial_T_rf_from_pf=meas.T_rf_from_pf, cameras=cams)
                 timings["correct"] = (time.monotonic() - t) * 1e3
             code, message = int(meas.gate.reason), meas.gate.message
         except PoseInputError as err:  # too few marks, a layout that fixes no pose, ...

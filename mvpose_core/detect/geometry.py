@@ -318,6 +318,20 @@ def predict_marks(
 def perspective_correction(
     cam: ViewCamera, recipe: RecipeConfig, T_rf_from_pf: Array, mark_ids: list[str]
 ) -> dict[str, Array]:
-    """Per mark, the vector (px) from the imaged ellipse's centre to the circle centre's image."""
-    preds = predict_marks(cam, recipe, T_rf_from_pf, mark_ids=mark_ids)
-    return {p.mark.mark_id: p.correction for p in preds if p.facing}
+    """Per mark, the vector (px) from the imaged ellipse's centre to the circle centre's image.
+
+    The same rim projection and ellipse fit as :func:`predict_marks`, without the window and
+    size bounds it also computes: this runs once per trigger and camera at the estimated pose.
+    """
+    pms = [
+        pm
+        for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=False)
+        if pm.mark_id in mark_ids and pm.p_cf[2] > 1.0 and float(pm.n_cf @ pm.p_cf) < 0.0
+    ]
+    if not pms:
+        return {}
+    rims = np.stack([rim_points(pm, recipe.mark_diameter_mm / 2.0) for pm in pms])
+    ells = fit_ellipses(
+        cam.model.project(rims.reshape(-1, 3)).reshape(len(pms), -1, 2), np.ones(rims.shape[:2])
+    )
+    return {pm.mark_id: pm.uv - ells.centre[k] for k, pm in enumerate(pms) if bool(ells.ok[k])}
