@@ -29,6 +29,8 @@ from bench.timing import Timing, check
 ROOT = Path(__file__).resolve().parents[1]
 N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "200"))
 IDLE_IDS, LOAD_IDS = 20_000, 30_000  # trigger ids of the two phases
+#: how often the twin reads the status block, like a PLC task cycle (MVPOSE_BENCH_TWIN_POLL_MS)
+TWIN_POLL_S = float(os.environ.get("MVPOSE_BENCH_TWIN_POLL_MS", "1")) / 1000.0
 TRIGGER_PERIOD_S = 0.05  # one trigger every 50 ms: faster than any line, slow enough to settle
 TOKEN = "mvp_bench-station-token-0000000000000000000000"
 
@@ -102,7 +104,7 @@ async def _main() -> int:
         print(f"  detection: {procs or 'threads, no'} worker processes", flush=True)
         opts = RuntimeOptions(sim_seed=7, sim_render=RenderOptions(),
                               pipeline=PipelineOptions(detect_processes=procs))
-        async with running_station(settings, opts) as lb:
+        async with running_station(settings, opts, twin_poll_s=TWIN_POLL_S) as lb:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
             await _run("warm-up", lb, 20, 1)
