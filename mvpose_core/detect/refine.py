@@ -60,7 +60,8 @@ def find_candidates(
         # Every scale-th pixel, no averaging: only candidates are looked for here (the blobs
         # keep a radius of at least 2.5 coarse px) and the measurement uses full-resolution
         # pixels; area or linear resampling of these large windows costs 4-10x more.
-        roi = np.ascontiguousarray(roi[scale // 2 : h * scale : scale, scale // 2 : w * scale : scale])
+        first = scale // 2
+        roi = np.ascontiguousarray(roi[first : h * scale : scale, first : w * scale : scale])
     r_lo, r_hi = radius_range[0] / scale, radius_range[1] / scale
     # Black (white) top-hat: closing with a square too big to fit inside a mark erases the marks
     # and keeps what is larger (panel edges, illumination, big holes); the difference is the marks.

@@ -73,17 +73,8 @@ def search_marks(
         if e is None or not (r_lo <= e.radius <= r_hi) or e.axis_ratio < ratio_lo:
             continue
         found.append(
-            MarkDetection(
-                mark_id="",
-                found=True,
-                uv=e.centre.copy(),
-                contrast=m.contrast,
-                fit_residual_px=m.fit_residual_px,
-                axis_ratio=e.axis_ratio,
-                radius_px=e.radius,
-                uv_ellipse=e.centre.copy(),
-                correction=np.zeros(2),
-                edge_points=m.edge_points,
+            MarkDetection.unnamed(
+                e.centre, e.radius, e.axis_ratio, m.contrast, m.fit_residual_px, m.edge_points
             )
         )
     found.sort(key=lambda d: (round(float(d.uv[1]) / 8.0), float(d.uv[0])))  # type: ignore[index]

@@ -65,6 +65,30 @@ class MarkDetection:
     def missing(cls, mark_id: str, reason: str, **quality: float) -> MarkDetection:
         return cls(mark_id=mark_id, found=False, uv=None, reason=reason, **quality)  # type: ignore[arg-type]
 
+    @classmethod
+    def unnamed(
+        cls,
+        centre: Array,
+        radius_px: float,
+        axis_ratio: float,
+        contrast: float,
+        fit_residual_px: float,
+        edge_points: int,
+    ) -> MarkDetection:
+        """A found blob not yet given a mark's identity (its centre still uncorrected)."""
+        return cls(
+            mark_id="",
+            found=True,
+            uv=centre.copy(),
+            contrast=contrast,
+            fit_residual_px=fit_residual_px,
+            axis_ratio=axis_ratio,
+            radius_px=radius_px,
+            uv_ellipse=centre.copy(),
+            correction=np.zeros(2),
+            edge_points=edge_points,
+        )
+
     def rejected(self, reason: str) -> MarkDetection:
         """This detection, not accepted any more (e.g. by the stereo check), with the reason."""
         return replace(self, found=False, reason=reason)

@@ -163,17 +163,8 @@ def _check(m: Measurement, pred: MarkPrediction) -> tuple[MarkDetection | None, 
     rlo, rhi = pred.ratio_range
     if not rlo <= e.axis_ratio <= rhi:
         return None, f"shape: axis ratio {e.axis_ratio:.2f} outside [{rlo:.2f}, {rhi:.2f}]"
-    det = MarkDetection(
-        mark_id="",
-        found=True,
-        uv=e.centre.copy(),
-        contrast=m.contrast,
-        fit_residual_px=m.fit_residual_px,
-        axis_ratio=e.axis_ratio,
-        radius_px=e.radius,
-        uv_ellipse=e.centre.copy(),
-        correction=np.zeros(2),
-        edge_points=m.edge_points,
+    det = MarkDetection.unnamed(
+        e.centre, e.radius, e.axis_ratio, m.contrast, m.fit_residual_px, m.edge_points
     )
     return det, None
 
