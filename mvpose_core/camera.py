@@ -131,7 +131,8 @@ class CameraModel:
             return np.zeros((0, 2))
         if not self.has_distortion:
             return np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], 1)
-        out = cv2.undistortPointsIter(
+        # OpenCV's stubs want R and P even though None (identity, normalised output) is valid.
+        out = cv2.undistortPointsIter(  # type: ignore[call-overload]
             uv.reshape(-1, 1, 2), self.K, self.dist_array, None, None, _UNDISTORT_CRITERIA
         )
         return out.reshape(-1, 2).astype(float)

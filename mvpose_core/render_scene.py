@@ -62,7 +62,7 @@ def plate_scene(
         name="plate",
         marks=marks,
         mark_diameter_mm=mark_diameter_mm,
-        polarity=polarity,  # type: ignore[arg-type]
+        polarity=polarity,
         sightings=[Sighting(view=1, camera=CAMERA_ID, marks=[m.id for m in marks])],
         T_rf_from_pf0=Pose(xyz=tuple(v[:3]), wpr=tuple(v[3:])),
         tolerances=Tolerances(max_offset_mm=max_offset_mm, max_offset_deg=max_offset_deg),
