@@ -147,18 +147,20 @@ def estimate_pose(
     active = objective.copy()
     best: tuple[LMResult, str] | None = None
     best_in_front = False
+    best_depth = np.zeros(0)
     iterations = 0
     for name, make in starts:
         start = make()
         if start is None:
             continue
-        pk = pk_all.subset(active)
+        pk = pk_all if active.all() else pk_all.subset(active)
         lm = _refine(pk, start, options)
         iterations += lm.iterations
         # A mirrored minimum with marks behind the cameras can fit well: rank it last.
-        in_front = bool(np.all(_depths(pk, lm) > 0))
+        depth = _depths(pk, lm)
+        in_front = bool(np.all(depth > 0))
         if best is None or (in_front, -lm.final_cost) > (best_in_front, -best[0].final_cost):
-            best, best_in_front = (lm, name), in_front
+            best, best_in_front, best_depth = (lm, name), in_front, depth
         if in_front and _rms(lm) <= options.restart_rms_px:
             break
     if best is None:
@@ -197,7 +199,7 @@ def estimate_pose(
 
     if active.all():
         res, J = lm.residuals, lm.jacobian
-        depth = _depths(pk_all, lm)
+        depth = best_depth  # of the kept start over every observation (nothing was rejected)
     else:
         res, J, depth = residuals_and_jacobian(pk_all, lm.R, lm.t)
     behind = np.flatnonzero(~(depth > 0))
@@ -251,7 +253,8 @@ def _depths(pk: Packed, lm: LMResult) -> Array:
 
 
 def _rms(lm: LMResult) -> float:
-    return float(np.sqrt(np.mean(np.sum(lm.residuals * lm.residuals, axis=1))))
+    r = lm.residuals
+    return float(np.sqrt(np.einsum("ni,ni->", r, r) / r.shape[0]))
 
 
 Start = Callable[[], "tuple[Array, Array] | None"]

@@ -79,13 +79,13 @@ def invert_information(info: Array) -> Array:
     # Scale rotation against translation before judging conditioning (rad vs mm differ by ~1e3).
     d = np.sqrt(np.maximum(np.diag(info), 1e-300))
     normed = info / np.outer(d, d)
-    ev = np.linalg.eigvalsh(normed)
+    ev, V = np.linalg.eigh(normed)  # one decomposition gives the conditioning and the inverse
     if not np.all(np.isfinite(ev)) or ev[0] < 1e-10 * ev[-1]:
         raise ValueError(
             "the observations do not determine the pose: the information matrix is singular "
             f"(condition {ev[-1] / max(ev[0], 1e-300):.1e}); add marks or cameras"
         )
-    return np.linalg.inv(normed) / np.outer(d, d)
+    return ((V / ev) @ V.T) / np.outer(d, d)
 
 
 def adjoint(T_b_from_a: NDArray[np.floating[Any]]) -> Array:
