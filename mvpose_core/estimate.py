@@ -269,7 +269,7 @@ def _starts(
     def get_rays() -> tuple[Array, Array]:
         if not rays:
             pk, ci = prob.pk, prob.ci
-            if np.all(pk.f == pk.f[0]) and np.all(pk.c == pk.c[0]) and np.all(pk.k == pk.k[0]):
+            if prob.table.one_lens:
                 # One lens model for the whole station (the usual case): one undistortion call.
                 xy = cameras[int(ci[0])].model.undistort_normalized(pk.uv)
             else:
@@ -289,7 +289,9 @@ def _starts(
             return None
         centres, d = get_rays()
         pts, ok = rays_intersection(centres, d, mi, P.shape[0])
-        if ok.sum() < 3 or collinearity(P[ok]) < COLLINEAR_RATIO:
+        n_ok = int(ok.sum())
+        # Every mark triangulated: build_problem has already checked that they are not collinear.
+        if n_ok < 3 or (n_ok < ok.size and collinearity(P[ok]) < COLLINEAR_RATIO):
             return None
         return align_points(P[ok], pts[ok])
 

@@ -58,6 +58,7 @@ class CameraTable:
     c: Array  # [C, 2]
     k: Array  # [C, 8]
     left: NDArray[np.bool_]  # [C] first camera of its rig
+    one_lens: bool  # every camera has the same intrinsics and distortion
 
     @classmethod
     def of(cls, cameras: Sequence[ViewCamera]) -> CameraTable:
@@ -70,6 +71,7 @@ class CameraTable:
             raise PoseInputError("every camera needs a finite 4x4 T_rf_from_cf")
         R = np.transpose(T[:, :3, :3], (0, 2, 1))
         m = [c.model for c in cameras]
+        lens = {(x.fx, x.fy, x.cx, x.cy, tuple(x.dist) + (0.0,) * (8 - len(x.dist))) for x in m}
         return cls(
             index=index,
             R_cf_from_rf=R,
@@ -79,6 +81,7 @@ class CameraTable:
             c=np.array([(x.cx, x.cy) for x in m]),
             k=np.array([tuple(x.dist) + (0.0,) * (8 - len(x.dist)) for x in m]),
             left=np.array([c.rig_position == 0 for c in cameras]),
+            one_lens=len(lens) == 1,
         )
 
     def rows(self, ci: NDArray[np.intp], p_pf: Array, uv: Array, weight: Array) -> Packed:
