@@ -92,14 +92,23 @@ class Loopback:
     base_url: str | None
 
 
-@contextlib.asynccontextmanager
-async def running_station(
-    settings: Settings, options: RuntimeOptions | None = None, *,
-    http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
-) -> AsyncIterator[Loopback]:
-    """App (served by uvicorn unless ``http_port`` is None) + runtime + a connected, enabled twin.
+@dataclass
+class RunningServer:
+    runtime: StationRuntime
+    server: uvicorn.Server | None
+    base_url: str | None
 
-    The station is ``settings.station``, read here as ``mvpose serve`` reads it.
+
+@contextlib.asynccontextmanager
+async def running_server(
+    settings: Settings, options: RuntimeOptions | None = None, *,
+    http_host: str = "127.0.0.1", http_port: int | None = 0,
+) -> AsyncIterator[RunningServer]:
+    """App (served by uvicorn unless ``http_port`` is None) + runtime, with no PLC attached.
+
+    The station is ``settings.station``, read here as ``mvpose serve`` reads it. The PLC side is
+    up to the caller: :func:`running_station` adds an in-process twin; the station benchmark
+    runs the twin in a process of its own, as a real PLC is another device.
     """
     if settings.station is None:
         raise ValueError("settings.station must name the station file")
@@ -129,25 +138,56 @@ async def running_station(
         lifespan_cm = _lifespan(app)
     try:
         async with lifespan_cm:
-            # A PLC scans every few ms; a twin polling flat out in this process would only
-            # compete with the pipeline for the GIL.
-            twin = PlcTwin("127.0.0.1", runtime.plc_port, poll_s=twin_poll_s)
-            await twin.connect()
-            # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
-            beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")
-            try:
-                await twin.enable()
-                await twin.wait_for(lambda s: s.has(Status.READY), 5.0, "READY")
-                yield Loopback(runtime=runtime, twin=twin, server=server, base_url=base_url)
-            finally:
-                beat.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await beat
-                twin.close()
+            yield RunningServer(runtime=runtime, server=server, base_url=base_url)
     finally:
         if server is not None and serve_task is not None:
             server.should_exit = True
             await serve_task
+
+
+async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asyncio.Task[None]]:
+    """A connected twin with its cyclic heartbeat running, trigger enabled, station READY.
+
+    An earlier PLC's disconnect may have left the station in ERROR (heartbeat watchdog): the
+    twin resets it first, as a PLC program does after a restart.
+    """
+    twin = PlcTwin("127.0.0.1", port, poll_s=poll_s)
+    await twin.connect()
+    # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
+    beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")
+    try:
+        status = await twin.enable()
+        if status.has(Status.ERROR):
+            await twin.reset_error()
+        await twin.wait_for(lambda s: s.has(Status.READY), 5.0, "READY")
+    except BaseException:
+        await detach_twin(twin, beat)
+        raise
+    return twin, beat
+
+
+async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
+    beat.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await beat
+    twin.close()
+
+
+@contextlib.asynccontextmanager
+async def running_station(
+    settings: Settings, options: RuntimeOptions | None = None, *,
+    http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
+) -> AsyncIterator[Loopback]:
+    """:func:`running_server` plus a connected, enabled PLC twin in this process."""
+    async with running_server(settings, options, http_host=http_host,
+                              http_port=http_port) as rs:
+        # A PLC scans every few ms; a twin polling flat out in this process would only
+        # compete with the pipeline for the GIL.
+        twin, beat = await attach_twin(rs.runtime.plc_port, twin_poll_s)
+        try:
+            yield Loopback(runtime=rs.runtime, twin=twin, server=rs.server, base_url=rs.base_url)
+        finally:
+            await detach_twin(twin, beat)
 
 
 async def _serve(server: uvicorn.Server) -> None:
