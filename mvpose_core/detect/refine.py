@@ -68,7 +68,7 @@ def find_candidates(
     side = int(np.ceil(2.0 * r_hi)) + 3
     if side >= min(roi.shape):
         return []
-    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (side, side))
+    kernel = _square(side)
     hat = cv2.morphologyEx(roi, cv2.MORPH_BLACKHAT if dark else cv2.MORPH_TOPHAT, kernel)
     otsu, binary = cv2.threshold(hat, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
     level = max(0.5 * min_contrast, otsu)
@@ -100,13 +100,19 @@ def find_candidates(
         if area < 0.7 * np.pi * a * b:
             continue
         a, b = a + 1.0, b + 1.0  # the peeled pixel
-        centre = np.array([cx, cy]) * scale + scale // 2 + np.array([u0, v0])
+        centre = np.array([cx * scale + scale // 2 + u0, cy * scale + scale // 2 + v0])
         out.append(
             Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale)
         )
         if len(out) >= max_candidates:
             break
     return out
+
+
+@lru_cache(maxsize=64)
+def _square(side: int) -> np.ndarray:
+    """The square structuring element of the top-hat (cached: one per mark size)."""
+    return cv2.getStructuringElement(cv2.MORPH_RECT, (side, side))
 
 
 @lru_cache(maxsize=64)
@@ -198,7 +204,7 @@ def measure_many(
     C = len(starts)
     ell = Ellipses.of(starts)
     failed = np.zeros(C, dtype=int)  # 0 = fine, else 1 + index into _FAILURES
-    n_fine = int(np.clip(4.0 * ell.radius.max(), 32, 96))  # ~1.5 px of rim per ray
+    n_fine = int(min(max(4.0 * float(ell.radius.max()), 32.0), 96.0))  # ~1.5 px of rim per ray
     for n_rays, half in ((16, search_px), (n_fine, 3.0)):
         prof, radii, phi, inside = _rays(image, ell, n_rays, half, dark)
         edge_r, ray_contrast, crossed = _crossings(prof, radii)
