@@ -32,7 +32,7 @@ class UnauthenticatedError(DomainError):
 
 class ForbiddenError(DomainError):
     status = 403
-    title = "ForbiddenError"
+    title = "Forbidden"
     slug = "forbidden"
 
 
@@ -44,7 +44,7 @@ class NotFoundError(DomainError):
 
 class ConflictError(DomainError):
     status = 409
-    title = "ConflictError"
+    title = "Conflict"
     slug = "conflict"
 
 

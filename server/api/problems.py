@@ -79,7 +79,7 @@ _REASON = {
     405: "Method not allowed",
     400: "Bad request",
     401: "Unauthorized",
-    403: "ForbiddenError",
+    403: "Forbidden",
     406: "Not acceptable",
     415: "Unsupported media type",
 }
