@@ -167,9 +167,12 @@ async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asynci
 
 
 async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
+    """Stop the heartbeat task and disconnect; bounded even if the task's cancel is lost."""
+    twin.stop_keep_alive()
     beat.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await beat
+    await asyncio.wait({beat}, timeout=5.0)  # a lost cancel: the flag ends it within a period
+    if beat.done() and not beat.cancelled():
+        beat.exception()  # retrieved: a failed heartbeat is not news at disconnect
     twin.close()
 
 

@@ -136,6 +136,7 @@ class PlcTwin:
         self.poll_s = poll_s
         self.control = Control(0)
         self.heartbeat = 0
+        self._beating = False
 
     async def connect(self) -> PlcTwin:
         if not await self.client.connect():
@@ -192,11 +193,20 @@ class PlcTwin:
         await self.set_control(self.control)
 
     async def keep_alive(self, period_s: float = 0.1) -> None:
-        """Change the heartbeat every ``period_s`` for ever, as the PLC's cyclic task does; run it
-        as a task next to the handshake (pymodbus serialises the client's requests)."""
-        while True:
+        """Change the heartbeat every ``period_s`` until :meth:`stop_keep_alive`, as the PLC's
+        cyclic task does; run it as a task next to the handshake (pymodbus serialises the
+        client's requests)."""
+        self._beating = True
+        while self._beating:
             await self.beat()
             await asyncio.sleep(period_s)
+
+    def stop_keep_alive(self) -> None:
+        """End :meth:`keep_alive` at its next cycle. Cancelling its task alone is not enough on
+        Python 3.11: ``asyncio.wait_for`` (pymodbus awaits every response with it) drops a
+        cancellation that arrives in the same loop pass as the response (CPython gh-86296),
+        and the heartbeat would then run for ever."""
+        self._beating = False
 
     async def wait_for(
         self, predicate: Callable[[PlcStatus], bool], timeout: float = 2.0, what: str = "condition"

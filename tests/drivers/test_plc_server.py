@@ -279,6 +279,21 @@ async def test_heartbeat_task_keeps_the_watchdog_quiet(plc: ServerFactory) -> No
     await until(lambda: server.machine.error is ErrorCode.WATCHDOG)
 
 
+async def test_heartbeat_task_ends_on_stop_without_a_cancel(plc: ServerFactory) -> None:
+    # On Python 3.11 a cancel can be lost inside pymodbus (asyncio.wait_for, CPython gh-86296);
+    # the stop flag alone must end the heartbeat, or a disconnecting PLC twin hangs for ever.
+    server, twin = await plc(config=cfg(watchdog_s=0.15, tick_s=0.01))
+    beating = asyncio.create_task(twin.keep_alive(0.02))
+    ticks = twin.heartbeat
+    await until(lambda: twin.heartbeat - ticks >= 3)
+    twin.stop_keep_alive()
+    await asyncio.wait_for(beating, 2.0)
+    assert beating.done() and not beating.cancelled()
+    stopped_at = twin.heartbeat
+    await until(lambda: server.machine.error is ErrorCode.WATCHDOG)
+    assert twin.heartbeat == stopped_at
+
+
 async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) -> None:
     handler = ArithmeticHandler()
     server, twin = await plc(handler, cfg(measure_timeout_s=0.2))
