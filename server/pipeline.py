@@ -7,8 +7,9 @@ One trigger, in order (every stage timed, the times go into the record)::
               one worker per image (OpenCV releases the GIL)
     measure   estimate + offset + uncertainty + gate (mvpose_core.measure) from every observation
               of every view gathered so far
-    correct   the perspective correction of each centre recomputed at the estimated pose, and the
-              pose measured again (the correction depends on the pose; see docs/detection.md)
+    correct   the perspective correction of each centre recomputed at the estimated pose (detect
+              applied it at the prior pose), and the pose measured again if any correction moved
+              by more than PipelineOptions.recorrect_px (see docs/detection.md)
     store     the MeasurementRecord appended durably (before the PLC can see RESULT_VALID)
 
 The station's deadline (``station.deadline_ms``) runs from the moment the trigger was taken. The
@@ -35,7 +36,7 @@ import numpy as np
 from drivers.cameras import CaptureGroup, DriverError, Frame
 from drivers.plc.codecs import pose_to_plc
 from drivers.plc.seam import TriggerOutcome
-from mvpose_core.detect import DetectOptions, MarkDetection, correct_centres, detect_marks
+from mvpose_core.detect import DetectOptions, MarkDetection, detect_marks, recorrect
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.gate import ReasonCode
 from mvpose_core.measure import Measurement, measure
@@ -87,15 +88,21 @@ def auto_detect_processes() -> int:
 
 @dataclass(frozen=True)
 class PipelineOptions:
-    # The first pass detects without perspective correction: the correction needs the pose,
-    # and the one at the estimate (second pass) is the one that counts.
-    detect: DetectOptions = DetectOptions(correct_perspective=False)
+    # Detection applies the perspective correction at the recipe's prior pose (free: it comes
+    # with the window prediction); the correction at the estimate is then computed, and the
+    # pose measured again only if some correction moved by more than ``recorrect_px``.
+    detect: DetectOptions = DetectOptions(correct_perspective=True)
     estimate: EstimateOptions = EstimateOptions()
     detect_workers: int = 2  # threads, when detect_processes is 0
     # Worker processes for detection (server.detect_pool); 0 = threads in this process. The
     # threads serialise on the GIL; `mvpose serve` uses processes (see docs/performance.md).
     detect_processes: int = 0
-    recorrect: bool = True  # second pass with the perspective correction at the estimated pose
+    recorrect: bool = True  # the correction at the estimated pose (second pass if it matters)
+    # A second pass only when a correction changed by more than this. 0.01 px is about the
+    # detector's own centre noise at image noise σ = 2 grey levels (REFERENCE.md); station 1's
+    # parts within ±20 mm / ±2° of the taught pose change it by at most ~0.009 px, the whole
+    # tolerance (±100 mm / ±10°) by up to ~0.05 px (docs/detection.md). 0: always.
+    recorrect_px: float = 0.01
     store_reserve_ms: float = 3.0  # at least this much of the deadline is kept for the write
     capture_share: float = 0.6  # the capture may use at most this share of the deadline
 
@@ -253,13 +260,15 @@ class Pipeline:
             timings["measure"] = (time.monotonic() - t) * 1e3
             if self.options.recorrect:
                 t = time.monotonic()
-                for v in views:
-                    for cid, dets in v.detections.items():
-                        v.detections[cid] = correct_centres(dets, v.cameras[cid], rc,
-                                                            meas.T_rf_from_pf)
-                obs = [o for v in views for o in v.observations()]
-                meas = measure(self.station, rc, obs, flange or None, self.options.estimate,
-                               initial_T_rf_from_pf=meas.T_rf_from_pf, cameras=cams)
+                keys = [(v, cid) for v in views for cid in v.detections]
+                moved, shift = recorrect([(v.cameras[cid], v.detections[cid]) for v, cid in keys],
+                                         rc, meas.T_rf_from_pf)
+                if shift > self.options.recorrect_px:
+                    for (v, cid), dets in zip(keys, moved, strict=True):
+                        v.detections[cid] = dets
+                    obs = [o for v in views for o in v.observations()]
+                    meas = measure(self.station, rc, obs, flange or None, self.options.estimate,
+                                   initial_T_rf_from_pf=meas.T_rf_from_pf, cameras=cams)
                 timings["correct"] = (time.monotonic() - t) * 1e3
             code, message = int(meas.gate.reason), meas.gate.message
         except PoseInputError as err:  # too few marks, a layout that fixes no pose, ...

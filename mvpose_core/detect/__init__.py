@@ -15,6 +15,7 @@ from mvpose_core.detect.geometry import (
     Ellipse,
     MarkPrediction,
     perspective_correction,
+    perspective_corrections,
     predict_marks,
 )
 from mvpose_core.detect.search import identify_marks, search_marks
@@ -37,7 +38,9 @@ __all__ = [
     "epipolar_distance_px",
     "identify_marks",
     "perspective_correction",
+    "perspective_corrections",
     "predict_marks",
+    "recorrect",
     "search_marks",
     "stereo_check",
 ]
@@ -47,13 +50,33 @@ def correct_centres(
     detections: list[MarkDetection], cam: ViewCamera, recipe: RecipeConfig, T_rf_from_pf: Array
 ) -> list[MarkDetection]:
     """The detections with their centres corrected for perspective at the pose ``T_rf_from_pf``."""
-    ids = [d.mark_id for d in detections if d.found and d.uv_ellipse is not None]
-    corr = perspective_correction(cam, recipe, T_rf_from_pf, ids)
+    return recorrect([(cam, detections)], recipe, T_rf_from_pf)[0][0]
+
+
+def recorrect(
+    groups: list[tuple[ViewCamera, list[MarkDetection]]], recipe: RecipeConfig,
+    T_rf_from_pf: Array,
+) -> tuple[list[list[MarkDetection]], float]:
+    """Each camera's detections corrected for perspective at ``T_rf_from_pf``, and the largest
+    change (px) of any correction against the one the detections carried (none: 0 px)."""
+    usable = [
+        [d for d in dets if d.found and d.uv_ellipse is not None] for _, dets in groups
+    ]
+    corrs = perspective_corrections(
+        [(cam, [d.mark_id for d in ds]) for (cam, _), ds in zip(groups, usable, strict=True)],
+        recipe, T_rf_from_pf,
+    )
+    worst = 0.0
     out = []
-    for d in detections:
-        c = corr.get(d.mark_id)
-        if not d.found or d.uv_ellipse is None or c is None:
-            out.append(d)
-            continue
-        out.append(replace(d, uv=d.uv_ellipse + c, correction=np.asarray(c, dtype=float).copy()))
-    return out
+    for (_, dets), corr in zip(groups, corrs, strict=True):
+        moved = []
+        for d in dets:
+            c = corr.get(d.mark_id)
+            if not d.found or d.uv_ellipse is None or c is None:
+                moved.append(d)
+                continue
+            before = d.correction if d.correction is not None else np.zeros(2)
+            worst = max(worst, float(np.hypot(c[0] - before[0], c[1] - before[1])))
+            moved.append(replace(d, uv=d.uv_ellipse + c, correction=np.array(c, dtype=float)))
+        out.append(moved)
+    return out, worst

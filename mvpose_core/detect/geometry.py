@@ -321,17 +321,43 @@ def perspective_correction(
     """Per mark, the vector (px) from the imaged ellipse's centre to the circle centre's image.
 
     The same rim projection and ellipse fit as :func:`predict_marks`, without the window and
-    size bounds it also computes: this runs once per trigger and camera at the estimated pose.
+    size bounds it also computes (:func:`perspective_corrections` for several cameras at once).
     """
-    pms = [
-        pm
-        for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=False)
-        if pm.mark_id in mark_ids and pm.p_cf[2] > 1.0 and float(pm.n_cf @ pm.p_cf) < 0.0
+    return perspective_corrections([(cam, mark_ids)], recipe, T_rf_from_pf)[0]
+
+
+def perspective_corrections(
+    cameras: list[tuple[ViewCamera, list[str]]], recipe: RecipeConfig, T_rf_from_pf: Array
+) -> list[dict[str, Array]]:
+    """:func:`perspective_correction` for each (camera, mark ids), with one ellipse fit for all.
+
+    This runs once per trigger at the estimated pose, for every camera that saw marks.
+    """
+    pms_per_cam = [
+        [
+            pm
+            for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=False)
+            if pm.mark_id in ids and pm.p_cf[2] > 1.0 and float(pm.n_cf @ pm.p_cf) < 0.0
+        ]
+        for cam, ids in cameras
     ]
-    if not pms:
-        return {}
-    rims = np.stack([rim_points(pm, recipe.mark_diameter_mm / 2.0) for pm in pms])
-    ells = fit_ellipses(
-        cam.model.project(rims.reshape(-1, 3)).reshape(len(pms), -1, 2), np.ones(rims.shape[:2])
-    )
-    return {pm.mark_id: pm.uv - ells.centre[k] for k, pm in enumerate(pms) if bool(ells.ok[k])}
+    radius = recipe.mark_diameter_mm / 2.0
+    images = [
+        cam.model.project(np.concatenate([rim_points(pm, radius) for pm in pms]))
+        for (cam, _), pms in zip(cameras, pms_per_cam, strict=True)
+        if pms
+    ]
+    if not images:
+        return [{} for _ in cameras]
+    rims = np.concatenate(images).reshape(-1, _RIM_SAMPLES, 2)
+    ells = fit_ellipses(rims, np.ones(rims.shape[:2]))
+    out: list[dict[str, Array]] = []
+    k = 0
+    for pms in pms_per_cam:
+        corr = {}
+        for pm in pms:
+            if bool(ells.ok[k]):
+                corr[pm.mark_id] = pm.uv - ells.centre[k]
+            k += 1
+        out.append(corr)
+    return out

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from mvpose_core.detect import (
     detect_marks,
     identify_marks,
     perspective_correction,
+    recorrect,
     search_marks,
 )
 from mvpose_core.render import RenderOptions, render_view
@@ -70,6 +73,28 @@ def test_correct_centres_recomputes_the_correction_at_a_new_pose() -> None:
         assert not np.allclose(d.correction, corr[d.mark_id], atol=1e-3)
         np.testing.assert_allclose(m.uv, d.uv_ellipse + corr[d.mark_id], atol=1e-12)
         np.testing.assert_allclose(m.uv_ellipse, d.uv_ellipse)
+
+
+def test_recorrect_reports_how_far_the_correction_moved_over_all_cameras() -> None:
+    cam, recipe = plate_scene(tilt_deg=35.0, mark_diameter_mm=16.0)
+    T0 = recipe.T_rf_from_pf0.matrix
+    r = render_view(cam, recipe, T0, np.random.default_rng(3), NOISE2)
+    dets = detect_marks(r.image, cam, recipe, T0)
+    dets[1] = replace(dets[1], found=False, uv=None)  # a missed mark is passed through
+    same, shift0 = recorrect([(cam, dets), (cam, dets)], recipe, T0)
+    assert shift0 < 1e-9  # at the prior pose: the correction detection already applied
+    T1 = compose(T0, xyzwpr_to_matrix([0, 0, 0, 0, 12.0, 0]))
+    (moved, again), shift = recorrect([(cam, dets), (cam, dets)], recipe, T1)
+    corr = perspective_correction(cam, recipe, T1, [d.mark_id for d in dets if d.found])
+    expected = max(np.linalg.norm(corr[d.mark_id] - d.correction) for d in dets if d.found)
+    assert shift == pytest.approx(expected, abs=1e-12) and shift > 1e-3
+    assert moved[1] is dets[1] and again[1] is dets[1]
+    for d, m in zip(dets, moved, strict=True):
+        if d.found:
+            np.testing.assert_allclose(m.uv, d.uv_ellipse + corr[d.mark_id], atol=1e-12)
+    for d, m in zip(dets, same[0], strict=True):
+        if d.found:
+            np.testing.assert_allclose(m.uv, d.uv, atol=1e-9)
 
 
 def test_window_mode_follows_a_displaced_part_and_keeps_identities() -> None:
