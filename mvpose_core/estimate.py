@@ -277,15 +277,16 @@ def _starts(
                 for c in np.unique(ci).tolist():
                     rows = ci == c
                     xy[rows] = cameras[c].model.undistort_normalized(pk.uv[rows])
-            ray = np.concatenate([xy, np.ones((len(ci), 1))], axis=1)
-            ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-            T = prob.table.T_rf_from_cf[ci]
-            rays["r"] = (T[:, :3, 3], np.einsum("nij,nj->ni", T[:, :3, :3], ray))
+            ray = np.empty((len(ci), 3))
+            ray[:, :2] = xy
+            ray[:, 2] = 1.0
+            ray /= np.sqrt(np.einsum("ni,ni->n", ray, ray))[:, None]
+            rays["r"] = (prob.centres_rf, np.einsum("nij,nj->ni", prob.R_rf_from_cf, ray))
         return rays["r"]
 
     def triangulation() -> tuple[Array, Array] | None:
         P, mi = prob.P_marks, prob.mi
-        if np.bincount(mi).max() < 2:
+        if prob.max_views_per_mark < 2:
             return None
         centres, d = get_rays()
         pts, ok = rays_intersection(centres, d, mi, P.shape[0])

@@ -103,6 +103,9 @@ class Problem:
     P_marks: Array  # [M, 3] distinct marks in PF
     table: CameraTable
     keys: list[tuple[int, str, str]]
+    centres_rf: Array  # [N, 3] centre of each observation's camera in RF
+    R_rf_from_cf: Array  # [N, 3, 3] rotation of each observation's camera
+    max_views_per_mark: int  # most observations of one mark (≥ 2: triangulation can start)
 
 
 _TABLES: OrderedDict[tuple[int, ...], tuple[tuple[ViewCamera, ...], CameraTable]] = OrderedDict()
@@ -152,18 +155,56 @@ def _name(key: tuple[int, str, str]) -> str:
     return f"observation v{key[0]}/{key[1]}/{key[2]}"
 
 
-def build_problem(
-    observations: Sequence[Observation],
-    cameras: Sequence[ViewCamera],
-    marks_pf: Mapping[str, np.ndarray],
-    sigma_px: float,
-) -> Problem:
-    """Validate and pack; every refusal is a :class:`PoseInputError` naming the problem."""
-    if not (np.isfinite(sigma_px) and sigma_px > 0):
-        raise PoseInputError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
-    table = _camera_table(cameras)
-    n = len(observations)
-    keys = [(o.view, o.camera_id, o.mark_id) for o in observations]
+@dataclass(frozen=True)
+class _Layout:
+    """What a problem's structure fixes: which camera and mark each row has, the packed
+    camera and mark arrays, and that the marks fix a pose. The pixels are not part of it."""
+
+    table: CameraTable
+    keys: list[tuple[int, str, str]]
+    ci: NDArray[np.intp]
+    mi: NDArray[np.intp]
+    mark_ids: list[str]
+    P: Array  # [M, 3]
+    template: Packed  # zero pixels, unit weights
+    centres_rf: Array  # [N, 3]
+    R_rf_from_cf: Array  # [N, 3, 3]
+    max_views_per_mark: int
+
+
+_LAYOUTS: OrderedDict[tuple[int, tuple[tuple[int, str, str], ...]], _Layout] = OrderedDict()
+
+
+def _layout(
+    table: CameraTable, keys: list[tuple[int, str, str]], marks_pf: Mapping[str, np.ndarray]
+) -> _Layout:
+    """The layout of ``keys``, remembered for the last few (camera table, keys).
+
+    A station sees the same marks in the same cameras trigger after trigger; checking and
+    packing that structure is half of :func:`build_problem`. An entry is used only for the very
+    same camera table object and, after the mark positions are compared, the same positions.
+    """
+    ck = (id(table), tuple(keys))
+    with _TABLES_LOCK:
+        hit = _LAYOUTS.get(ck)
+        if hit is not None and hit.table is table:
+            _LAYOUTS.move_to_end(ck)
+    if hit is not None and hit.table is table:
+        P = _marks(marks_pf, hit.mark_ids)
+        if np.array_equal(P, hit.P):
+            return hit
+    layout = _new_layout(table, keys, marks_pf)
+    with _TABLES_LOCK:
+        _LAYOUTS[ck] = layout
+        while len(_LAYOUTS) > 32:
+            _LAYOUTS.popitem(last=False)
+    return layout
+
+
+def _new_layout(
+    table: CameraTable, keys: list[tuple[int, str, str]], marks_pf: Mapping[str, np.ndarray]
+) -> _Layout:
+    n = len(keys)
     cams = [table.index.get((v, c)) for v, c, _ in keys]
     if None in cams:
         v, c, m = keys[cams.index(None)]
@@ -171,26 +212,6 @@ def build_problem(
     if len(set(keys)) != n:
         dup = next(k for i, k in enumerate(keys) if k in keys[:i])
         raise PoseInputError(f"{_name(dup)}: the same mark is observed twice in one image")
-    try:
-        uv = np.array([o.uv for o in observations], dtype=float).reshape(n, 2)
-        ok = bool(np.all(np.isfinite(uv)))
-    except (ValueError, TypeError):
-        ok = False
-    if not ok:
-        for key, o in zip(keys, observations, strict=True):
-            u = np.asarray(o.uv, dtype=float)
-            if u.shape != (2,):
-                raise PoseInputError(f"{_name(key)}: uv must have shape (2,), got {u.shape}")
-            if not np.all(np.isfinite(u)):
-                raise PoseInputError(
-                    f"{_name(key)}: uv contains NaN or infinite values {u.tolist()}"
-                )
-    weight = np.full(n, 1.0 / sigma_px)
-    for i, o in enumerate(observations):
-        if o.sigma_px is not None:
-            if not (np.isfinite(o.sigma_px) and o.sigma_px > 0):
-                raise PoseInputError(f"{_name(keys[i])}: sigma_px must be > 0, got {o.sigma_px}")
-            weight[i] = 1.0 / o.sigma_px
     mark_ids = sorted({m for _, _, m in keys})
     if len(mark_ids) < 3:
         raise PoseInputError(
@@ -209,7 +230,48 @@ def build_problem(
     pos = {m: i for i, m in enumerate(mark_ids)}
     mi = np.array([pos[m] for _, _, m in keys], dtype=np.intp)
     ci = np.array(cams, dtype=np.intp)
-    return Problem(table.rows(ci, P[mi], uv, weight), ci, mi, mark_ids, P, table, keys)
+    template = table.rows(ci, P[mi], np.zeros((n, 2)), np.ones(n))
+    T = table.T_rf_from_cf[ci]
+    return _Layout(table, list(keys), ci, mi, mark_ids, P, template, T[:, :3, 3].copy(),
+                   T[:, :3, :3].copy(), int(np.bincount(mi).max()))
+
+
+def build_problem(
+    observations: Sequence[Observation],
+    cameras: Sequence[ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+    sigma_px: float,
+) -> Problem:
+    """Validate and pack; every refusal is a :class:`PoseInputError` naming the problem."""
+    if not (np.isfinite(sigma_px) and sigma_px > 0):
+        raise PoseInputError(f"sigma_px must be a positive number of pixels, got {sigma_px}")
+    table = _camera_table(cameras)
+    n = len(observations)
+    keys = [(o.view, o.camera_id, o.mark_id) for o in observations]
+    layout = _layout(table, keys, marks_pf)
+    try:
+        uv = np.array([o.uv for o in observations], dtype=float).reshape(n, 2)
+        ok = bool(np.isfinite(uv).all())
+    except (ValueError, TypeError):
+        ok = False
+    if not ok:
+        for key, o in zip(keys, observations, strict=True):
+            u = np.asarray(o.uv, dtype=float)
+            if u.shape != (2,):
+                raise PoseInputError(f"{_name(key)}: uv must have shape (2,), got {u.shape}")
+            if not np.all(np.isfinite(u)):
+                raise PoseInputError(
+                    f"{_name(key)}: uv contains NaN or infinite values {u.tolist()}"
+                )
+    weight = np.full(n, 1.0 / sigma_px)
+    for i, o in enumerate(observations):
+        if o.sigma_px is not None:
+            if not (np.isfinite(o.sigma_px) and o.sigma_px > 0):
+                raise PoseInputError(f"{_name(keys[i])}: sigma_px must be > 0, got {o.sigma_px}")
+            weight[i] = 1.0 / o.sigma_px
+    return Problem(layout.template.with_measurements(uv, weight), layout.ci, layout.mi,
+                   layout.mark_ids, layout.P, table, layout.keys, layout.centres_rf,
+                   layout.R_rf_from_cf, layout.max_views_per_mark)
 
 
 def pack_layout(

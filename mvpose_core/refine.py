@@ -15,6 +15,7 @@ written in the part frame.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -53,6 +54,13 @@ class Packed:
     @property
     def n(self) -> int:
         return int(self.uv.shape[0])
+
+    def with_measurements(self, uv: Array, weight: Array) -> Packed:
+        """The same rows (cameras, marks) with other pixels and weights; nothing recomputed."""
+        out = copy.copy(self)
+        object.__setattr__(out, "uv", uv)
+        object.__setattr__(out, "weight", weight)
+        return out
 
     def subset(self, rows: NDArray[np.intp] | NDArray[np.bool_]) -> Packed:
         return Packed(

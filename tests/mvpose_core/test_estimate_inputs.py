@@ -63,6 +63,25 @@ def test_collinear_marks() -> None:
     assert e.value.reason is ReasonCode.POSE_NOT_DETERMINED
 
 
+def test_a_remembered_layout_is_checked_again_when_marks_or_cameras_change() -> None:
+    # build_problem remembers the layout (cameras × marks) of recent calls; a trigger with the
+    # same layout but new mark positions or new camera objects must not get the old one.
+    obs, cams, marks, T = noiseless("lab")
+    assert np.allclose(estimate_pose(obs, cams, marks).T_rf_from_pf, T, atol=1e-6)
+    line = {m: np.array([100.0 * k, 0.0, 0.0]) for k, m in enumerate(sorted(marks))}
+    with pytest.raises(PoseInputError, match=r"collinear"):
+        estimate_pose(obs, cams, line)
+    shifted = {m: p + np.array([0.0, 0.0, 5.0]) for m, p in marks.items()}
+    moved = estimate_pose(obs, cams, shifted).T_rf_from_pf
+    assert np.allclose(moved[:3, 3] + moved[:3, :3] @ [0.0, 0.0, 5.0], T[:3, 3], atol=1e-6)
+    # The same cameras as new objects, one of them renamed: the old layout's index is not used.
+    renamed = [ViewCamera(view=c.view, camera_id=c.camera_id + "x" if i == 0 else c.camera_id,
+                          rig_position=c.rig_position, T_rf_from_cf=c.T_rf_from_cf,
+                          model=c.model) for i, c in enumerate(cams)]
+    with pytest.raises(PoseInputError, match=r"no camera v1/left in this station"):
+        estimate_pose(obs, renamed, marks)
+
+
 def test_mark_behind_a_camera() -> None:
     obs, cams, marks, T = noiseless("station1")
     # A camera turned around: whatever it reports, the mark it claims is behind it.
