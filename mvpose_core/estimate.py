@@ -289,7 +289,7 @@ def _starts(
         if prob.max_views_per_mark < 2:
             return None
         centres, d = get_rays()
-        pts, ok = rays_intersection(centres, d, mi, P.shape[0])
+        pts, ok = rays_intersection(centres, d, mi, P.shape[0], prob.mark_rows)
         n_ok = int(ok.sum())
         # Every mark triangulated: build_problem has already checked that they are not collinear.
         if n_ok < 3 or (n_ok < ok.size and collinearity(P[ok]) < COLLINEAR_RATIO):

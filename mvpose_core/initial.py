@@ -33,8 +33,12 @@ def collinearity(points: Array) -> float:
 
 def _nearest_rotation(M: Array) -> Array:
     U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
+    R = U @ Vt
+    # det(R) is ±1: the sign of the triple product of its rows (scalar arithmetic, 3x3).
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
+        R = (U * np.array([1.0, 1.0, -1.0])) @ Vt  # flip the least significant axis
+    return R
 
 
 def align_points(p_pf: Array, p_rf: Array) -> tuple[Array, Array]:

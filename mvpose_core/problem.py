@@ -21,6 +21,7 @@ from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, collinearity
 from mvpose_core.refine import Array, Packed
 from mvpose_core.scene import ViewCamera
+from mvpose_core.triangulate import group_matrix
 
 
 class PoseInputError(ValueError):
@@ -106,6 +107,7 @@ class Problem:
     centres_rf: Array  # [N, 3] centre of each observation's camera in RF
     R_rf_from_cf: Array  # [N, 3, 3] rotation of each observation's camera
     max_views_per_mark: int  # most observations of one mark (≥ 2: triangulation can start)
+    mark_rows: Array  # [M, N] one-hot: which observations are of mark m (triangulation)
 
 
 _TABLES: OrderedDict[tuple[int, ...], tuple[tuple[ViewCamera, ...], CameraTable]] = OrderedDict()
@@ -170,6 +172,7 @@ class _Layout:
     centres_rf: Array  # [N, 3]
     R_rf_from_cf: Array  # [N, 3, 3]
     max_views_per_mark: int
+    mark_rows: Array  # [M, N]
 
 
 _LAYOUTS: OrderedDict[tuple[int, tuple[tuple[int, str, str], ...]], _Layout] = OrderedDict()
@@ -233,7 +236,8 @@ def _new_layout(
     template = table.rows(ci, P[mi], np.zeros((n, 2)), np.ones(n))
     T = table.T_rf_from_cf[ci]
     return _Layout(table, list(keys), ci, mi, mark_ids, P, template, T[:, :3, 3].copy(),
-                   T[:, :3, :3].copy(), int(np.bincount(mi).max()))
+                   T[:, :3, :3].copy(), int(np.bincount(mi).max()),
+                   group_matrix(mi, len(mark_ids)))
 
 
 def build_problem(
@@ -271,7 +275,7 @@ def build_problem(
             weight[i] = 1.0 / o.sigma_px
     return Problem(layout.template.with_measurements(uv, weight), layout.ci, layout.mi,
                    layout.mark_ids, layout.P, table, layout.keys, layout.centres_rf,
-                   layout.R_rf_from_cf, layout.max_views_per_mark)
+                   layout.R_rf_from_cf, layout.max_views_per_mark, layout.mark_rows)
 
 
 def pack_layout(

@@ -22,18 +22,26 @@ from mvpose_core.refine import Array
 MIN_RAY_ANGLE_RAD = np.radians(0.5)
 
 
+def group_matrix(group: NDArray[np.intp], n_groups: int) -> Array:
+    """``[K, N]`` one-hot rows: entry (k, i) is 1 where ray i belongs to group k."""
+    return (group[None, :] == np.arange(n_groups)[:, None]).astype(float)
+
+
 def rays_intersection(
-    centres: Array, directions: Array, group: NDArray[np.intp], n_groups: int
+    centres: Array, directions: Array, group: NDArray[np.intp], n_groups: int,
+    onehot: Array | None = None,
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Least-squares intersection of the rays of each group.
 
     ``centres``/``directions`` are ``[N, 3]`` (unit directions); ``group[i]`` in ``[0, n_groups)``
-    says which point ray ``i`` belongs to. Returns points ``[n_groups, 3]`` and a mask of groups
-    with at least two rays that are not near-parallel (others hold NaN).
+    says which point ray ``i`` belongs to (``onehot``: its :func:`group_matrix`, if the caller
+    keeps one). Returns points ``[n_groups, 3]`` and a mask of groups with at least two rays
+    that are not near-parallel (others hold NaN).
     """
     P = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]  # [N, 3, 3] I - d dᵀ
     # Sum per group with a one-hot matrix product (much cheaper than np.add.at for small N).
-    onehot = (group[None, :] == np.arange(n_groups)[:, None]).astype(float)  # [K, N]
+    if onehot is None:
+        onehot = group_matrix(group, n_groups)
     A = (onehot @ P.reshape(-1, 9)).reshape(n_groups, 3, 3)
     b = onehot @ np.einsum("nij,nj->ni", P, centres)
     counts = onehot.sum(axis=1)

@@ -134,3 +134,20 @@ def test_bad_options_are_named() -> None:
         EstimateOptions(huber_px=0.0)
     with pytest.raises(ValueError, match="outlier_px"):
         EstimateOptions(outlier_px=-2.0)
+
+
+def test_3d_alignment_returns_a_rotation_even_for_mirrored_points() -> None:
+    from mvpose_core.initial import align_points
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(6, 3)) * 100.0
+    T = make_transform(np.linalg.qr(rng.normal(size=(3, 3)))[0] @ np.diag([1, 1, -1]),
+                       [10.0, 20.0, 30.0])
+    if np.linalg.det(T[:3, :3]) < 0:  # make it a proper rotation
+        T[:3, :3] *= -1
+    R, t = align_points(p, p @ T[:3, :3].T + T[:3, 3])
+    np.testing.assert_allclose(R, T[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(t, T[:3, 3], atol=1e-6)
+    # A mirror image of the marks has no rotation onto it: the best proper one, det +1.
+    R_m, _ = align_points(p, p * np.array([1.0, 1.0, -1.0]))
+    assert np.linalg.det(R_m) == pytest.approx(1.0) and np.allclose(R_m @ R_m.T, np.eye(3))
