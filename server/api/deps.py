@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Request, Response
+from pydantic import BaseModel
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from server.auth import Principal, Role, authenticate, authorize
@@ -15,7 +16,11 @@ from server.store import Store
 _bearer = HTTPBearer(auto_error=False, description="API token: Authorization: Bearer mvp_…")
 
 
-def get_services(request: Request) -> Services:
+# Dependencies that only pick objects are ``async def``: FastAPI runs a plain ``def`` dependency
+# in the threadpool, a thread hop each (~0.1-0.3 ms of CPU under the GIL) for no work.
+
+
+async def get_services(request: Request) -> Services:
     services: Services = request.state.services
     return services
 
@@ -23,7 +28,7 @@ def get_services(request: Request) -> Services:
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-def get_store(services: ServicesDep) -> Store:
+async def get_store(services: ServicesDep) -> Store:
     return services.store
 
 
@@ -41,8 +46,8 @@ def current_principal(
     return authenticate(services.store.tokens, request.headers.get("authorization"))
 
 
-def require(role: Role) -> Callable[[Principal], Principal]:
-    def dependency(principal: Annotated[Principal, Depends(current_principal)]) -> Principal:
+def require(role: Role) -> Callable[[Principal], Awaitable[Principal]]:
+    async def dependency(principal: Annotated[Principal, Depends(current_principal)]) -> Principal:
         return authorize(principal, role)
 
     dependency.__name__ = f"require_{role.value}"
@@ -52,3 +57,10 @@ def require(role: Role) -> Callable[[Principal], Principal]:
 ReadUser = Annotated[Principal, Depends(require(Role.READ))]
 OperatorUser = Annotated[Principal, Depends(require(Role.OPERATOR))]
 EngineerUser = Annotated[Principal, Depends(require(Role.ENGINEER))]
+
+
+def json_response(model: BaseModel) -> Response:
+    """``model`` as JSON by pydantic's own serializer. Returned from an endpoint that declares it
+    as ``response_model`` (for the schema), it skips FastAPI's second validation of an object
+    the server has just built: most of a page request's CPU (MES clients poll these)."""
+    return Response(model.model_dump_json(), media_type="application/json")

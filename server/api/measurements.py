@@ -9,10 +9,10 @@ from datetime import datetime
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Path, Query
-from fastapi.responses import FileResponse, StreamingResponse
+from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
-from server.api.deps import ReadUser, ServicesDep, StoreDep
+from server.api.deps import ReadUser, ServicesDep, StoreDep, json_response
 from server.errors import NotFoundError
 from server.store.chain import canonical_json
 from server.store.schemas import (
@@ -37,7 +37,7 @@ class MeasurementPage(BaseModel):
     next_cursor: str | None
 
 
-def measurement_filter(
+async def measurement_filter(
     since: Annotated[
         datetime | None, Query(description="triggered at or after (ISO 8601, with zone)")
     ] = None,
@@ -69,10 +69,10 @@ def list_measurements(
     filters: FilterDep,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-) -> MeasurementPage:
+) -> Response:
     """Measurements, newest first; pass next_cursor back as cursor for the next page."""
     items, next_cursor = store.measurements.summary_page(filters, cursor, limit)
-    return MeasurementPage(items=items, next_cursor=next_cursor)
+    return json_response(MeasurementPage(items=items, next_cursor=next_cursor))
 
 
 CSV_COLUMNS = [
@@ -190,7 +190,7 @@ def verify_chain(_: ReadUser, store: StoreDep) -> ChainReport:
 @router.get("/{measurement_id}", response_model=MeasurementDetail)
 def get_measurement(
     measurement_id: IdPath, _: ReadUser, services: ServicesDep
-) -> MeasurementDetail:
+) -> Response:
     """One measurement with its detections per camera and the state of its images."""
     m = services.store.measurements.get(measurement_id)
     rows = {(i.view, i.camera_id): i for i in services.store.images.for_measurement(m.id)}
@@ -209,7 +209,9 @@ def get_measurement(
                 bytes=row.bytes if row else None,
             )
         )
-    return MeasurementDetail(**m.model_dump(), image_status=status)
+    return json_response(MeasurementDetail.model_construct(
+        id=m.id, seq=m.seq, stored_at=m.stored_at, prev_hash=m.prev_hash, hash=m.hash,
+        record=m.record, image_status=status))
 
 
 @router.get(
