@@ -105,8 +105,10 @@ async def _main() -> int:
         # As `mvpose serve` runs it on this machine (MVPOSE_DETECT_PROCESSES overrides).
         procs = int(os.environ.get("MVPOSE_DETECT_PROCESSES", auto_detect_processes()))
         print(f"  detection: {procs or 'threads, no'} worker processes", flush=True)
+        threads = int(os.environ.get("MVPOSE_DETECT_THREADS", PipelineOptions.detect_workers))
         opts = RuntimeOptions(sim_seed=7, sim_render=RenderOptions(),
-                              pipeline=PipelineOptions(detect_processes=procs))
+                              pipeline=PipelineOptions(detect_processes=procs,
+                                                       detect_workers=threads))
         async with running_server(settings, opts) as lb:
             port = lb.runtime.plc_port
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)

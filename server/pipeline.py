@@ -100,8 +100,8 @@ class PipelineOptions:
     recorrect: bool = True  # the correction at the estimated pose (second pass if it matters)
     # A second pass only when a correction changed by more than this. 0.01 px is about the
     # detector's own centre noise at image noise σ = 2 grey levels (REFERENCE.md); station 1's
-    # parts within ±20 mm / ±2° of the taught pose change it by at most ~0.009 px, the whole
-    # tolerance (±100 mm / ±10°) by up to ~0.05 px (docs/detection.md). 0: always.
+    # parts within ±20 mm / ±2° of the taught pose change it by at most ~0.01 px, the whole
+    # tolerance (±100 mm / ±10°) by up to ~0.05 px (python -m bench.correction_shift). 0: always.
     recorrect_px: float = 0.01
     store_reserve_ms: float = 3.0  # at least this much of the deadline is kept for the write
     capture_share: float = 0.6  # the capture may use at most this share of the deadline
