@@ -1,4 +1,4 @@
-"""How far the perspective correction moves when the part is off its taught pose (docs/detection.md).
+"""How far the perspective correction moves when the part is off its taught pose (detection.md).
 
 Detection applies the correction computed at the recipe's prior (taught) pose; the server then
 recomputes it at the estimated pose and measures again only if some mark's correction moved by
