@@ -42,18 +42,23 @@ _LOAD = textwrap.dedent("""
     paths = ["/api/v1/measurements?limit=50", "/api/v1/station/status",
              "/api/v1/measurements?limit=10&result=OK", "/api/v1/health/ready"]
     n = errors = 0
+    took = {}
     t_next = time.monotonic()
     with httpx.Client(base_url=base, headers={"Authorization": "Bearer " + token},
                       timeout=5) as c:
         while True:
+            path = paths[n % len(paths)]
+            t = time.perf_counter()
             try:
-                r = c.get(paths[n % len(paths)])
+                r = c.get(path)
                 errors += r.status_code >= 400
             except httpx.HTTPError:
                 errors += 1
+            took[path] = took.get(path, []) + [(time.perf_counter() - t) * 1e3]
             n += 1
-            if n % 50 == 0:
-                print(n, errors, flush=True)
+            if n % 50 == 0:  # requests, errors, then per path: median response time (ms)
+                meds = [sorted(v)[len(v) // 2] for v in took.values()]
+                print(n, errors, *("%s=%.2f" % kv for kv in zip(took, meds)), flush=True)
             t_next += 1.0 / rate
             time.sleep(max(0.0, t_next - time.monotonic()))
 """)
@@ -134,6 +139,7 @@ async def _main() -> int:
             stages = _stages(lb.runtime)
             lines = [ln.split() for ln in out.splitlines() if ln.strip()]
             sent, errors = (int(lines[-1][0]), int(lines[-1][1])) if lines else (0, 0)
+            per_path = lines[-1][2:] if lines else []
     for t in (quiet_s, busy_s, quiet_rt, busy_rt):
         print(t.line())
     print("  stages from the records (ms):")
@@ -141,6 +147,10 @@ async def _main() -> int:
         print("   ", line)
     print(f"  REST load: {sent} requests in ~{load_s + 1:.0f} s ({errors} errors); "
           f"NOK results: {nok_q} idle, {nok_b} loaded")
+    print("  REST response time, median per path (ms, seen by the MES client while triggering):")
+    for item in per_path:
+        path, _, ms = item.rpartition("=")
+        print(f"    {path:<45} {ms}")
     print(f"  server process CPU (all threads; the twin runs apart): {cpu_idle:.2f} cores idle, "
           f"{cpu_busy:.2f} cores under REST load")
     ok = check("p99 trigger -> RESULT_VALID (roundtrip, idle)", quiet_rt.p99, 20.0)

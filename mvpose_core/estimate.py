@@ -59,8 +59,9 @@ class EstimateOptions:
     #: a start whose refined RMS exceeds this (px) makes the solver try the next start
     restart_rms_px: float = 20.0
     #: converged when a step is shorter than this many σ of the estimate (see
-    #: refine.levenberg_marquardt; the last step is still applied)
-    step_tol: float = 1e-2
+    #: refine.levenberg_marquardt; the last step is still applied from the linear model, so
+    #: the pose ends within ~1e-4 σ of full convergence: tests/mvpose_core/test_estimate.py)
+    step_tol: float = 3e-2
     cost_tol: float = 1e-12
 
     def __post_init__(self) -> None:

@@ -187,3 +187,23 @@ def test_warm_start_is_tried_first_and_a_bad_one_is_replaced() -> None:
     r = estimate_pose(obs, cams, marks, warm_start=far)
     assert r.info.initializer == "generalized_dlt"
     assert transform_error(r.T_rf_from_pf, T) < (1e-7, 1e-5)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_default_step_tolerance_stops_a_negligible_distance_from_full_convergence(
+    name: str,
+) -> None:
+    # EstimateOptions.step_tol stops when the next step is < 0.03 σ and applies it from the
+    # linear model: the pose must then be within 1e-3 σ of the one LM reaches when run to the
+    # end (measured in the estimate's own covariance; a looser tolerance saves an evaluation).
+    st, rec, cams, marks = station(name)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        T = rec.T_rf_from_pf0.matrix @ random_displacement(rng, 100.0, 10.0)
+        obs = synthetic_observations(st, rec, T, rng, 0.5, require_in_image=False)
+        fast = estimate_pose(obs, cams, marks, sigma_px=0.5)
+        full = estimate_pose(obs, cams, marks, EstimateOptions(step_tol=1e-9), sigma_px=0.5)
+        assert full.info.iterations >= fast.info.iterations
+        dT = np.linalg.inv(fast.T_rf_from_pf) @ full.T_rf_from_pf  # right perturbation
+        d = np.concatenate([[dT[2, 1], dT[0, 2], dT[1, 0]], dT[:3, 3]])
+        assert float(d @ np.linalg.solve(fast.covariance, d)) ** 0.5 < 1e-3
