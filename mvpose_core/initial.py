@@ -17,6 +17,7 @@ Two starts, chosen by what the layout offers (see :func:`mvpose_core.estimate.es
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dgesdd
 
 from mvpose_core.refine import Array
 
@@ -32,7 +33,9 @@ def collinearity(points: Array) -> float:
 
 
 def _nearest_rotation(M: Array) -> Array:
-    U, _, Vt = np.linalg.svd(M)
+    U, _, Vt, code = dgesdd(M)  # LAPACK directly: numpy's wrapper doubles a 3x3 SVD's cost
+    if code != 0:
+        raise np.linalg.LinAlgError(f"SVD did not converge (LAPACK info {code})")
     R = U @ Vt
     # det(R) is ±1: the sign of the triple product of its rows (scalar arithmetic, 3x3).
     (a, b, c), (d, e, f), (g, h, i) = R.tolist()

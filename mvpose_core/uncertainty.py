@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dsyevd
 
 from mvpose_core.problem import pack_layout
 from mvpose_core.refine import Array, residuals_and_jacobian
@@ -79,13 +80,19 @@ def invert_information(info: Array) -> Array:
     # Scale rotation against translation before judging conditioning (rad vs mm differ by ~1e3).
     d = np.sqrt(np.maximum(np.diag(info), 1e-300))
     normed = info / np.outer(d, d)
-    ev, V = np.linalg.eigh(normed)  # one decomposition gives the conditioning and the inverse
-    if not np.all(np.isfinite(ev)) or ev[0] < 1e-10 * ev[-1]:
-        raise ValueError(
-            "the observations do not determine the pose: the information matrix is singular "
-            f"(condition {ev[-1] / max(ev[0], 1e-300):.1e}); add marks or cameras"
-        )
-    return ((V / ev) @ V.T) / np.outer(d, d)
+    # One decomposition gives the conditioning and the inverse (LAPACK directly: numpy's
+    # wrapper costs as much as the 6x6 decomposition itself).
+    condition = "inf"
+    if np.isfinite(normed).all():
+        ev, V, code = dsyevd(normed)
+        if code == 0 and ev[0] >= 1e-10 * ev[-1]:
+            return ((V / ev) @ V.T) / np.outer(d, d)
+        if code == 0:
+            condition = f"{ev[-1] / max(ev[0], 1e-300):.1e}"
+    raise ValueError(
+        "the observations do not determine the pose: the information matrix is singular "
+        f"(condition {condition}); add marks or cameras"
+    )
 
 
 def adjoint(T_b_from_a: NDArray[np.floating[Any]]) -> Array:
