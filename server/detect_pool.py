@@ -3,8 +3,10 @@
 Detection is mostly many small numpy and OpenCV calls, so threads serialise on the GIL: four
 2048 × 2048 frames took as long with two threads as with one (13 ms) and they also compete with
 the REST API in the server process. Worker processes run them side by side, away from HTTP.
-A frame is copied once into its camera's shared-memory block (~0.1 ms for 4 MiB); only the
-camera geometry, the recipe and the prior pose are pickled with each task.
+A frame is copied once into its camera's shared-memory block (~0.1 ms for 4 MiB). The camera
+geometry and the recipe are pickled once per (camera, recipe) pair and sent as bytes with a
+token; a worker unpickles a token's pair once and keeps the objects, so the detector's window
+prediction cache (keyed on those very objects) hits from the second trigger on, as in-process.
 
 Workers are started with ``spawn``: forking a process that runs camera threads and event loops
 can copy a held lock into the child. One trigger runs at a time (the runtime's trigger thread) and
@@ -13,7 +15,10 @@ waits for its detections, so a camera's block is never written while a worker re
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing as mp
+import pickle
+from collections import OrderedDict
 from concurrent.futures import Future, ProcessPoolExecutor
 from multiprocessing import shared_memory
 
@@ -25,6 +30,8 @@ from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
 
 _attached: dict[str, shared_memory.SharedMemory] = {}  # worker side: blocks by name
+_models: OrderedDict[int, tuple[ViewCamera, RecipeConfig]] = OrderedDict()  # worker: by token
+_MODELS_KEPT = 64
 
 
 def _init_worker() -> None:
@@ -37,13 +44,19 @@ def _warm() -> int:
     return 0
 
 
-def _detect(name: str, shape: tuple[int, int], cam: ViewCamera, recipe: RecipeConfig,
+def _detect(name: str, shape: tuple[int, int], token: int, models: bytes,
             prior: Array, options: DetectOptions) -> list[MarkDetection]:
     block = _attached.get(name)
     if block is None:
         block = _attached[name] = shared_memory.SharedMemory(name=name)
+    pair = _models.get(token)
+    if pair is None:
+        pair = _models[token] = pickle.loads(models)
+        while len(_models) > _MODELS_KEPT:
+            _models.popitem(last=False)
+    _models.move_to_end(token)
     image = np.ndarray(shape, dtype=np.uint8, buffer=block.buf)
-    return detect_marks(image, cam, recipe, prior, options)
+    return detect_marks(image, pair[0], pair[1], prior, options)
 
 
 class DetectPool:
@@ -56,6 +69,11 @@ class DetectPool:
         self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
                                          initializer=_init_worker)
         self._blocks: dict[str, shared_memory.SharedMemory] = {}
+        # (camera, recipe) pairs sent so far, by identity: token and pickled bytes. The objects
+        # are held here, so an id is never reused for another object while its entry exists.
+        self._sent: OrderedDict[tuple[int, int], tuple[int, bytes, ViewCamera, RecipeConfig]] = (
+            OrderedDict())
+        self._tokens = itertools.count(1)
         # Import the detector in every worker now, not in the first trigger.
         for f in [self._pool.submit(_warm) for _ in range(workers)]:
             f.result(timeout=120)
@@ -80,7 +98,19 @@ class DetectPool:
             self._blocks[cam.camera_id] = block
         np.ndarray(image.shape, dtype=np.uint8, buffer=block.buf)[...] = image
         shape = (int(image.shape[0]), int(image.shape[1]))
-        return self._pool.submit(_detect, block.name, shape, cam, recipe, prior, options)
+        token, models = self._token(cam, recipe)
+        return self._pool.submit(_detect, block.name, shape, token, models, prior, options)
+
+    def _token(self, cam: ViewCamera, recipe: RecipeConfig) -> tuple[int, bytes]:
+        key = (id(cam), id(recipe))
+        hit = self._sent.get(key)
+        if hit is None or hit[2] is not cam or hit[3] is not recipe:
+            hit = (next(self._tokens), pickle.dumps((cam, recipe)), cam, recipe)
+            self._sent[key] = hit
+            while len(self._sent) > _MODELS_KEPT:
+                self._sent.popitem(last=False)
+        self._sent.move_to_end(key)
+        return hit[0], hit[1]
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
