@@ -22,6 +22,7 @@ import tempfile
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -118,6 +119,7 @@ async def _main() -> int:
             port = lb.runtime.plc_port
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
+            bare = _bare_detection(lb.runtime)
             await _run("warm-up", port, 20, 1)
             cpu0, wall0 = time.process_time(), time.monotonic()
             quiet_s, quiet_rt, nok_q = await _run("idle REST", port, N_TRIGGERS, IDLE_IDS)
@@ -145,6 +147,7 @@ async def _main() -> int:
     print("  stages from the records (ms):")
     for line in stages:
         print("   ", line)
+    print(f"  reference, same process before the run: {bare.line()}")
     print(f"  REST load: {sent} requests in ~{load_s + 1:.0f} s ({errors} errors); "
           f"NOK results: {nok_q} idle, {nok_b} loaded")
     print("  REST response time, median per path (ms, seen by the MES client while triggering):")
@@ -160,6 +163,22 @@ async def _main() -> int:
         print("  MISSED: every trigger must be OK and every REST request answered")
         ok = False
     return 0 if ok else 1
+
+
+def _bare_detection(runtime: Any) -> Timing:
+    """The trigger's detection work alone: the same four frames, one after the other, in this
+    process with nothing else running (no triggers, no PLC polls, no REST)."""
+    from bench.timing import measure
+    from mvpose_core.detect import detect_marks
+
+    recipe = runtime.active.config
+    cams = runtime.pipeline.view_cameras(runtime.station.views[0].id, None)
+    frames = [(runtime.scene.frame(cid), cam) for cid, cam in cams.items()]
+    opts = runtime.pipeline.options.detect
+    prior = recipe.T_rf_from_pf0.matrix
+    return measure("detect 4 frames, one thread, idle process",
+                   lambda: [detect_marks(f, cam, recipe, prior, opts) for f, cam in frames],
+                   repeat=100, warmup=10)
 
 
 def _stages(runtime: object) -> list[str]:
