@@ -27,9 +27,8 @@ async def _phase(port: int, first_id: int, n: int, period_s: float, poll_s: floa
     try:
         for i in range(n):
             t_next = time.monotonic() + period_s
-            t = time.perf_counter()
             status = await twin.cycle(first_id + i, 0, timeout=5.0)
-            rt.append((time.perf_counter() - t) * 1e3)
+            rt.append(twin.last_answer_s * 1e3)  # TRIGGER written → RESULT_VALID read
             server.append(status.processing_ms)
             nok += status.result_code != 0 or not status.has(Status.RESULT_VALID)
             await asyncio.sleep(max(0.0, t_next - time.monotonic()))

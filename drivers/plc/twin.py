@@ -137,6 +137,10 @@ class PlcTwin:
         self.control = Control(0)
         self.heartbeat = 0
         self._beating = False
+        #: seconds from writing the last cycle's TRIGGER to reading its answer (RESULT_VALID or
+        #: VIEW_DONE): the PLC's view of the latency, without the READY check before it and the
+        #: RESULT_ACK handshake after it
+        self.last_answer_s = float("nan")
 
     async def connect(self) -> PlcTwin:
         if not await self.client.connect():
@@ -281,6 +285,7 @@ class PlcTwin:
         before = await self.read_status()
         toggle = before.has(Status.DONE_TOGGLE)
         missed = before.has(Status.MISSED_TRIGGER)
+        t_trigger = time.perf_counter()
         await self.write_trigger(trigger_id, view_index, pose_counts, part_id)
         answer = await self.wait_for(
             lambda s: (
@@ -289,6 +294,7 @@ class PlcTwin:
             timeout,
             f"answer to trigger {trigger_id}",
         )
+        self.last_answer_s = time.perf_counter() - t_trigger
         if answer.has(Status.DONE_TOGGLE) == toggle:
             raise PlcTwinError(f"PLC twin: trigger {trigger_id} was missed")
         if answer.trigger_id != trigger_id:

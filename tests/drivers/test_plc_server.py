@@ -83,9 +83,13 @@ async def test_fixed_station_flow(plc: ServerFactory, order: WordOrder, mirror: 
     assert status.convention_code == RobotConvention.FANUC.code
     ids = [7, 26, 0xFFFF_FFFE]  # 26: a NOK result; the last one needs both words
     for n, tid in enumerate(ids, start=1):
+        t = time.perf_counter()
         answer = await twin.cycle(tid, part_id=f"VIN{tid}")
+        whole = time.perf_counter() - t
         check_result(answer, tid)
         assert answer.result_id == n
+        # trigger → answer is inside the cycle, which also waits for READY and the ACK
+        assert 0.0 < twin.last_answer_s < whole
     assert [q.trigger_id for q in handler.requests] == ids
     assert handler.requests[0].part_id == "VIN7" and handler.requests[0].view_index == 0
     assert server.stats.handshake.results == 3 and server.stats.handshake.missed_triggers == 0
