@@ -235,9 +235,16 @@ def _new_layout(
     ci = np.array(cams, dtype=np.intp)
     template = table.rows(ci, P[mi], np.zeros((n, 2)), np.ones(n))
     T = table.T_rf_from_cf[ci]
-    return _Layout(table, list(keys), ci, mi, mark_ids, P, template, T[:, :3, 3].copy(),
-                   T[:, :3, :3].copy(), int(np.bincount(mi).max()),
-                   group_matrix(mi, len(mark_ids)))
+    layout = _Layout(table, list(keys), ci, mi, mark_ids, P, template, T[:, :3, 3].copy(),
+                     T[:, :3, :3].copy(), int(np.bincount(mi).max()),
+                     group_matrix(mi, len(mark_ids)))
+    # Every problem with this layout shares these arrays: an in-place change would corrupt the
+    # next trigger's, so it raises instead.
+    for a in (*vars(template).values(), ci, mi, P, layout.centres_rf, layout.R_rf_from_cf,
+              layout.mark_rows):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    return layout
 
 
 def build_problem(
