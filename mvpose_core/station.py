@@ -16,6 +16,7 @@ Every model forbids unknown keys, so a typo stops start-up instead of being igno
 from __future__ import annotations
 
 from collections.abc import Iterator
+from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -43,6 +44,15 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+@lru_cache(maxsize=256)
+def _pose_matrix(xyz: Vec3, wpr: Vec3) -> Array:
+    # Every trigger asks for the recipe's reference pose several times; a pose is a frozen
+    # value, so its matrix is computed once. Read-only, as it is shared.
+    T = xyzwpr_to_matrix([*xyz, *wpr])
+    T.flags.writeable = False
+    return T
+
+
 class Pose(_Model):
     """A rigid transform: translation in mm, rotation as FANUC W P R in degrees."""
 
@@ -51,7 +61,8 @@ class Pose(_Model):
 
     @property
     def matrix(self) -> Array:
-        return xyzwpr_to_matrix([*self.xyz, *self.wpr])
+        """The 4x4 transform (read-only: copy it to change it)."""
+        return _pose_matrix(self.xyz, self.wpr)
 
     @classmethod
     def from_matrix(cls, T: Array) -> Pose:
