@@ -61,6 +61,6 @@ EngineerUser = Annotated[Principal, Depends(require(Role.ENGINEER))]
 
 def json_response(model: BaseModel) -> Response:
     """``model`` as JSON by pydantic's own serializer. Returned from an endpoint that declares it
-    as ``response_model`` (for the schema), it skips FastAPI's second validation of an object
-    the server has just built: most of a page request's CPU (MES clients poll these)."""
+    as ``response_model`` (for the schema), it skips FastAPI's second validation and encoding of
+    an object the server has just built (MES clients poll these pages)."""
     return Response(model.model_dump_json(), media_type="application/json")
