@@ -18,6 +18,7 @@ from fastapi import APIRouter, FastAPI
 
 from server.api import PREFIX, api_router
 from server.api.problems import BodyLimitMiddleware, install_problem_handlers
+from server.priority import TriggerFirst, TriggerFirstMiddleware
 from server.settings import Settings
 from server.state import Services, open_services
 
@@ -66,6 +67,10 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     app.state.runtime = runtime
     install_problem_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    gate = getattr(runtime, "gate", None)
+    if isinstance(gate, TriggerFirst):  # outermost: a held request has cost nothing yet
+        app.add_middleware(TriggerFirstMiddleware, gate=gate,
+                           exempt=frozenset({f"{PREFIX}/health/live"}))
     app.include_router(api_router(), prefix=PREFIX)
     if runtime is not None:
         for router in runtime.routers():

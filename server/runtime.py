@@ -49,6 +49,7 @@ from server.pipeline import (
     StationReason,
     TriggerResult,
 )
+from server.priority import TriggerFirst
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
 from server.triggers import LastResult, TriggerRunner
@@ -72,6 +73,9 @@ class RuntimeOptions:
     # Simulated cameras: render the part at the recipe's reference pose at start-up, so that a
     # served simulated station has something to measure (tests and the demo move it themselves).
     sim_part_at_reference: bool = False
+    # HTTP requests arriving during a trigger wait for it to end, at most this long (0: never):
+    # the MES can wait, the PLC cannot (server.priority).
+    rest_yield_ms: float = 100.0
 
 
 def _lower_priority() -> None:
@@ -101,6 +105,7 @@ class StationRuntime:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._watch: asyncio.Task[None] | None = None
+        self.gate = TriggerFirst(self.options.rest_yield_ms / 1000.0)
 
     # ------------------------------------------------------------------ app protocol
     def routers(self) -> Sequence[APIRouter]:
@@ -110,6 +115,7 @@ class StationRuntime:
 
     @asynccontextmanager
     async def lifespan(self, services: Services) -> AsyncIterator[None]:
+        self.gate.bind(asyncio.get_running_loop())  # the HTTP server's loop
         await anyio.to_thread.run_sync(self.start, services)
         try:
             yield
@@ -319,7 +325,12 @@ class StationRuntime:
         at = datetime.now(UTC)
         loop = asyncio.get_running_loop()
         assert self.runner is not None
-        result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0, at)
+        self.gate.begin()
+        try:
+            result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0,
+                                                at)
+        finally:
+            self.gate.end()
         return result.outcome
 
     # ------------------------------------------------------------------ REST entry points
@@ -330,9 +341,13 @@ class StationRuntime:
             raise RuntimeError("runtime not started")
         req = TriggerRequest(trigger_id=REST_TRIGGER_ID, view_index=view_index, robot_pose=None,
                              part_id=part_id or "", recipe=self.active.number)
-        fut: Future[TriggerResult] = self._trigger_exec.submit(
-            self.runner.run, req, time.monotonic(), datetime.now(UTC))
-        return fut.result(timeout=timeout_s)
+        self.gate.begin()
+        try:
+            fut: Future[TriggerResult] = self._trigger_exec.submit(
+                self.runner.run, req, time.monotonic(), datetime.now(UTC))
+            return fut.result(timeout=timeout_s)
+        finally:
+            self.gate.end()
 
     def wait_idle(self, timeout_s: float = 10.0) -> None:
         """Block until every trigger and archive write submitted so far is done (tests, demo)."""
@@ -381,4 +396,6 @@ class StationRuntime:
             "counts": dict(runner.counts) if runner else {},
             "sequence_views": [v.view for v in runner.sequence] if runner else [],
             "last_result": None if last is None else last.__dict__,
+            # HTTP requests that waited for a running trigger (server.priority), since start
+            "rest": {"yield_ms": self.gate.max_wait_s * 1e3, "held_for_triggers": self.gate.held},
         }

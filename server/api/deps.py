@@ -10,6 +10,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel
 
 from server.auth import Principal, Role, authenticate, authorize
+from server.priority import TriggerFirst
 from server.state import Services
 from server.store import Store
 
@@ -42,7 +43,11 @@ def current_principal(
 ) -> Principal:
     # _scheme only documents the bearer scheme in OpenAPI; the raw header is checked here so a
     # wrong scheme gets its own message. A plain def: the look-up is a database query, so
-    # FastAPI runs it in the threadpool, off the event loop.
+    # FastAPI runs it in the threadpool, off the event loop. A trigger that started since the
+    # request came in goes first (server.priority).
+    gate = getattr(getattr(request.app.state, "runtime", None), "gate", None)
+    if isinstance(gate, TriggerFirst):
+        gate.wait_in_thread()
     return authenticate(services.store.tokens, request.headers.get("authorization"))
 
 

@@ -1,0 +1,106 @@
+"""Triggers first: HTTP requests that arrive while a trigger runs wait for it to finish.
+
+The trigger pipeline and the REST API share one process, so one GIL and the same cores: a MES
+page request handled during a trigger takes its CPU from detection (docs/performance.md). The
+MES polls and can wait a few tens of milliseconds; the PLC cannot. So the runtime marks every
+trigger as it starts and ends (:meth:`TriggerFirst.begin` / :meth:`TriggerFirst.end`, from any
+thread), and :class:`TriggerFirstMiddleware` holds each new HTTP request until no trigger runs —
+at most ``max_wait_s``, so the API never starves on a station triggering back to back. A request
+already being handled when a trigger starts is not interrupted. The liveness probe is never held.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+
+class TriggerFirst:
+    """Counts running triggers; lets coroutines on one event loop wait until none runs."""
+
+    def __init__(self, max_wait_s: float = 0.1) -> None:
+        if not max_wait_s >= 0:
+            raise ValueError(f"max_wait_s must be >= 0, got {max_wait_s}")
+        self.max_wait_s = max_wait_s
+        self.waiting = 0  # requests held right now (read by tests and the status page)
+        self.held = 0  # requests that had to wait, since start
+        self._running = 0
+        self._lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._idle: asyncio.Event | None = None
+        self._idle_thread = threading.Event()  # the same state, for threadpool code
+        self._idle_thread.set()
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Attach to the HTTP server's event loop (call from that loop, e.g. in the lifespan)."""
+        with self._lock:
+            self._loop = loop
+            self._idle = asyncio.Event()
+            if self._running == 0:
+                self._idle.set()
+
+    def begin(self) -> None:
+        """A trigger starts (any thread)."""
+        with self._lock:
+            self._running += 1
+            if self._running == 1:
+                self._idle_thread.clear()
+                self._signal(False)
+
+    def end(self) -> None:
+        """That trigger is done, whatever its outcome (any thread)."""
+        with self._lock:
+            self._running = max(0, self._running - 1)
+            if self._running == 0:
+                self._idle_thread.set()
+                self._signal(True)
+
+    @property
+    def busy(self) -> bool:
+        return self._running > 0
+
+    def _signal(self, idle: bool) -> None:
+        # Under the lock: the loop runs these callbacks in the order they were scheduled, so the
+        # event ends in the state of the last begin/end.
+        loop, event = self._loop, self._idle
+        if loop is None or event is None or loop.is_closed():
+            return
+        loop.call_soon_threadsafe(event.set if idle else event.clear)
+
+    async def wait(self) -> None:
+        """Return when no trigger runs, or after ``max_wait_s`` at most."""
+        event = self._idle
+        if event is None or event.is_set() or self.max_wait_s == 0:
+            return
+        self.waiting += 1
+        self.held += 1
+        try:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(event.wait(), self.max_wait_s)
+        finally:
+            self.waiting -= 1
+
+
+    def wait_in_thread(self) -> None:
+        """:meth:`wait` for code in a worker thread (FastAPI's threadpool): a request already
+        past the middleware when a trigger started waits here before its database work."""
+        if self.max_wait_s > 0 and not self._idle_thread.is_set():
+            self.held += 1
+            self._idle_thread.wait(self.max_wait_s)
+
+
+class TriggerFirstMiddleware:
+    """ASGI: every HTTP request but the ``exempt`` paths first awaits :meth:`TriggerFirst.wait`."""
+
+    def __init__(self, app: ASGIApp, gate: TriggerFirst, exempt: frozenset[str]) -> None:
+        self.app = app
+        self.gate = gate
+        self.exempt = exempt
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope.get("path") not in self.exempt:
+            await self.gate.wait()
+        await self.app(scope, receive, send)
