@@ -21,6 +21,17 @@ def _env_int(name: str, default: int) -> int:
             from None
 
 
+def _env_float(name: str, default: float) -> float:
+    raw = os.environ.get(name)
+    if raw is None or raw == "":
+        return default
+    try:
+        return float(raw)
+    except ValueError:
+        raise CliError(f"environment variable {name}: expected a number, got {raw!r}") \
+            from None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--station", type=Path,
                         help="station YAML file (default: $MVPOSE_STATION)")
@@ -36,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detect-processes", type=int, default=None,
                         help="worker processes for mark detection (0 = threads in the server "
                         "process; default: none below 4 cores, else half the cores, at most 4)")
+    parser.add_argument("--rest-yield-ms", type=float, default=None,
+                        help="an HTTP request arriving during a trigger waits for it, at most "
+                        "this long (default MVPOSE_REST_YIELD_MS or 100; 0 = never)")
     parser.add_argument("--log-level", default="info",
                         choices=["debug", "info", "warning", "error"])
 
@@ -79,9 +93,14 @@ def run(args: argparse.Namespace) -> int:
         args.detect_processes = auto_detect_processes()
     if args.detect_processes < 0:
         raise CliError(f"--detect-processes must be >= 0, got {args.detect_processes}")
+    rest_yield_ms = (args.rest_yield_ms if args.rest_yield_ms is not None
+                     else _env_float("MVPOSE_REST_YIELD_MS", 100.0))
+    if not 0.0 <= rest_yield_ms <= 1000.0:
+        raise CliError(f"--rest-yield-ms must be within 0 ... 1000, got {rest_yield_ms}")
     runtime = StationRuntime(station, RuntimeOptions(
         plc_host=plc_host, plc_port=plc_port, sim_part_at_reference=True,
-        pipeline=PipelineOptions(detect_processes=args.detect_processes)))
+        pipeline=PipelineOptions(detect_processes=args.detect_processes),
+        rest_yield_ms=rest_yield_ms))
     app = create_app(settings, runtime)
     print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 "
           f"(docs /docs), Modbus/TCP {plc_host}:{plc_port}", flush=True)

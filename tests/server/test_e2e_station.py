@@ -199,3 +199,17 @@ def test_malformed_station_file_stops_startup_naming_file_field_value(
     assert rc == 2
     assert str(path) in err and "cameras[1](top_right).intrinsics.fx" in err and "-2909.1" in err
     assert not (tmp_path / "var").exists(), "nothing opened before the station file was valid"
+
+
+def test_a_bad_rest_yield_stops_startup_naming_the_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = station_file(tmp_path, "station1")
+    base = ["serve", "--station", str(path), "--port", "0", "--plc-port", "0",
+            "--data-dir", str(tmp_path / "var")]
+    assert cli_main([*base, "--rest-yield-ms", "-5"]) == 2
+    assert "--rest-yield-ms must be within 0 ... 1000, got -5.0" in capsys.readouterr().err
+    monkeypatch.setenv("MVPOSE_REST_YIELD_MS", "soon")
+    assert cli_main(base) == 2
+    assert "MVPOSE_REST_YIELD_MS: expected a number, got 'soon'" in capsys.readouterr().err
+    assert not (tmp_path / "var").exists(), "nothing opened before the options were valid"
