@@ -6,30 +6,25 @@ import argparse
 import logging
 import os
 from pathlib import Path
+from typing import TypeVar
 
 from server.cli import CliError
 
+_N = TypeVar("_N", int, float)
 
-def _env_int(name: str, default: int) -> int:
+
+def _number(given: _N | None, name: str, default: _N, kind: type[_N], what: str) -> _N:
+    """The command-line value if given, else ``$name`` as ``kind``, else ``default``; a bad
+    environment value names the variable."""
+    if given is not None:
+        return given
     raw = os.environ.get(name)
     if raw is None or raw == "":
         return default
     try:
-        return int(raw)
+        return kind(raw)
     except ValueError:
-        raise CliError(f"environment variable {name}: expected a port number, got {raw!r}") \
-            from None
-
-
-def _env_float(name: str, default: float) -> float:
-    raw = os.environ.get(name)
-    if raw is None or raw == "":
-        return default
-    try:
-        return float(raw)
-    except ValueError:
-        raise CliError(f"environment variable {name}: expected a number, got {raw!r}") \
-            from None
+        raise CliError(f"environment variable {name}: expected {what}, got {raw!r}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,15 +81,14 @@ def run(args: argparse.Namespace) -> int:
     except StationFileError as err:
         raise CliError(str(err)) from None
     host = args.host or os.environ.get("MVPOSE_HOST") or "127.0.0.1"
-    port = args.port if args.port is not None else _env_int("MVPOSE_PORT", 8000)
+    port = _number(args.port, "MVPOSE_PORT", 8000, int, "a port number")
     plc_host = args.plc_host or os.environ.get("MVPOSE_PLC_HOST") or "127.0.0.1"
-    plc_port = args.plc_port if args.plc_port is not None else _env_int("MVPOSE_PLC_PORT", 502)
+    plc_port = _number(args.plc_port, "MVPOSE_PLC_PORT", 502, int, "a port number")
     if args.detect_processes is None:
         args.detect_processes = auto_detect_processes()
     if args.detect_processes < 0:
         raise CliError(f"--detect-processes must be >= 0, got {args.detect_processes}")
-    rest_yield_ms = (args.rest_yield_ms if args.rest_yield_ms is not None
-                     else _env_float("MVPOSE_REST_YIELD_MS", 100.0))
+    rest_yield_ms = _number(args.rest_yield_ms, "MVPOSE_REST_YIELD_MS", 100.0, float, "a number")
     if not 0.0 <= rest_yield_ms <= 1000.0:
         raise CliError(f"--rest-yield-ms must be within 0 ... 1000, got {rest_yield_ms}")
     runtime = StationRuntime(station, RuntimeOptions(
