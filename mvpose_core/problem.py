@@ -9,14 +9,13 @@ path is vectorised; the per-observation loop only runs to name a culprit.
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from threading import Lock
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, collinearity
 from mvpose_core.refine import Array, Packed
@@ -110,8 +109,7 @@ class Problem:
     mark_rows: Array  # [M, N] one-hot: which observations are of mark m (triangulation)
 
 
-_TABLES: OrderedDict[tuple[int, ...], tuple[tuple[ViewCamera, ...], CameraTable]] = OrderedDict()
-_TABLES_LOCK = Lock()
+_TABLES: IdentityCache[CameraTable] = IdentityCache(16)
 
 
 def _camera_table(cameras: Sequence[ViewCamera]) -> CameraTable:
@@ -121,18 +119,7 @@ def _camera_table(cameras: Sequence[ViewCamera]) -> CameraTable:
     arrays is a fifth of an estimate's time. An entry is used only for the very same (frozen)
     camera objects, so a new flange pose or calibration never meets a stale table.
     """
-    key = tuple(id(c) for c in cameras)
-    with _TABLES_LOCK:
-        hit = _TABLES.get(key)
-        if hit is not None and all(a is b for a, b in zip(hit[0], cameras, strict=True)):
-            _TABLES.move_to_end(key)
-            return hit[1]
-    table = CameraTable.of(cameras)
-    with _TABLES_LOCK:
-        _TABLES[key] = (tuple(cameras), table)
-        while len(_TABLES) > 16:
-            _TABLES.popitem(last=False)
-    return table
+    return _TABLES.get(tuple(cameras), None, lambda: CameraTable.of(cameras))
 
 
 def _marks(marks_pf: Mapping[str, np.ndarray], ids: Sequence[str]) -> Array:
@@ -175,33 +162,24 @@ class _Layout:
     mark_rows: Array  # [M, N]
 
 
-_LAYOUTS: OrderedDict[tuple[int, tuple[tuple[int, str, str], ...]], _Layout] = OrderedDict()
+_LAYOUTS: IdentityCache[_Layout] = IdentityCache(32)
 
 
 def _layout(
     table: CameraTable, keys: list[tuple[int, str, str]], marks_pf: Mapping[str, np.ndarray]
 ) -> _Layout:
-    """The layout of ``keys``, remembered for the last few (camera table, keys).
+    """The layout of ``keys``, remembered for the last few (camera table, keys, positions).
 
     A station sees the same marks in the same cameras trigger after trigger; checking and
     packing that structure is half of :func:`build_problem`. An entry is used only for the very
-    same camera table object and, after the mark positions are compared, the same positions.
+    same camera table object, the same observation keys and the same mark positions.
     """
-    ck = (id(table), tuple(keys))
-    with _TABLES_LOCK:
-        hit = _LAYOUTS.get(ck)
-        if hit is not None and hit.table is table:
-            _LAYOUTS.move_to_end(ck)
-    if hit is not None and hit.table is table:
-        P = _marks(marks_pf, hit.mark_ids)
-        if np.array_equal(P, hit.P):
-            return hit
-    layout = _new_layout(table, keys, marks_pf)
-    with _TABLES_LOCK:
-        _LAYOUTS[ck] = layout
-        while len(_LAYOUTS) > 32:
-            _LAYOUTS.popitem(last=False)
-    return layout
+    try:
+        P = _marks(marks_pf, sorted({m for _, _, m in keys}))
+    except PoseInputError:  # built (and refused, in the order of its checks) uncached
+        return _new_layout(table, keys, marks_pf)
+    return _LAYOUTS.get((table,), (tuple(keys), P.tobytes()),
+                        lambda: _new_layout(table, keys, marks_pf))
 
 
 def _new_layout(

@@ -24,6 +24,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.detect import DetectOptions, MarkDetection, detect_marks
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -69,10 +70,8 @@ class DetectPool:
         self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
                                          initializer=_init_worker)
         self._blocks: dict[str, shared_memory.SharedMemory] = {}
-        # (camera, recipe) pairs sent so far, by identity: token and pickled bytes. The objects
-        # are held here, so an id is never reused for another object while its entry exists.
-        self._sent: OrderedDict[tuple[int, int], tuple[int, bytes, ViewCamera, RecipeConfig]] = (
-            OrderedDict())
+        # (camera, recipe) pairs sent so far, by identity: their token and pickled bytes.
+        self._sent: IdentityCache[tuple[int, bytes]] = IdentityCache(_MODELS_KEPT)
         self._tokens = itertools.count(1)
         # Import the detector in every worker now, not in the first trigger.
         for f in [self._pool.submit(_warm) for _ in range(workers)]:
@@ -102,15 +101,8 @@ class DetectPool:
         return self._pool.submit(_detect, block.name, shape, token, models, prior, options)
 
     def _token(self, cam: ViewCamera, recipe: RecipeConfig) -> tuple[int, bytes]:
-        key = (id(cam), id(recipe))
-        hit = self._sent.get(key)
-        if hit is None or hit[2] is not cam or hit[3] is not recipe:
-            hit = (next(self._tokens), pickle.dumps((cam, recipe)), cam, recipe)
-            self._sent[key] = hit
-            while len(self._sent) > _MODELS_KEPT:
-                self._sent.popitem(last=False)
-        self._sent.move_to_end(key)
-        return hit[0], hit[1]
+        return self._sent.get((cam, recipe), None,
+                              lambda: (next(self._tokens), pickle.dumps((cam, recipe))))
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)

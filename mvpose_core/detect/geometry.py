@@ -8,12 +8,11 @@ fitted to it exactly as the detector fits one to edge points (:func:`fit_ellipse
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass
-from threading import Lock
 
 import numpy as np
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.scene import ProjectedMark, ViewCamera, project_recipe_marks
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
@@ -211,11 +210,7 @@ _DIRS = np.concatenate(
 )
 
 
-_CACHE_SIZE = 32
-_cache: OrderedDict[tuple[object, ...], tuple[ViewCamera, RecipeConfig, list[MarkPrediction]]] = (
-    OrderedDict()
-)
-_cache_lock = Lock()
+_PREDICTIONS: IdentityCache[list[MarkPrediction]] = IdentityCache(32)
 
 
 def predict_marks_cached(
@@ -232,18 +227,10 @@ def predict_marks_cached(
     (both are frozen), so a changed station or recipe never gets a stale prediction.
     """
     T = np.ascontiguousarray(T_rf_from_pf, dtype=float)
-    key = (id(cam), id(recipe), T.tobytes(), float(size_tolerance), float(shape_slack_deg))
-    with _cache_lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0] is cam and hit[1] is recipe:
-            _cache.move_to_end(key)
-            return hit[2]
-    preds = predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg)
-    with _cache_lock:
-        _cache[key] = (cam, recipe, preds)
-        while len(_cache) > _CACHE_SIZE:
-            _cache.popitem(last=False)
-    return preds
+    return _PREDICTIONS.get(
+        (cam, recipe), (T.tobytes(), float(size_tolerance), float(shape_slack_deg)),
+        lambda: predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg),
+    )
 
 
 def predict_marks(

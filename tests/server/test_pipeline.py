@@ -216,11 +216,11 @@ async def test_detection_in_worker_processes_matches_detection_in_process(tmp_pa
         assert len(blocks) == 4
         # Each (camera, recipe) pair went to the workers pickled once, under one token; the
         # next trigger reuses them (the workers keep the objects, so their caches hit).
-        tokens = {k: v[0] for k, v in rt.pipeline._procs._sent.items()}
+        tokens = sorted(token for token, _ in rt.pipeline._procs._sent.values())
         assert len(tokens) == 4
         status, _ = await trigger(lb.twin, recipe, 6, T)
         assert status.result_code == 0
-        assert {k: v[0] for k, v in rt.pipeline._procs._sent.items()} == tokens
+        assert sorted(token for token, _ in rt.pipeline._procs._sent.values()) == tokens
         cams = rt.pipeline.view_cameras(1, None)
         for cd in rec.detections:
             here = detect_marks(rt.scene.frame(cd.camera_id), cams[cd.camera_id], recipe,
