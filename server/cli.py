@@ -6,6 +6,11 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mvpose_core.station import RecipeConfig, StationConfig
 
 # name -> (module, one-line help). Each module defines ``add_arguments(parser)`` and
 # ``run(args) -> int``; importing lazily keeps ``mvpose --help`` fast and free of heavy imports.
@@ -23,6 +28,24 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 class CliError(Exception):
     """A user error: printed as one line, exit code 2."""
+
+
+def load_station_file(path: Path) -> StationConfig:
+    """The station file; a malformed one is a CliError naming file, field and value."""
+    from mvpose_core.station import StationFileError, load_station
+
+    try:
+        return load_station(path)
+    except StationFileError as err:
+        raise CliError(str(err)) from None
+
+
+def station_recipe(station: StationConfig, name: str | None) -> RecipeConfig:
+    """One of the station's recipes (None: its default); an unknown name is a CliError."""
+    try:
+        return station.recipe(name)
+    except KeyError as err:
+        raise CliError(str(err.args[0])) from None
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

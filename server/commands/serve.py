@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import TypeVar
 
-from server.cli import CliError
+from server.cli import CliError, load_station_file
 
 _N = TypeVar("_N", int, float)
 
@@ -54,7 +54,6 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
     from pydantic import ValidationError
 
-    from mvpose_core.station import StationFileError, load_station
     from server.app import create_app
     from server.pipeline import PipelineOptions, auto_detect_processes
     from server.runtime import RuntimeOptions, StationRuntime
@@ -75,11 +74,8 @@ def run(args: argparse.Namespace) -> int:
                        f"(value: {first.get('input')!r})") from None
     if settings.station is None:
         raise CliError("no station file: pass --station FILE or set MVPOSE_STATION")
-    try:
-        # Checked here too, so a malformed file stops start-up before anything opens.
-        station = load_station(settings.station)
-    except StationFileError as err:
-        raise CliError(str(err)) from None
+    # Checked here too, so a malformed file stops start-up before anything opens.
+    station = load_station_file(settings.station)
     host = args.host or os.environ.get("MVPOSE_HOST") or "127.0.0.1"
     port = _number(args.port, "MVPOSE_PORT", 8000, int, "a port number")
     plc_host = args.plc_host or os.environ.get("MVPOSE_PLC_HOST") or "127.0.0.1"

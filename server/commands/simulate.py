@@ -13,8 +13,7 @@ from tqdm import tqdm
 from mvpose_core.simulation.montecarlo import run_points, summarise
 from mvpose_core.simulation.planning import PlanningError, plan_station
 from mvpose_core.simulation.studies import HANDEYE_LEVELS, STUDIES, get_study
-from mvpose_core.station import StationFileError, load_station
-from server.cli import CliError
+from server.cli import CliError, load_station_file, station_recipe
 from server.simulation_output import plan_report, plot_study, write_csv
 
 CHOICES = (*STUDIES, "all", "plan")
@@ -118,14 +117,8 @@ def _plan(args: argparse.Namespace) -> int:
     noise = args.detector_noise
     if noise is not None and not (np.isfinite(noise) and noise > 0):
         raise CliError(f"--detector-noise must be a positive number of pixels, got {noise}")
-    try:
-        station = load_station(args.station)
-    except StationFileError as err:
-        raise CliError(str(err)) from None
-    try:
-        recipe = station.recipe(args.recipe)
-    except KeyError as err:
-        raise CliError(str(err.args[0])) from None
+    station = load_station_file(args.station)
+    recipe = station_recipe(station, args.recipe)
     level = HANDEYE_LEVELS["zero"]
     if args.handeye is not None:
         if args.handeye not in HANDEYE_LEVELS:

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mvpose_core.station import StationFileError, load_station
-from server.cli import CliError
+from server.cli import CliError, load_station_file, station_recipe
 from server.validation import ValidationError, read_offsets_csv, validate_offsets
 
 
@@ -28,14 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        station = load_station(args.station)
-    except StationFileError as err:
-        raise CliError(str(err)) from None
-    try:
-        recipe = station.recipe(args.recipe)
-    except KeyError as err:
-        raise CliError(str(err.args[0])) from None
+    station = load_station_file(args.station)
+    recipe = station_recipe(station, args.recipe)
     try:
         truth = read_offsets_csv(args.truth, recipe, args.key)
         measured = read_offsets_csv(args.measured, recipe, args.key)
