@@ -166,10 +166,10 @@ async def _main() -> int:
 
 
 def _bare_detection(runtime: Any) -> Timing:
-    """The trigger's detection work alone: the same four frames, one after the other, in this
-    process with nothing else running (no triggers, no PLC polls, no REST)."""
+    """The trigger's detection work alone: the same four frames in one batch, in one thread of
+    this process with nothing else running (no triggers, no PLC polls, no REST)."""
     from bench.timing import measure
-    from mvpose_core.detect import detect_marks
+    from mvpose_core.detect import detect_marks_many
 
     recipe = runtime.active.config
     cams = runtime.pipeline.view_cameras(runtime.station.views[0].id, None)
@@ -177,7 +177,7 @@ def _bare_detection(runtime: Any) -> Timing:
     opts = runtime.pipeline.options.detect
     prior = recipe.T_rf_from_pf0.matrix
     return measure("detect 4 frames, one thread, idle process",
-                   lambda: [detect_marks(f, cam, recipe, prior, opts) for f, cam in frames],
+                   lambda: detect_marks_many(frames, recipe, prior, opts),
                    repeat=100, warmup=10)
 
 

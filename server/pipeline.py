@@ -3,8 +3,9 @@
 One trigger, in order (every stage timed, the times go into the record)::
 
     capture   every camera of the view at once (CaptureGroup, one deadline)
-    detect    each image in windows predicted from the recipe at the taught reference pose,
-              one worker per image (OpenCV releases the GIL)
+    detect    each image in windows predicted from the recipe at the taught reference pose: the
+              windows searched on the detection threads (OpenCV releases the GIL), then every
+              candidate of every image measured in one batch
     measure   estimate + offset + uncertainty + gate (mvpose_core.measure) from every observation
               of every view gathered so far
     correct   the perspective correction of each centre recomputed at the estimated pose (detect
@@ -36,7 +37,13 @@ import numpy as np
 from drivers.cameras import CaptureGroup, DriverError, Frame
 from drivers.plc.codecs import pose_to_plc
 from drivers.plc.seam import TriggerOutcome
-from mvpose_core.detect import DetectOptions, MarkDetection, detect_marks, recorrect
+from mvpose_core.detect import (
+    DetectOptions,
+    MarkDetection,
+    check_image,
+    detect_marks_many,
+    recorrect,
+)
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.gate import ReasonCode
 from mvpose_core.measure import Measurement, measure
@@ -194,7 +201,9 @@ class Pipeline:
         except DriverError as group_err:  # the group itself failed: so did each of its cameras
             grabbed = {cid: group_err for cid in cams}
         vcap.timings_ms["capture"] = (time.monotonic() - t) * 1e3
+        prior = recipe.T_rf_from_pf0.matrix
         jobs = {}
+        batch: list[tuple[str, np.ndarray, ViewCamera]] = []
         t = time.monotonic()
         for cid, vc in cams.items():
             res = grabbed.get(cid)
@@ -202,13 +211,15 @@ class Pipeline:
                 continue  # this camera sees nothing of this part in this view
             if isinstance(res, Frame):
                 vcap.frames[cid] = res.image
-                prior = recipe.T_rf_from_pf0.matrix
+                try:  # a bad image fails its own camera only, with the detector's words
+                    image = check_image(res.image, vc.model, f"camera {vc.key!r}")
+                except ValueError as err:
+                    self._detect_failed(vcap, recipe, cid, err)
+                    continue
                 if self._procs is not None:
-                    jobs[cid] = self._procs.submit(vc, res.image, recipe, prior,
-                                                   self.options.detect)
+                    jobs[cid] = self._procs.submit(vc, image, recipe, prior, self.options.detect)
                 else:
-                    jobs[cid] = self._pool.submit(detect_marks, res.image, vc, recipe, prior,
-                                                  self.options.detect)
+                    batch.append((cid, image, vc))
             else:
                 failed = res if isinstance(res, DriverError) else DriverError(
                     f"camera {cid!r}: no result")
@@ -217,17 +228,28 @@ class Pipeline:
                     MarkDetection.missing(m, f"camera: {failed}")
                     for m in sighted_marks(recipe, view, cid)
                 ]
+        if batch:
+            # One call for the view's images: their windows are searched on the pool's
+            # threads, and all their candidates measured in one batch (mvpose_core.detect).
+            found = detect_marks_many([(img, vc) for _, img, vc in batch], recipe, prior,
+                                      self.options.detect, map_fn=self._pool.map)
+            for (cid, _, _), dets in zip(batch, found, strict=True):
+                vcap.detections[cid] = dets
         for cid, fut in jobs.items():
             try:
                 vcap.detections[cid] = fut.result()
             except ValueError as err:  # the detector's refusal of a bad image names the problem
-                vcap.camera_errors[cid] = f"detection: {err}"
-                vcap.detections[cid] = [
-                    MarkDetection.missing(m, f"detection: {err}")
-                    for m in sighted_marks(recipe, view, cid)
-                ]
+                self._detect_failed(vcap, recipe, cid, err)
         vcap.timings_ms["detect"] = (time.monotonic() - t) * 1e3
         return vcap
+
+    @staticmethod
+    def _detect_failed(vcap: ViewCapture, recipe: RecipeConfig, cid: str, err: Exception) -> None:
+        vcap.camera_errors[cid] = f"detection: {err}"
+        vcap.detections[cid] = [
+            MarkDetection.missing(m, f"detection: {err}")
+            for m in sighted_marks(recipe, vcap.view, cid)
+        ]
 
     # ------------------------------------------------------------------ measure + record
     def conclude(

@@ -21,7 +21,7 @@ from mvpose_core.detect.geometry import (
 from mvpose_core.detect.search import identify_marks, search_marks
 from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
-from mvpose_core.detect.window import detect_marks
+from mvpose_core.detect.window import detect_marks, detect_marks_many
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
@@ -35,6 +35,7 @@ __all__ = [
     "check_image",
     "correct_centres",
     "detect_marks",
+    "detect_marks_many",
     "epipolar_distance_px",
     "identify_marks",
     "perspective_correction",

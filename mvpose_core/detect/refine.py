@@ -9,6 +9,7 @@ illumination gradient does not pull the edge), and an ellipse is fitted to the e
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -126,14 +127,20 @@ def _ray_grid(n_rays: int, half: float) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 def _rays(
-    image: np.ndarray, ell: Ellipses, n_rays: int, half: float, dark: bool
+    images: Sequence[np.ndarray],
+    owner: np.ndarray,
+    ell: Ellipses,
+    n_rays: int,
+    half: float,
+    dark: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px.
 
-    Returns profiles ``[C, R, S]`` (increasing outwards for the recipe's polarity), the radius of
-    every sample, the ray angles ``[R]`` and which rays lie wholly inside the image ``[C, R]``.
-    Sampling is OpenCV's bilinear ``remap`` (1/32 px positions, 8-bit values): both
-    quantisations are far below the noise and average out over the rim.
+    Candidate ``c`` lies in ``images[owner[c]]``. Returns profiles ``[C, R, S]`` (increasing
+    outwards for the recipe's polarity), the radius of every sample, the ray angles ``[R]`` and
+    which rays lie wholly inside their image ``[C, R]``. Sampling is OpenCV's bilinear ``remap``
+    (1/32 px positions, 8-bit values): both quantisations are far below the noise and average
+    out over the rim.
     """
     phi, cos, sin, t = _ray_grid(n_rays, half)
     radii = ell.radius_towards(phi).astype(np.float32)[:, :, None] + t  # [C, R, S]
@@ -142,25 +149,40 @@ def _rays(
     cv = ell.centre[:, 1].astype(np.float32)[:, None, None]
     u = cu + radii * cos
     v = cv + radii * sin
-    H, W = image.shape
+    C, R, S = radii.shape
+    sizes = np.array([im.shape for im in images], dtype=np.float32)[owner]  # [C, 2] = (H, W)
+    H, W = sizes[:, 0, None, None], sizes[:, 1, None, None]
     # A ray is a straight segment: it is inside the image when both of its ends are.
     ends_u, ends_v = u[..., [0, -1]], v[..., [0, -1]]
     inside = np.all((ends_u >= 0) & (ends_u < W - 1) & (ends_v >= 0) & (ends_v < H - 1), axis=2)
-    C, R, S = radii.shape
-    prof = (
-        cv2.remap(
-            image,
-            u.reshape(C * R, S),
-            v.reshape(C * R, S),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
-        .reshape(C, R, S)
-        .astype(np.float32)
-    )
+    if len(images) == 1:
+        prof = _remap(images[0], u.reshape(C * R, S), v.reshape(C * R, S)).reshape(C, R, S)
+    else:
+        prof = np.empty((C, R, S), dtype=np.uint8)
+        for k, image in enumerate(images):
+            rows = np.flatnonzero(owner == k)
+            if rows.size:
+                n = rows.size * R
+                prof[rows] = _remap(image, u[rows].reshape(n, S), v[rows].reshape(n, S)).reshape(
+                    rows.size, R, S
+                )
+    out = prof.astype(np.float32)
     if not dark:
-        prof = -prof  # the same code then finds light marks on a dark surface
-    return prof, radii, phi, inside
+        out = -out  # the same code then finds light marks on a dark surface
+    return out, radii, phi, inside
+
+
+def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at ``(u, v)`` (float32 ``[N, S]``), in chunks of rows that
+    OpenCV's ``remap`` accepts (fewer than 32767)."""
+    step = 32000
+    if len(u) <= step:
+        return cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.concatenate([
+        cv2.remap(image, u[k : k + step], v[k : k + step], cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE)
+        for k in range(0, len(u), step)
+    ])
 
 
 def _crossings(prof: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,12 +214,30 @@ def measure_many(
     min_edge_fraction: float,
     search_px: float,
 ) -> list[Measurement]:
+    """:func:`measure_in` for candidates of one image."""
+    return measure_in(
+        [image], np.zeros(len(starts), dtype=np.intp), starts, dark, min_contrast,
+        max_fit_residual_px, min_edge_fraction, search_px,
+    )
+
+
+def measure_in(
+    images: Sequence[np.ndarray],
+    owner: np.ndarray,
+    starts: list[Ellipse],
+    dark: bool,
+    min_contrast: float,
+    max_fit_residual_px: float,
+    min_edge_fraction: float,
+    search_px: float,
+) -> list[Measurement]:
     """Sub-pixel edge points and the ellipse through them, for many candidates at once.
 
-    Two passes: 16 rays searching ± ``search_px`` around the start ellipse locate the rim; then
-    up to 96 rays within ± 3 px of that rim give the final edge points and fit. Every step is
-    one array operation over all candidates (a Python loop per candidate would cost more than
-    the arithmetic).
+    Candidate ``k`` starts from ``starts[k]`` in ``images[owner[k]]``: the candidates of several
+    images (the cameras of one trigger) are measured together. Two passes: 16 rays searching
+    ± ``search_px`` around the start ellipse locate the rim; then up to 96 rays within ± 3 px of
+    that rim give the final edge points and fit. Every step is one array operation over all
+    candidates (a Python loop per candidate, or per image, would cost more than the arithmetic).
     """
     if not starts:
         return []
@@ -206,7 +246,7 @@ def measure_many(
     failed = np.zeros(C, dtype=int)  # 0 = fine, else 1 + index into _FAILURES
     n_fine = int(min(max(4.0 * float(ell.radius.max()), 32.0), 96.0))  # ~1.5 px of rim per ray
     for n_rays, half in ((16, search_px), (n_fine, 3.0)):
-        prof, radii, phi, inside = _rays(image, ell, n_rays, half, dark)
+        prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark)
         edge_r, ray_contrast, crossed = _crossings(prof, radii)
         contrast = _row_median(ray_contrast)
         good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])

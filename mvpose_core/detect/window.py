@@ -9,13 +9,14 @@ total distance to the predictions), so two marks never take the same blob.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
-from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_many
+from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -30,7 +31,71 @@ def detect_marks(
     options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
 ) -> list[MarkDetection]:
     """One detection per mark the recipe expects ``cam`` to see: found, or the reason why not."""
-    image = check_image(image, cam.model, f"camera {cam.key!r}")
+    return detect_marks_many([(image, cam)], recipe, T_rf_from_pf_prior, options)[0]
+
+
+def detect_marks_many(
+    frames: Sequence[tuple[np.ndarray, ViewCamera]],
+    recipe: RecipeConfig,
+    T_rf_from_pf_prior: Array,
+    options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
+    map_fn: Callable[..., Iterable[_Search]] = map,
+) -> list[list[MarkDetection]]:
+    """:func:`detect_marks` for the images of several cameras of one part, in their order.
+
+    The candidates of each image are searched by ``map_fn`` (give a thread pool's ``map`` to
+    search the images in parallel: the search is OpenCV, which releases the GIL); all candidates
+    of all images are then measured in one batch, which costs little more than one image's.
+    The measurement's ray count and search length follow the batch's largest candidate, as they
+    follow one image's alone: a centre can differ from the one-image result by less than the
+    detector's noise (tested: < 0.01 px). A bad image raises ``ValueError`` naming its camera.
+    """
+    checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
+    searches = list(
+        map_fn(lambda fc: _search(fc[0], fc[1], recipe, T_rf_from_pf_prior, options), checked)
+    )
+    owner = np.array([k for k, s in enumerate(searches) for _ in s.cands], dtype=np.intp)
+    measured: list[Measurement] = []
+    if len(owner):
+        r_max = max(c.ellipse.radius for s in searches for _, c in s.cands)
+        scale = min(s.scale for s in searches if s.cands)
+        measured = measure_in(
+            [img for img, _ in checked],
+            owner,
+            [c.ellipse for s in searches for _, c in s.cands],
+            recipe.polarity == "dark_on_light",
+            options.min_contrast,
+            options.max_fit_residual_px,
+            options.min_edge_fraction,
+            search_px=2.0 + scale + 0.1 * r_max,
+        )
+    out = []
+    first = 0
+    for s in searches:
+        n = len(s.cands)
+        out.append(_conclude(s, measured[first : first + n], options))
+        first += n
+    return out
+
+
+@dataclass
+class _Search:
+    """One image's windows and the candidate blobs found in them, before measurement."""
+
+    preds: list[MarkPrediction]
+    results: dict[str, MarkDetection]  # per mark: missing (with the reason) until accepted
+    live: list[MarkPrediction]  # the predictions whose window lies in the image
+    cands: list[tuple[int, Candidate]]  # (index in live, blob): one entry per distinct blob
+    scale: int  # the finest reduction any window was searched at
+
+
+def _search(
+    image: np.ndarray,
+    cam: ViewCamera,
+    recipe: RecipeConfig,
+    T_rf_from_pf_prior: Array,
+    options: DetectOptions,
+) -> _Search:
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg
     )
@@ -55,7 +120,7 @@ def detect_marks(
         results[mid] = MarkDetection.missing(mid, "nothing mark-like in window")
         live.append(p)
         boxes.append(box)
-    cands: list[tuple[int, Candidate]] = []  # (index in live, blob) — one entry per distinct blob
+    cands: list[tuple[int, Candidate]] = []
     scale = 8
     for members, region in _merge_windows(boxes):
         # Large tolerances make the windows of one camera's marks overlap almost entirely:
@@ -80,24 +145,18 @@ def detect_marks(
             if inside:
                 k = min(inside, key=lambda j: math.hypot(cu - live[j].uv[0], cv - live[j].uv[1]))
                 cands.append((k, c))
-    if not cands:
-        return [results[p.mark.mark_id] for p in preds]
-    r_max = max(c.ellipse.radius for _, c in cands)
-    measured = measure_many(
-        image,
-        [c.ellipse for _, c in cands],
-        dark,
-        options.min_contrast,
-        options.max_fit_residual_px,
-        options.min_edge_fraction,
-        search_px=2.0 + scale + 0.1 * r_max,
-    )
+    return _Search(list(preds), results, live, cands, scale)
+
+
+def _conclude(
+    s: _Search, measured: list[Measurement], options: DetectOptions
+) -> list[MarkDetection]:
+    """Accept the measured blobs that look like their marks and give each mark at most one."""
+    results = s.results
     accepted: list[MarkDetection] = []
-    nearest = np.full(
-        len(live), np.inf
-    )  # a missing mark reports what was wrong with its nearest blob
-    for (k, c), m in zip(cands, measured, strict=True):
-        p = live[k]
+    nearest = np.full(len(s.live), np.inf)  # a missing mark reports its nearest blob's fault
+    for (k, c), m in zip(s.cands, measured, strict=True):
+        p = s.live[k]
         det, why = _check(m, p)
         if det is not None:
             accepted.append(det)
@@ -109,8 +168,8 @@ def detect_marks(
                 contrast=m.contrast,
                 fit_residual_px=m.fit_residual_px,
             )
-    _assign(live, accepted, results, options)
-    return [results[p.mark.mark_id] for p in preds]
+    _assign(s.live, accepted, results, options)
+    return [results[p.mark.mark_id] for p in s.preds]
 
 
 def _holds(box: tuple[int, int, int, int], u: float, v: float) -> bool:
