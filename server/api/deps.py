@@ -45,14 +45,25 @@ def current_principal(
     # wrong scheme gets its own message. A plain def: the look-up is a database query, so
     # FastAPI runs it in the threadpool, off the event loop. A trigger that started since the
     # request came in goes first (server.priority).
-    gate = getattr(getattr(request.app.state, "runtime", None), "gate", None)
-    if isinstance(gate, TriggerFirst):
+    gate = _gate(request)
+    if gate is not None:
         gate.wait_in_thread()
     return authenticate(services.store.tokens, request.headers.get("authorization"))
 
 
-def require(role: Role) -> Callable[[Principal], Awaitable[Principal]]:
-    async def dependency(principal: Annotated[Principal, Depends(current_principal)]) -> Principal:
+def _gate(request: Request) -> TriggerFirst | None:
+    gate = getattr(getattr(request.app.state, "runtime", None), "gate", None)
+    return gate if isinstance(gate, TriggerFirst) else None
+
+
+def require(role: Role) -> Callable[..., Awaitable[Principal]]:
+    async def dependency(
+        request: Request, principal: Annotated[Principal, Depends(current_principal)]
+    ) -> Principal:
+        # Triggers first, again: one that started during the token look-up goes before the
+        # endpoint's work (server.priority).
+        if (gate := _gate(request)) is not None:
+            await gate.wait()
         return authorize(principal, role)
 
     dependency.__name__ = f"require_{role.value}"
@@ -62,6 +73,20 @@ def require(role: Role) -> Callable[[Principal], Awaitable[Principal]]:
 ReadUser = Annotated[Principal, Depends(require(Role.READ))]
 OperatorUser = Annotated[Principal, Depends(require(Role.OPERATOR))]
 EngineerUser = Annotated[Principal, Depends(require(Role.ENGINEER))]
+
+
+def _no_pause() -> None:
+    return None
+
+
+async def get_pause(request: Request) -> Callable[[], None]:
+    """A checkpoint for an endpoint's own long work in the threadpool: it returns at once, or
+    when the trigger that started meanwhile has ended (server.priority)."""
+    gate = _gate(request)
+    return gate.wait_in_thread if gate is not None else _no_pause
+
+
+PauseDep = Annotated[Callable[[], None], Depends(get_pause)]
 
 
 def json_response(model: BaseModel) -> Response:

@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
-from server.api.deps import ReadUser, ServicesDep, StoreDep, json_response
+from server.api.deps import PauseDep, ReadUser, ServicesDep, StoreDep, json_response
 from server.errors import NotFoundError
 from server.store.chain import canonical_json
 from server.store.schemas import (
@@ -67,11 +67,13 @@ def list_measurements(
     _: ReadUser,
     store: StoreDep,
     filters: FilterDep,
+    pause: PauseDep,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> Response:
     """Measurements, newest first; pass next_cursor back as cursor for the next page."""
-    items, next_cursor = store.measurements.summary_page(filters, cursor, limit)
+    items, next_cursor = store.measurements.summary_page(filters, cursor, limit, pause=pause)
+    pause()
     return json_response(MeasurementPage(items=items, next_cursor=next_cursor))
 
 

@@ -139,7 +139,7 @@ def test_database_work_never_runs_on_the_event_loop() -> None:
     (a thread hop each would cost more than they do). A coroutine endpoint that queried the
     store would block every other request for the duration of the query."""
     async_ok = {"live"}
-    pure_deps = {"get_services", "get_store", "measurement_filter", "require_read",
+    pure_deps = {"get_services", "get_store", "get_pause", "measurement_filter", "require_read",
                  "require_operator", "require_engineer"}
     routes = list(_api_routes(api_router()))
     assert len(routes) >= 20

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
@@ -123,3 +124,40 @@ async def test_http_requests_wait_for_a_running_trigger_but_liveness_does_not(
             rest = (await api.get("/station/status")).json()["rest"]
             assert rest == {"yield_ms": pytest.approx(100.0), "held_for_triggers": gate.held}
             assert gate.held >= 1
+
+
+def test_a_page_being_built_stops_at_its_checkpoints_while_a_trigger_runs(tmp_path: Path) -> None:
+    """A MES list request already past the middleware when a trigger starts: the store calls
+    the checkpoint after its query and every 10 rows, and the rows after it wait."""
+    from records import make_record
+
+    from server.store import open_store
+    from server.store.schemas import MeasurementFilter
+
+    store = open_store(f"sqlite:///{tmp_path / 'store.db'}", "station1")
+    try:
+        rng = np.random.default_rng(3)
+        for i in range(1, 26):
+            store.measurements.insert(make_record(rng, trigger_id=i))
+        gate = TriggerFirst(max_wait_s=10.0)
+        calls: list[bool] = []  # at each checkpoint: was a trigger running when it returned?
+
+        def checkpoint() -> None:
+            if len(calls) == 1:
+                gate.begin()  # a trigger starts while the page is being built
+            gate.wait_in_thread()
+            calls.append(gate.busy)
+
+        result: list[int] = []
+        page = threading.Thread(target=lambda: result.extend(
+            m.id for m in store.measurements.summary_page(MeasurementFilter(), None, 25,
+                                                         pause=checkpoint)[0]))
+        page.start()
+        page.join(0.2)
+        assert page.is_alive() and len(calls) == 1 and result == []  # held at the 2nd checkpoint
+        gate.end()
+        page.join(10.0)
+        assert not page.is_alive()
+        assert len(calls) == 3 and not any(calls) and len(result) == 25 and gate.held == 1
+    finally:
+        store.close()
