@@ -61,6 +61,10 @@ class MeasurementRepository:
         # One writer per process: seq and prev_hash are read and written in one transaction, and
         # the unique (station, seq) constraint catches a second process writing the same chain.
         self._write_lock = threading.Lock()
+        # The chain's head (seq, hash) as this writer left it, so an append needs no query for
+        # it. Another writer appending meanwhile makes ours collide on (station, seq): the head
+        # is then read again from the database and the append retried.
+        self._head: tuple[int, str] | None = None
 
     # ------------------------------------------------------------------ writing
     def insert(self, record: MeasurementRecord) -> StoredMeasurement:
@@ -85,15 +89,30 @@ class MeasurementRepository:
 
     def _append(self, record: MeasurementRecord, record_json: dict[str, Any]) -> StoredMeasurement:
         stored_at = datetime.now(UTC)
+        try:
+            new_id, seq, prev, digest = self._write(record, record_json, stored_at)
+        except BaseException:
+            self._head = None  # whatever failed, the next append reads the head again
+            raise
+        self._head = (seq, digest)  # committed
+        return StoredMeasurement(
+            id=new_id, seq=seq, stored_at=stored_at, prev_hash=prev, hash=digest, record=record
+        )
+
+    def _write(
+        self, record: MeasurementRecord, record_json: dict[str, Any], stored_at: datetime
+    ) -> tuple[int, int, str, str]:
+        """One append in one transaction: (id, seq, prev_hash, hash) once it is committed."""
         with self._engine.begin() as conn:
-            last = conn.execute(
-                select(M.c.seq, M.c.hash)
-                .where(M.c.station == self.station)
-                .order_by(M.c.seq.desc())
-                .limit(1)
-            ).first()
-            seq = last.seq + 1 if last else 1
-            prev = last.hash if last else GENESIS
+            if self._head is None:
+                last = conn.execute(
+                    select(M.c.seq, M.c.hash)
+                    .where(M.c.station == self.station)
+                    .order_by(M.c.seq.desc())
+                    .limit(1)
+                ).first()
+                self._head = (last.seq, last.hash) if last else (0, GENESIS)
+            seq, prev = self._head[0] + 1, self._head[1]
             body = canonical_json(
                 {
                     "station": self.station,
@@ -117,9 +136,7 @@ class MeasurementRepository:
                 )
                 .returning(M.c.id)
             ).scalar_one()
-        return StoredMeasurement(
-            id=new_id, seq=seq, stored_at=stored_at, prev_hash=prev, hash=digest, record=record
-        )
+        return new_id, seq, prev, digest
 
     # ------------------------------------------------------------------ reading
     def get(self, measurement_id: int) -> StoredMeasurement:

@@ -186,6 +186,25 @@ def test_concurrent_writers_keep_one_unbroken_chain(store: Store) -> None:
     assert report.ok and report.checked == 40
 
 
+def test_two_writers_of_one_station_take_turns_without_breaking_the_chain(store_url: str) -> None:
+    """Each writer remembers the head it left; after the other one appended, its next append
+    collides on (station, seq), reads the head again and goes on from there."""
+    a, b = open_store(store_url, "station1"), open_store(store_url, "station1")
+    try:
+        rng = np.random.default_rng(9)
+        stored = []
+        for i in range(6):
+            writer = a if i % 3 else b  # b, a, a, b, a, a: each sees the other's appends
+            stored.append(writer.measurements.insert(make_record(rng, trigger_id=i)))
+        assert [m.seq for m in stored] == [1, 2, 3, 4, 5, 6]
+        assert all(m.prev_hash == p.hash for p, m in zip(stored, stored[1:], strict=False))
+        report = a.measurements.verify_chain()
+        assert report.ok and report.checked == 6
+    finally:
+        a.close()
+        b.close()
+
+
 def test_stations_have_independent_chains_in_one_database(store_url: str) -> None:
     a, b = open_store(store_url, "station1"), open_store(store_url, "station2")
     try:
