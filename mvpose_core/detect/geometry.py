@@ -15,7 +15,7 @@ import numpy as np
 from mvpose_core.cache import IdentityCache
 from mvpose_core.scene import ProjectedMark, ViewCamera, project_recipe_marks
 from mvpose_core.station import RecipeConfig
-from mvpose_core.transforms import Array
+from mvpose_core.transforms import Array, compose, invert
 
 _RIM_SAMPLES = 72
 
@@ -167,13 +167,30 @@ def fit_ellipse(pts: Array) -> Ellipse | None:
 
 def rim_points(pm: ProjectedMark, radius_mm: float, n: int = _RIM_SAMPLES) -> Array:
     """``n`` points ``["n", 3]`` (camera frame) evenly spaced on the rim of the mark's circle."""
-    nx, ny, nz = pm.n_cf
+    return rims(pm.p_cf[None], pm.n_cf[None], radius_mm, n)[0]
+
+
+def rims(p_cf: Array, n_cf: Array, radius_mm: float, n: int = _RIM_SAMPLES) -> Array:
+    """:func:`rim_points` of marks at ``p_cf`` ``["M", 3]`` with unit normals ``n_cf``:
+    ``["M", "n", 3]``."""
+    nx, ny, nz = n_cf[:, 0:1], n_cf[:, 1:2], n_cf[:, 2:3]
+    zero = np.zeros_like(nx)
     # e1 = n × (x or y axis), e2 = n × e1: an orthonormal basis of the mark's plane.
-    e1 = np.array([0.0, nz, -ny]) if abs(nx) < 0.9 else np.array([-nz, 0.0, nx])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.array([ny * e1[2] - nz * e1[1], nz * e1[0] - nx * e1[2], nx * e1[1] - ny * e1[0]])
+    e1 = np.where(
+        np.abs(nx) < 0.9,
+        np.concatenate([zero, nz, -ny], axis=1),
+        np.concatenate([-nz, zero, nx], axis=1),
+    )
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.concatenate(  # n × e1
+        [ny * e1[:, 2:3] - nz * e1[:, 1:2], nz * e1[:, 0:1] - nx * e1[:, 2:3],
+         nx * e1[:, 1:2] - ny * e1[:, 0:1]],
+        axis=1,
+    )
     cs = _RIM_COS_SIN if n == _RIM_SAMPLES else _cos_sin(n)
-    return pm.p_cf + radius_mm * (cs[:, :1] * e1 + cs[:, 1:] * e2)
+    return p_cf[:, None, :] + radius_mm * (
+        cs[None, :, :1] * e1[:, None, :] + cs[None, :, 1:] * e2[:, None, :]
+    )
 
 
 @dataclass(frozen=True)
@@ -256,10 +273,10 @@ def predict_marks(
     uv = np.array([pm.uv for pm in pms])
     z = p_cf[:, 2]
     in_front = z > 1.0
-    rims = np.stack([rim_points(pm, recipe.mark_diameter_mm / 2.0) for pm in pms])  # [M, n, 3]
-    rims[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
+    rim = rims(p_cf, n_cf, recipe.mark_diameter_mm / 2.0)  # [M, n, 3]
+    rim[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
     ells = fit_ellipses(
-        cam.model.project(rims.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rims.shape[:2])
+        cam.model.project(rim.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rim.shape[:2])
     )
     D = np.array([_displacement_mm(recipe, pm.mark_id) for pm in pms])
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
@@ -318,33 +335,59 @@ def perspective_corrections(
 ) -> list[dict[str, Array]]:
     """:func:`perspective_correction` for each (camera, mark ids), with one ellipse fit for all.
 
-    This runs once per trigger at the estimated pose, for every camera that saw marks.
+    This runs once per trigger at the estimated pose, for every camera that saw marks: per
+    camera one transform and one projection of its marks' centres and rims together.
     """
-    pms_per_cam = [
-        [
-            pm
-            for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=False)
-            if pm.mark_id in ids and pm.p_cf[2] > 1.0 and float(pm.n_cf @ pm.p_cf) < 0.0
-        ]
-        for cam, ids in cameras
-    ]
-    radius = recipe.mark_diameter_mm / 2.0
-    images = [
-        cam.model.project(np.concatenate([rim_points(pm, radius) for pm in pms]))
-        for (cam, _), pms in zip(cameras, pms_per_cam, strict=True)
-        if pms
-    ]
-    if not images:
+    positions, normals = _mark_geometry(recipe)
+    index = {m.id: k for k, m in enumerate(recipe.marks)}
+    chosen: list[list[str]] = []
+    posed: list[tuple[ViewCamera, Array, Array]] = []  # (camera, p_cf, n_cf) of facing marks
+    for cam, ids in cameras:
+        ks = [index[i] for i in ids if i in index]
+        T = compose(invert(cam.T_rf_from_cf), T_rf_from_pf)
+        R, t = T[:3, :3], T[:3, 3]
+        p_cf = positions[ks] @ R.T + t
+        n_cf = normals[ks] @ R.T
+        facing = (p_cf[:, 2] > 1.0) & (np.einsum("mi,mi->m", n_cf, p_cf) < 0.0)
+        chosen.append([recipe.marks[k].id for k, f in zip(ks, facing, strict=True) if f])
+        if facing.any():
+            posed.append((cam, p_cf[facing], n_cf[facing]))
+    if not posed:
         return [{} for _ in cameras]
-    rims = np.concatenate(images).reshape(-1, _RIM_SAMPLES, 2)
-    ells = fit_ellipses(rims, np.ones(rims.shape[:2]))
+    rim_all = rims(np.concatenate([p for _, p, _ in posed]),
+                   np.concatenate([n for _, _, n in posed]), recipe.mark_diameter_mm / 2.0)
+    centres: list[Array] = []
+    rim_images: list[Array] = []
+    first = 0
+    for cam, p_cf, _ in posed:
+        m = len(p_cf)
+        pts = np.concatenate([p_cf[:, None, :], rim_all[first : first + m]], axis=1)
+        uv = cam.model.project(pts.reshape(-1, 3)).reshape(m, -1, 2)
+        centres.append(uv[:, 0])
+        rim_images.append(uv[:, 1:])
+        first += m
+    rim_uv = np.concatenate(rim_images)
+    ells = fit_ellipses(rim_uv, np.ones(rim_uv.shape[:2]))
+    corr = np.concatenate(centres) - ells.centre
     out: list[dict[str, Array]] = []
     k = 0
-    for pms in pms_per_cam:
-        corr = {}
-        for pm in pms:
-            if bool(ells.ok[k]):
-                corr[pm.mark_id] = pm.uv - ells.centre[k]
-            k += 1
-        out.append(corr)
+    for ids in chosen:
+        out.append({mid: corr[k + j] for j, mid in enumerate(ids) if bool(ells.ok[k + j])})
+        k += len(ids)
     return out
+
+
+_GEOMETRY: IdentityCache[tuple[Array, Array]] = IdentityCache(16)
+
+
+def _mark_geometry(recipe: RecipeConfig) -> tuple[Array, Array]:
+    """The recipe's mark positions ``["M", 3]`` and unit normals (part frame), read-only."""
+
+    def make() -> tuple[Array, Array]:
+        p = np.array([m.position for m in recipe.marks], dtype=float)
+        n = np.array([m.normal for m in recipe.marks], dtype=float)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        p.flags.writeable = n.flags.writeable = False
+        return p, n
+
+    return _GEOMETRY.get((recipe,), None, make)
