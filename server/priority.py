@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import threading
 
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -90,6 +91,74 @@ class TriggerFirst:
         if self.max_wait_s > 0 and not self._idle_thread.is_set():
             self.held += 1
             self._idle_thread.wait(self.max_wait_s)
+
+
+class CollectorPause:
+    """Python's cyclic garbage collector waits while a trigger runs.
+
+    A collection stops every thread of the process: measured on station 1's server, a young
+    collection took up to 4.5 ms, a middle one 1.5-3 ms and a full one 67-100 ms (a PLC deadline
+    is 50 ms). :meth:`freeze` (after start-up) moves every object alive then out of the
+    collector's sight, so later full collections only walk what was allocated since;
+    :meth:`begin` / :meth:`end` (nested, any thread) switch automatic collection off for the
+    duration of a trigger. What the trigger allocated is collected at the next collection after
+    it, between triggers; reference counting frees everything else at once as usual.
+
+    The collector is one per process: pauses of every instance (several runtimes in one test
+    process) are counted together, and automatic collection resumes when the last one ends.
+    """
+
+    _lock = threading.Lock()
+    _running = 0  # pauses in progress, all instances
+    _resume = False  # whether collection was on when the first pause began
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._mine = 0  # pauses of this instance in progress (ended by close())
+        self._frozen = False
+
+    def freeze(self) -> None:
+        """Collect once, then exempt everything alive from later collections (start-up)."""
+        if self.enabled:
+            gc.collect()
+            gc.freeze()
+            self._frozen = True
+
+    def begin(self) -> None:
+        if not self.enabled:
+            return
+        cls = CollectorPause
+        with cls._lock:
+            if cls._running == 0:
+                cls._resume = gc.isenabled()
+                gc.disable()
+            cls._running += 1
+            self._mine += 1
+
+    def end(self) -> None:
+        if not self.enabled:
+            return
+        cls = CollectorPause
+        with cls._lock:
+            if self._mine == 0:
+                return  # already ended by close()
+            self._mine -= 1
+            cls._running -= 1
+            if cls._running == 0 and cls._resume:
+                gc.enable()
+
+    def close(self) -> None:
+        """End this instance's pauses still in progress (a stop during a trigger) and give the
+        frozen objects back to the collector."""
+        while self._mine:
+            self.end()
+        if self._frozen:
+            gc.unfreeze()
+            self._frozen = False
+
+    @property
+    def paused(self) -> bool:
+        return self._mine > 0
 
 
 class TriggerFirstMiddleware:

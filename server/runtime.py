@@ -49,7 +49,7 @@ from server.pipeline import (
     StationReason,
     TriggerResult,
 )
-from server.priority import TriggerFirst
+from server.priority import CollectorPause, TriggerFirst
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
 from server.triggers import LastResult, TriggerRunner
@@ -76,6 +76,9 @@ class RuntimeOptions:
     # HTTP requests arriving during a trigger wait for it to end, at most this long (0: never):
     # the MES can wait, the PLC cannot (server.priority).
     rest_yield_ms: float = 100.0
+    # Python's garbage collector waits while a trigger runs, and what start-up allocated is
+    # frozen out of its sight (server.priority.CollectorPause).
+    gc_pause: bool = True
 
 
 def _lower_priority() -> None:
@@ -106,6 +109,7 @@ class StationRuntime:
         self._thread: threading.Thread | None = None
         self._watch: asyncio.Task[None] | None = None
         self.gate = TriggerFirst(self.options.rest_yield_ms / 1000.0)
+        self.collector = CollectorPause(self.options.gc_pause)
 
     # ------------------------------------------------------------------ app protocol
     def routers(self) -> Sequence[APIRouter]:
@@ -144,6 +148,7 @@ class StationRuntime:
             self.stop()  # whatever did open (camera threads, pools, the loop) closes again
             raise
         self.started_at = datetime.now(UTC)
+        self.collector.freeze()
         assert self.capture is not None
         log.info("station %s: PLC link on %s:%d, cameras %s", self.station.name,
                  self.options.plc_host, self.plc_port, self.capture.status())
@@ -201,6 +206,7 @@ class StationRuntime:
         if self.capture is not None:
             self.capture.close()
         self.plc = self.pipeline = self.capture = None
+        self.collector.close()
 
     def _apply_calibration(self, station_file: Path | None) -> tuple[str, str] | None:
         """Put the station's calibration file (if it names one) into the station model.
@@ -326,11 +332,15 @@ class StationRuntime:
         loop = asyncio.get_running_loop()
         assert self.runner is not None
         self.gate.begin()
+        self.collector.begin()
         try:
             result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0,
                                                 at)
         finally:
             self.gate.end()
+            # The collector resumes once the PLC link has published this outcome (it does so
+            # as soon as this returns, within the next loop passes), not before.
+            loop.call_later(0.001, self.collector.end)
         return result.outcome
 
     # ------------------------------------------------------------------ REST entry points
@@ -342,12 +352,14 @@ class StationRuntime:
         req = TriggerRequest(trigger_id=REST_TRIGGER_ID, view_index=view_index, robot_pose=None,
                              part_id=part_id or "", recipe=self.active.number)
         self.gate.begin()
+        self.collector.begin()
         try:
             fut: Future[TriggerResult] = self._trigger_exec.submit(
                 self.runner.run, req, time.monotonic(), datetime.now(UTC))
             return fut.result(timeout=timeout_s)
         finally:
             self.gate.end()
+            self.collector.end()
 
     def wait_idle(self, timeout_s: float = 10.0) -> None:
         """Block until every trigger and archive write submitted so far is done (tests, demo)."""

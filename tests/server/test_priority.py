@@ -14,7 +14,7 @@ import pytest
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
 from server.loopback import move_part, running_station, trigger
-from server.priority import TriggerFirst
+from server.priority import CollectorPause, TriggerFirst
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -161,3 +161,51 @@ def test_a_page_being_built_stops_at_its_checkpoints_while_a_trigger_runs(tmp_pa
         assert len(calls) == 3 and not any(calls) and len(result) == 25 and gate.held == 1
     finally:
         store.close()
+
+
+def test_the_collector_waits_while_triggers_run_and_resumes_after_the_last() -> None:
+    import gc
+
+    assert gc.isenabled()
+    a, b = CollectorPause(), CollectorPause()
+    a.begin()
+    b.begin()  # a second runtime's trigger in the same process: one collector, counted together
+    assert not gc.isenabled() and a.paused and b.paused
+    a.end()
+    assert not gc.isenabled()  # b's trigger still runs
+    b.end()
+    assert gc.isenabled() and not a.paused and not b.paused
+    a.end()  # an extra end changes nothing
+    assert gc.isenabled()
+    a.begin()
+    a.close()  # a runtime stopped during a trigger gives the collector back
+    assert gc.isenabled() and not a.paused
+    off = CollectorPause(enabled=False)
+    off.begin()
+    assert gc.isenabled()
+    off.end()
+
+
+async def test_a_served_station_pauses_the_collector_only_during_triggers(
+    tmp_path: Path,
+) -> None:
+    import gc
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    async with running_station(settings, runtime_options()) as lb:
+        assert gc.get_freeze_count() > 0  # start-up's objects are out of the collector's way
+        recipe = lb.runtime.active.config
+        T = recipe.T_rf_from_pf0.matrix.copy()
+        await move_part(lb.runtime, lb.twin, T)
+        seen: list[bool] = []
+        real = lb.runtime.runner.run
+
+        def observed(*args: object) -> object:  # the real run, noting the collector's state
+            seen.append(gc.isenabled())
+            return real(*args)
+
+        lb.runtime.runner.run = observed  # type: ignore[method-assign]
+        status, _ = await trigger(lb.twin, recipe, 5, T)
+        assert status.result_code == 0 and seen == [False]
+        await until(lambda: gc.isenabled())
+    assert gc.isenabled() and gc.get_freeze_count() == 0
