@@ -210,11 +210,14 @@ class MarkPrediction:
         return self.mark.uv
 
 
-def _displacement_mm(recipe: RecipeConfig, mark_id: str) -> float:
-    """Bound on a mark's 3D motion for any part offset within the recipe's tolerances."""
+def _displacement_mm(recipe: RecipeConfig, mark_id: str, reach: float = 1.0) -> float:
+    """Bound on a mark's 3D motion for any part offset within ``reach`` times the recipe's
+    tolerances."""
     tol = recipe.tolerances
     lever = float(np.linalg.norm(recipe.marks[recipe.mark_index(mark_id)].position))
-    return tol.max_offset_mm + 2.0 * lever * np.sin(np.deg2rad(tol.max_offset_deg) / 2.0)
+    return reach * tol.max_offset_mm + 2.0 * lever * np.sin(
+        np.deg2rad(reach * tol.max_offset_deg) / 2.0
+    )
 
 
 # Directions in which a mark's displacement is tried: the 6 axes and the 8 cube diagonals.
@@ -236,6 +239,7 @@ def predict_marks_cached(
     T_rf_from_pf: Array,
     size_tolerance: float = 0.15,
     shape_slack_deg: float = 8.0,
+    reach: float = 1.0,
 ) -> list[MarkPrediction]:
     """:func:`predict_marks` of the sighted marks, remembered for recent (camera, recipe, pose).
 
@@ -245,8 +249,8 @@ def predict_marks_cached(
     """
     T = np.ascontiguousarray(T_rf_from_pf, dtype=float)
     return _PREDICTIONS.get(
-        (cam, recipe), (T.tobytes(), float(size_tolerance), float(shape_slack_deg)),
-        lambda: predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg),
+        (cam, recipe), (T.tobytes(), float(size_tolerance), float(shape_slack_deg), float(reach)),
+        lambda: predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg, reach=reach),
     )
 
 
@@ -257,8 +261,13 @@ def predict_marks(
     size_tolerance: float = 0.15,
     shape_slack_deg: float = 8.0,
     mark_ids: list[str] | None = None,
+    reach: float = 1.0,
 ) -> list[MarkPrediction]:
-    """Predict every sighted mark (or ``mark_ids``) of the recipe in ``cam`` at ``T_rf_from_pf``."""
+    """Predict every sighted mark (or ``mark_ids``) of the recipe in ``cam`` at ``T_rf_from_pf``.
+
+    Windows, sizes and shapes allow for any part offset within ``reach`` times the recipe's
+    tolerances (``max_offset_mm``, ``max_offset_deg``).
+    """
     pms = [
         pm
         for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=mark_ids is None)
@@ -278,7 +287,7 @@ def predict_marks(
     ells = fit_ellipses(
         cam.model.project(rim.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rim.shape[:2])
     )
-    D = np.array([_displacement_mm(recipe, pm.mark_id) for pm in pms])
+    D = np.array([_displacement_mm(recipe, pm.mark_id, reach) for pm in pms])
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
     ahead = moved[..., 2] > 0.2 * np.maximum(z, 1.0)[:, None]
     moved[..., 2] = np.where(ahead, moved[..., 2], 1.0)
@@ -288,7 +297,7 @@ def predict_marks(
     shift = np.where(ahead.all(axis=1), shift_all.max(axis=1), 1e9)
     view = p_cf / np.linalg.norm(p_cf, axis=1, keepdims=True)
     tilt = np.degrees(np.arccos(np.clip(np.abs(np.sum(n_cf * view, axis=1)), 0.0, 1.0)))
-    spread = recipe.tolerances.max_offset_deg + shape_slack_deg
+    spread = reach * recipe.tolerances.max_offset_deg + shape_slack_deg
     out: list[MarkPrediction] = []
     for k, pm in enumerate(pms):
         facing = bool(in_front[k] and ells.ok[k] and float(n_cf[k] @ p_cf[k]) < 0.0)

@@ -21,6 +21,7 @@ from mvpose_core.detect.geometry import Ellipse, Ellipses, fit_ellipses
 _STEP = 0.5  # px between samples along a ray
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _LEVEL_SAMPLES = 3  # samples at each end of a ray that give its inner and outer grey levels
+_FINE_RAYS = 96  # rays of the final edge points: ~1 px of rim apart for a radius of 16 px
 
 
 @dataclass(frozen=True)
@@ -133,12 +134,14 @@ def _rays(
     n_rays: int,
     half: float,
     dark: bool,
+    lo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px.
 
-    Candidate ``c`` lies in ``images[owner[c]]``. Returns profiles ``[C, R, S]`` (increasing
-    outwards for the recipe's polarity), the radius of every sample, the ray angles ``[R]`` and
-    which rays lie wholly inside their image ``[C, R]``. Sampling is OpenCV's bilinear ``remap``
+    Candidate ``c`` lies in ``images[owner[c]]``; its own ray is samples ``lo[c]`` to
+    ``S - 1 - lo[c]`` (default: all). Returns profiles ``[C, R, S]`` (increasing outwards for
+    the recipe's polarity), the radius of every sample, the ray angles ``[R]`` and which rays lie
+    wholly inside their image ``[C, R]``. Sampling is OpenCV's bilinear ``remap``
     (1/32 px positions, 8-bit values): both quantisations are far below the noise and average
     out over the rim.
     """
@@ -153,7 +156,12 @@ def _rays(
     sizes = np.array([im.shape for im in images], dtype=np.float32)[owner]  # [C, 2] = (H, W)
     H, W = sizes[:, 0, None, None], sizes[:, 1, None, None]
     # A ray is a straight segment: it is inside the image when both of its ends are.
-    ends_u, ends_v = u[..., [0, -1]], v[..., [0, -1]]
+    if lo is None:
+        ends_u, ends_v = u[..., [0, -1]], v[..., [0, -1]]
+    else:
+        ends = np.broadcast_to(np.stack([lo, S - 1 - lo], axis=1)[:, None, :], (C, R, 2))
+        ends_u = np.take_along_axis(u, ends, axis=2)
+        ends_v = np.take_along_axis(v, ends, axis=2)
     inside = np.all((ends_u >= 0) & (ends_u < W - 1) & (ends_v >= 0) & (ends_v < H - 1), axis=2)
     if len(images) == 1:
         prof = _remap(images[0], u.reshape(C * R, S), v.reshape(C * R, S)).reshape(C, R, S)
@@ -185,16 +193,33 @@ def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     ])
 
 
-def _crossings(prof: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per ray: radius where the profile crosses its mid level, the ray's contrast, and validity."""
-    inner = prof[..., :_LEVEL_SAMPLES].mean(axis=-1)
-    outer = prof[..., -_LEVEL_SAMPLES:].mean(axis=-1)
+def _crossings(
+    prof: np.ndarray, radii: np.ndarray, lo: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per ray: radius where the profile crosses its mid level, the ray's contrast, and validity.
+
+    With ``lo``, candidate ``c`` uses only samples ``lo[c]`` to ``S - 1 - lo[c]`` of its rays
+    (each candidate its own search length, the batch sampled over the longest).
+    """
+    S = prof.shape[-1]
+    if lo is None:
+        inner = prof[..., :_LEVEL_SAMPLES].mean(axis=-1)
+        outer = prof[..., -_LEVEL_SAMPLES:].mean(axis=-1)
+    else:
+        k = np.arange(_LEVEL_SAMPLES)
+        shape = prof.shape[:2] + (_LEVEL_SAMPLES,)
+        first = np.broadcast_to((lo[:, None] + k)[:, None, :], shape)
+        last = np.broadcast_to((S - 1 - lo[:, None] - k)[:, None, :], shape)
+        inner = np.take_along_axis(prof, first, axis=2).mean(axis=-1)
+        outer = np.take_along_axis(prof, last, axis=2).mean(axis=-1)
     level = 0.5 * (inner + outer)
     above = prof >= level[..., None]
     # Upward crossings (inside -> outside) between samples j and j+1; keep the one nearest the
     # expected rim (the middle of the ray) so a nearby edge of something else does not capture it.
     up = ~above[..., :-1] & above[..., 1:]
-    S = prof.shape[-1]
+    if lo is not None:
+        j = np.arange(S - 1)
+        up &= ((j >= lo[:, None]) & (j < S - 1 - lo[:, None]))[:, None, :]
     dist = np.where(up, np.abs(np.arange(S - 1) + 0.5 - (S - 1) / 2.0), np.inf)
     j = np.argmin(dist, axis=-1)
     flat = j + S * np.arange(j.size).reshape(j.shape)  # index of sample j of each ray
@@ -229,25 +254,29 @@ def measure_in(
     min_contrast: float,
     max_fit_residual_px: float,
     min_edge_fraction: float,
-    search_px: float,
+    search_px: float | np.ndarray,
 ) -> list[Measurement]:
     """Sub-pixel edge points and the ellipse through them, for many candidates at once.
 
     Candidate ``k`` starts from ``starts[k]`` in ``images[owner[k]]``: the candidates of several
     images (the cameras of one trigger) are measured together. Two passes: 16 rays searching
-    ± ``search_px`` around the start ellipse locate the rim; then up to 96 rays within ± 3 px of
-    that rim give the final edge points and fit. Every step is one array operation over all
-    candidates (a Python loop per candidate, or per image, would cost more than the arithmetic).
+    ± ``search_px`` (one for all, or one per candidate; rounded up to the 0.5 px sample step)
+    around the start ellipse locate the rim; then 96 rays within ± 3 px of that rim give the
+    final edge points and fit. Every step is one array operation over all candidates (a Python
+    loop per candidate, or per image, would cost more than the arithmetic). A candidate's result
+    depends on that candidate and its image only, not on what else is in the batch.
     """
     if not starts:
         return []
     C = len(starts)
     ell = Ellipses.of(starts)
     failed = np.zeros(C, dtype=int)  # 0 = fine, else 1 + index into _FAILURES
-    n_fine = int(min(max(4.0 * float(ell.radius.max()), 32.0), 96.0))  # ~1.5 px of rim per ray
-    for n_rays, half in ((16, search_px), (n_fine, 3.0)):
-        prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark)
-        edge_r, ray_contrast, crossed = _crossings(prof, radii)
+    steps = np.ceil(np.broadcast_to(np.asarray(search_px, dtype=float), (C,)) / _STEP - 1e-9)
+    steps = steps.astype(np.intp)  # each candidate's half search length in samples
+    lo = steps.max() - steps  # where each candidate's own ray starts in the batch's samples
+    for n_rays, half, span in ((16, _STEP * float(steps.max()), lo), (_FINE_RAYS, 3.0, None)):
+        prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark, span)
+        edge_r, ray_contrast, crossed = _crossings(prof, radii, span)
         contrast = _row_median(ray_contrast)
         good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])
         npts = good.sum(axis=1)

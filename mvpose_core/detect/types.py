@@ -23,11 +23,19 @@ class DetectOptions:
     search_scale: int = 4  # search mode: candidates on a 1/search_scale image
     correct_perspective: bool = True  # move the ellipse centre to the image of the circle centre
     max_candidates: int = 64  # per window or search: a busy image is not searched forever
+    # Window mode searches first in windows for a part within this share of the recipe's
+    # tolerances (0.25 of ±100 mm / ±10°: ±25 mm / ±2.5°); an image where some mark was not
+    # found there is searched again over the whole tolerance. None: the whole tolerance at once.
+    first_reach: float | None = 0.25
 
     def __post_init__(self) -> None:
         if self.search_scale not in (1, 2, 4, 8):
             raise ValueError(
                 f"DetectOptions.search_scale must be 1, 2, 4 or 8, got {self.search_scale}"
+            )
+        if self.first_reach is not None and not 0 < self.first_reach < 1:
+            raise ValueError(
+                f"DetectOptions.first_reach must be in (0, 1) or None, got {self.first_reach}"
             )
         if not 0 < self.min_edge_fraction <= 1:
             raise ValueError(

@@ -2,8 +2,11 @@
 
 A mark's window is its predicted ellipse widened by how far the mark can move when the part is
 anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
-geometry of this camera. Accepted candidates from all windows are assigned to marks jointly (least
-total distance to the predictions), so two marks never take the same blob.
+geometry of this camera. The search first uses windows for a part near the prior pose
+(``DetectOptions.first_reach`` of the tolerances: small windows, quickly searched) and widens them
+to the whole tolerance for an image where a mark was not found. Accepted candidates from all
+windows are assigned to marks jointly (least total distance to the predictions), so two marks
+never take the same blob.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -46,28 +50,59 @@ def detect_marks_many(
     The candidates of each image are searched by ``map_fn`` (give a thread pool's ``map`` to
     search the images in parallel: the search is OpenCV, which releases the GIL); all candidates
     of all images are then measured in one batch, which costs little more than one image's.
-    The measurement's ray count and search length follow the batch's largest candidate, as they
-    follow one image's alone: a centre can differ from the one-image result by less than the
-    detector's noise (tested: < 0.01 px). A bad image raises ``ValueError`` naming its camera.
+    Each image's result is what :func:`detect_marks` gives for it alone (tested). A bad image
+    raises ``ValueError`` naming its camera.
+
+    Two reaches (``options.first_reach``): the windows first allow for a part near the prior
+    pose; an image where a mark that faces its camera was not found is searched again with
+    windows for the recipe's whole tolerance, and that result is the image's.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
-    searches = list(
-        map_fn(lambda fc: _search(fc[0], fc[1], recipe, T_rf_from_pf_prior, options), checked)
-    )
+    out: list[list[MarkDetection]] = [[] for _ in checked]
+    todo = list(range(len(checked)))
+    reaches = (1.0,) if options.first_reach is None else (options.first_reach, 1.0)
+    for reach in reaches:
+        search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
+        searches = list(map_fn(search, todo))
+        for k, dets in zip(todo, _measure(searches, [checked[k][0] for k in todo], recipe,
+                                          options), strict=True):
+            out[k] = dets
+        todo = [k for k in todo if any(not d.found and d.reason != FACES_AWAY for d in out[k])]
+        if not todo:
+            break
+    return out
+
+
+FACES_AWAY = "mark faces away from the camera"
+
+
+def _search_image(
+    checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
+    options: DetectOptions, reach: float, k: int,
+) -> _Search:
+    return _search(checked[k][0], checked[k][1], recipe, T_prior, options, reach)
+
+
+def _measure(
+    searches: list[_Search], images: list[np.ndarray], recipe: RecipeConfig,
+    options: DetectOptions,
+) -> list[list[MarkDetection]]:
+    """Measure the candidates of every search in one batch and conclude each image."""
     owner = np.array([k for k, s in enumerate(searches) for _ in s.cands], dtype=np.intp)
     measured: list[Measurement] = []
     if len(owner):
-        r_max = max(c.ellipse.radius for s in searches for _, c in s.cands)
-        scale = min(s.scale for s in searches if s.cands)
+        # Each blob's rim is looked for within its coarse pixel and a tenth of its radius.
         measured = measure_in(
-            [img for img, _ in checked],
+            images,
             owner,
             [c.ellipse for s in searches for _, c in s.cands],
             recipe.polarity == "dark_on_light",
             options.min_contrast,
             options.max_fit_residual_px,
             options.min_edge_fraction,
-            search_px=2.0 + scale + 0.1 * r_max,
+            search_px=np.array([2.0 + scale + 0.1 * c.ellipse.radius
+                                for s in searches
+                                for scale, (_, c) in zip(s.scales, s.cands, strict=True)]),
         )
     out = []
     first = 0
@@ -86,7 +121,7 @@ class _Search:
     results: dict[str, MarkDetection]  # per mark: missing (with the reason) until accepted
     live: list[MarkPrediction]  # the predictions whose window lies in the image
     cands: list[tuple[int, Candidate]]  # (index in live, blob): one entry per distinct blob
-    scale: int  # the finest reduction any window was searched at
+    scales: list[int]  # per blob: the reduction its window was searched at
 
 
 def _search(
@@ -95,9 +130,10 @@ def _search(
     recipe: RecipeConfig,
     T_rf_from_pf_prior: Array,
     options: DetectOptions,
+    reach: float = 1.0,
 ) -> _Search:
     preds = predict_marks_cached(
-        cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg
+        cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
     )
     dark = recipe.polarity == "dark_on_light"
     H, W = image.shape
@@ -107,7 +143,7 @@ def _search(
     for p in preds:
         mid = p.mark.mark_id
         if not p.facing:
-            results[mid] = MarkDetection.missing(mid, "mark faces away from the camera")
+            results[mid] = MarkDetection.missing(mid, FACES_AWAY)
             continue
         half = p.max_shift_px + p.radius_range[1] + options.window_extra_px
         pu, pv = float(p.uv[0]), float(p.uv[1])
@@ -121,14 +157,13 @@ def _search(
         live.append(p)
         boxes.append(box)
     cands: list[tuple[int, Candidate]] = []
-    scale = 8
+    scales: list[int] = []
     for members, region in _merge_windows(boxes):
         # Large tolerances make the windows of one camera's marks overlap almost entirely:
         # search their union once instead of the same pixels once per mark.
         lo = min(live[k].radius_range[0] for k in members)
         hi = max(live[k].radius_range[1] for k in members)
         s = coarse_scale(lo)
-        scale = min(scale, s)
         found = find_candidates(
             image,
             region,
@@ -145,7 +180,8 @@ def _search(
             if inside:
                 k = min(inside, key=lambda j: math.hypot(cu - live[j].uv[0], cv - live[j].uv[1]))
                 cands.append((k, c))
-    return _Search(list(preds), results, live, cands, scale)
+                scales.append(s)
+    return _Search(list(preds), results, live, cands, scales)
 
 
 def _conclude(
