@@ -169,13 +169,15 @@ class Pipeline:
         self.plan_images = plan_images
         self.options = options
         self.deadline_s = station.deadline_ms / 1000.0
-        self._pool = ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
+        self._pool = (ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
+                      if options.detect_workers > 0 else None)
         self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
         if self._procs is not None:
             self._procs.close()
 
@@ -232,7 +234,8 @@ class Pipeline:
             # One call for the view's images: their windows are searched on the pool's
             # threads, and all their candidates measured in one batch (mvpose_core.detect).
             found = detect_marks_many([(img, vc) for _, img, vc in batch], recipe, prior,
-                                      self.options.detect, map_fn=self._pool.map)
+                                      self.options.detect,
+                                      map_fn=self._pool.map if self._pool is not None else map)
             for (cid, _, _), dets in zip(batch, found, strict=True):
                 vcap.detections[cid] = dets
         for cid, fut in jobs.items():
