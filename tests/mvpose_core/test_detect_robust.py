@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 
 from mvpose_core.detect import (
+    DetectOptions,
     MarkDetection,
     detect_marks,
     detect_marks_many,
     epipolar_distance_px,
+    predict_marks,
     search_marks,
     stereo_check,
 )
@@ -23,6 +25,7 @@ from mvpose_core.render_scene import plate_scene
 from mvpose_core.scene import view_cameras
 from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
+from mvpose_core.transforms import xyzwpr_to_matrix
 
 LAB = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "lab.yaml"
 
@@ -216,3 +219,45 @@ def test_a_bad_image_in_a_batch_names_its_camera(lab) -> None:  # type: ignore[n
     good = render_view(cams[0], recipe, T0, np.random.default_rng(1)).image
     with pytest.raises(ValueError, match=re.escape(f"camera {cams[1].key!r}")):
         detect_marks_many([(good, cams[0]), (good[:100], cams[1])], recipe, T0)
+
+
+# Near the taught pose the small windows find every mark, from blobs found at their own (maybe
+# coarser) reduction: the measurement starts elsewhere and ends within the detector's noise
+# (~0.01 px at image noise 2; the accuracy tests in test_detect.py run with the first reach).
+# Beyond the first reach (a quarter of the lab's
+# ±100 mm / ±10°) the image is searched again over the whole tolerance: the one-pass result.
+@pytest.mark.parametrize("mm,deg,agree_px", [(5.0, 0.5, 0.01), (60.0, 6.0, 1e-9)])
+def test_the_first_reach_finds_what_the_whole_tolerance_finds(  # type: ignore[no-untyped-def]
+    lab, mm: float, deg: float, agree_px: float
+) -> None:
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    assert mm > 0.25 * recipe.tolerances.max_offset_mm or mm < 0.1 * recipe.tolerances.max_offset_mm
+    T = T0 @ xyzwpr_to_matrix([mm, -mm, 0.5 * mm, deg, -deg, 0.5 * deg])
+    rng = np.random.default_rng(41)
+    frames = [(render_view(c, recipe, T, rng).image, c) for c in cams]
+    two = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach=0.25))
+    one = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach=None))
+    assert sum(d.found for dets in one for d in dets) == sum(len(dets) for dets in one)
+    for a_dets, b_dets in zip(two, one, strict=True):
+        for a, b in zip(a_dets, b_dets, strict=True):
+            assert a.found and a.mark_id == b.mark_id
+            assert np.abs(a.uv - b.uv).max() < agree_px
+
+
+def test_windows_of_the_first_reach_are_smaller(lab) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    for cam in cams:
+        near = predict_marks(cam, recipe, T0, reach=0.25)
+        full = predict_marks(cam, recipe, T0)
+        for a, b in zip(near, full, strict=True):
+            assert a.max_shift_px < 0.5 * b.max_shift_px
+            assert b.radius_range[0] <= a.radius_range[0] < a.radius_range[1] <= b.radius_range[1]
+            assert np.array_equal(a.correction, b.correction)
+
+
+def test_first_reach_must_be_a_share_of_the_tolerance() -> None:
+    for bad in (0.0, 1.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="first_reach"):
+            DetectOptions(first_reach=bad)
