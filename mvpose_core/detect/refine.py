@@ -21,7 +21,7 @@ from mvpose_core.detect.geometry import Ellipse, Ellipses, fit_ellipses
 _STEP = 0.5  # px between samples along a ray
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _LEVEL_SAMPLES = 3  # samples at each end of a ray that give its inner and outer grey levels
-_FINE_RAYS = 96  # rays of the final edge points: ~1 px of rim apart for a radius of 16 px
+_FINE_RAYS = 96  # most rays of the final edge points (for a radius of 24 px and more)
 
 
 @dataclass(frozen=True)
@@ -261,10 +261,12 @@ def measure_in(
     Candidate ``k`` starts from ``starts[k]`` in ``images[owner[k]]``: the candidates of several
     images (the cameras of one trigger) are measured together. Two passes: 16 rays searching
     ± ``search_px`` (one for all, or one per candidate; rounded up to the 0.5 px sample step)
-    around the start ellipse locate the rim; then 96 rays within ± 3 px of that rim give the
-    final edge points and fit. Every step is one array operation over all candidates (a Python
-    loop per candidate, or per image, would cost more than the arithmetic). A candidate's result
-    depends on that candidate and its image only, not on what else is in the batch.
+    around the start ellipse locate the rim; then 32-96 rays (about one per 1.5 px of rim of the
+    largest candidate of the image) within ± 3 px of that rim give the final edge points and
+    fit. Every step is one array operation over all candidates, or over the images with the same
+    ray count (a Python loop per candidate, or per image, would cost more than the arithmetic).
+    A candidate's result depends on its ``search_px`` and its image's candidates only, not on
+    the other images of the batch.
     """
     if not starts:
         return []
@@ -274,42 +276,35 @@ def measure_in(
     steps = np.ceil(np.broadcast_to(np.asarray(search_px, dtype=float), (C,)) / _STEP - 1e-9)
     steps = steps.astype(np.intp)  # each candidate's half search length in samples
     lo = steps.max() - steps  # where each candidate's own ray starts in the batch's samples
-    for n_rays, half, span in ((16, _STEP * float(steps.max()), lo), (_FINE_RAYS, 3.0, None)):
-        prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark, span)
-        edge_r, ray_contrast, crossed = _crossings(prof, radii, span)
-        contrast = _row_median(ray_contrast)
-        good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])
-        npts = good.sum(axis=1)
-        _, cos, sin, _ = _ray_grid(n_rays, half)
-        pts = np.stack(
-            [
-                ell.centre[:, 0, None] + edge_r * cos[..., 0],
-                ell.centre[:, 1, None] + edge_r * sin[..., 0],
-            ],
-            axis=2,
-        )
-        fitted = fit_ellipses(pts, good)
-        # The first failing check names the reason (order of _FAILURES); earlier failures stick.
-        checks = np.stack(
-            [
-                inside.sum(axis=1) < min_edge_fraction * n_rays,
-                contrast < min_contrast,
-                npts < min_edge_fraction * n_rays,
-                ~fitted.ok,
-            ]
-        )
-        first = np.where(checks.any(axis=0), np.argmax(checks, axis=0) + 1, 0)
-        failed = np.where(failed > 0, failed, first)
-        ok = (fitted.ok & (failed == 0))[:, None]
-        ell = Ellipses(
-            np.where(ok, fitted.centre, ell.centre),
-            np.where(ok[:, 0], fitted.a, ell.a),
-            np.where(ok[:, 0], fitted.b, ell.b),
-            np.where(ok[:, 0], fitted.angle, ell.angle),
-        )
-    d = ell.distances(pts)
-    residual = np.sqrt(np.sum(np.where(good, d * d, 0.0), axis=1) / np.maximum(npts, 1))
-    failed = np.where((failed == 0) & ~(residual <= max_fit_residual_px), len(_FAILURES), failed)
+    span = lo if lo.any() else None  # None: every candidate uses the whole ray
+    # Fine rays ~1.5 px of rim apart for the largest candidate of each image (32 ... 96).
+    radius = ell.radius
+    if len(images) == 1:
+        n_fine = np.full(C, _fine_rays(float(radius.max())))
+    else:
+        n_image = {k: _fine_rays(float(radius[owner == k].max()))
+                   for k in np.unique(owner).tolist()}
+        n_fine = np.array([n_image[k] for k in owner.tolist()])
+    ell, failed, *_ = _pass(images, owner, ell, failed, 16, _STEP * float(steps.max()), span,
+                            dark, min_contrast, min_edge_fraction)
+    groups = np.unique(n_fine).tolist()  # usually one: the cameras of a station are alike
+    if len(groups) == 1:
+        ell, failed, residual, npts, contrast = _fine(
+            images, owner, ell, failed, groups[0], dark, min_contrast, min_edge_fraction,
+            max_fit_residual_px)
+    else:
+        contrast, residual = np.zeros(C), np.zeros(C)
+        npts = np.zeros(C, dtype=int)
+        final = [ell.centre.copy(), ell.a.copy(), ell.b.copy(), ell.angle.copy()]
+        for n in groups:
+            idx = np.flatnonzero(n_fine == n)
+            sub = Ellipses(ell.centre[idx], ell.a[idx], ell.b[idx], ell.angle[idx])
+            e, failed[idx], residual[idx], npts[idx], contrast[idx] = _fine(
+                images, owner[idx], sub, failed[idx], n, dark, min_contrast, min_edge_fraction,
+                max_fit_residual_px)
+            for out, part in zip(final, (e.centre, e.a, e.b, e.angle), strict=True):
+                out[idx] = part
+        ell = Ellipses(*final)
     return [
         Measurement(
             ell[c] if failed[c] == 0 else None,
@@ -320,6 +315,84 @@ def measure_in(
         )
         for c in range(C)
     ]
+
+
+def _fine_rays(radius_px: float) -> int:
+    return int(min(max(4.0 * radius_px, 32.0), _FINE_RAYS))
+
+
+def _fine(
+    images: Sequence[np.ndarray],
+    owner: np.ndarray,
+    ell: Ellipses,
+    failed: np.ndarray,
+    n_rays: int,
+    dark: bool,
+    min_contrast: float,
+    min_edge_fraction: float,
+    max_fit_residual_px: float,
+) -> tuple[Ellipses, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The final pass (± 3 px of the rim found so far) and the fit's RMS residual check:
+    ellipses, failure codes, residuals, edge point counts and contrasts."""
+    ell, failed, pts, good, npts, contrast = _pass(
+        images, owner, ell, failed, n_rays, 3.0, None, dark, min_contrast, min_edge_fraction)
+    d = ell.distances(pts)
+    residual = np.sqrt(np.sum(np.where(good, d * d, 0.0), axis=1) / np.maximum(npts, 1))
+    failed = np.where((failed == 0) & ~(residual <= max_fit_residual_px), len(_FAILURES), failed)
+    return ell, failed, residual, npts, contrast
+
+
+def _pass(
+    images: Sequence[np.ndarray],
+    owner: np.ndarray,
+    ell: Ellipses,
+    failed: np.ndarray,
+    n_rays: int,
+    half: float,
+    span: np.ndarray | None,
+    dark: bool,
+    min_contrast: float,
+    min_edge_fraction: float,
+) -> tuple[Ellipses, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One measuring pass: edge points on ``n_rays`` rays, the fit, the checks.
+
+    Returns the ellipses (the fitted ones where the candidate is still fine, else as given),
+    the failure codes (earlier failures stick), and the pass's edge points, their validity,
+    their count and the contrast per candidate.
+    """
+    prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark, span)
+    edge_r, ray_contrast, crossed = _crossings(prof, radii, span)
+    contrast = _row_median(ray_contrast)
+    good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])
+    npts = good.sum(axis=1)
+    _, cos, sin, _ = _ray_grid(n_rays, half)
+    pts = np.stack(
+        [
+            ell.centre[:, 0, None] + edge_r * cos[..., 0],
+            ell.centre[:, 1, None] + edge_r * sin[..., 0],
+        ],
+        axis=2,
+    )
+    fitted = fit_ellipses(pts, good)
+    # The first failing check names the reason (order of _FAILURES); earlier failures stick.
+    checks = np.stack(
+        [
+            inside.sum(axis=1) < min_edge_fraction * n_rays,
+            contrast < min_contrast,
+            npts < min_edge_fraction * n_rays,
+            ~fitted.ok,
+        ]
+    )
+    first = np.where(checks.any(axis=0), np.argmax(checks, axis=0) + 1, 0)
+    failed = np.where(failed > 0, failed, first)
+    ok = (fitted.ok & (failed == 0))[:, None]
+    ell = Ellipses(
+        np.where(ok, fitted.centre, ell.centre),
+        np.where(ok[:, 0], fitted.a, ell.a),
+        np.where(ok[:, 0], fitted.b, ell.b),
+        np.where(ok[:, 0], fitted.angle, ell.angle),
+    )
+    return ell, failed, pts, good, npts, contrast
 
 
 def _row_median(x: np.ndarray) -> np.ndarray:

@@ -23,19 +23,33 @@ class DetectOptions:
     search_scale: int = 4  # search mode: candidates on a 1/search_scale image
     correct_perspective: bool = True  # move the ellipse centre to the image of the circle centre
     max_candidates: int = 64  # per window or search: a busy image is not searched forever
-    # Window mode searches first in windows for a part within this share of the recipe's
-    # tolerances (0.25 of ±100 mm / ±10°: ±25 mm / ±2.5°); an image where some mark was not
-    # found there is searched again over the whole tolerance. None: the whole tolerance at once.
-    first_reach: float | None = 0.25
+    # Window mode searches first in windows for a part within ±first_reach_mm and
+    # ±first_reach_deg of the prior pose (where parts usually arrive), when the recipe's
+    # tolerances are wider; an image where some mark was not found there is searched again
+    # over the whole tolerance. None: the whole tolerance at once.
+    first_reach_mm: float | None = 25.0
+    first_reach_deg: float = 2.5
+
+    def first_reach(self, max_offset_mm: float, max_offset_deg: float) -> float | None:
+        """The first search's share of a recipe's tolerances, or None for a single search (no
+        first reach, or tolerances no wider than it)."""
+        if self.first_reach_mm is None:
+            return None
+        share = max(self.first_reach_mm / max(max_offset_mm, 1e-9),
+                    self.first_reach_deg / max(max_offset_deg, 1e-9))
+        return share if share < 1.0 else None
 
     def __post_init__(self) -> None:
         if self.search_scale not in (1, 2, 4, 8):
             raise ValueError(
                 f"DetectOptions.search_scale must be 1, 2, 4 or 8, got {self.search_scale}"
             )
-        if self.first_reach is not None and not 0 < self.first_reach < 1:
+        if self.first_reach_mm is not None and not (
+            self.first_reach_mm > 0 and self.first_reach_deg > 0
+        ):
             raise ValueError(
-                f"DetectOptions.first_reach must be in (0, 1) or None, got {self.first_reach}"
+                f"DetectOptions.first_reach_mm and first_reach_deg must be > 0 (or "
+                f"first_reach_mm None), got {self.first_reach_mm}, {self.first_reach_deg}"
             )
         if not 0 < self.min_edge_fraction <= 1:
             raise ValueError(

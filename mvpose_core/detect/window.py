@@ -3,8 +3,9 @@
 A mark's window is its predicted ellipse widened by how far the mark can move when the part is
 anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
 geometry of this camera. The search first uses windows for a part near the prior pose
-(``DetectOptions.first_reach`` of the tolerances: small windows, quickly searched) and widens them
-to the whole tolerance for an image where a mark was not found. Accepted candidates from all
+(``DetectOptions.first_reach_mm`` / ``first_reach_deg``, when the tolerances are wider: small
+windows, quickly searched) and widens them to the whole tolerance for an image where a mark was
+not found. Accepted candidates from all
 windows are assigned to marks jointly (least total distance to the predictions), so two marks
 never take the same blob.
 """
@@ -53,14 +54,17 @@ def detect_marks_many(
     Each image's result is what :func:`detect_marks` gives for it alone (tested). A bad image
     raises ``ValueError`` naming its camera.
 
-    Two reaches (``options.first_reach``): the windows first allow for a part near the prior
-    pose; an image where a mark that faces its camera was not found is searched again with
-    windows for the recipe's whole tolerance, and that result is the image's.
+    Two reaches (``options.first_reach_mm`` / ``first_reach_deg``, when the recipe's tolerances
+    are wider): the windows first allow for a part near the prior pose; an image where a mark
+    that faces its camera was not found is searched again with windows for the recipe's whole
+    tolerance, and that result is the image's.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
     todo = list(range(len(checked)))
-    reaches = (1.0,) if options.first_reach is None else (options.first_reach, 1.0)
+    tol = recipe.tolerances
+    first = options.first_reach(tol.max_offset_mm, tol.max_offset_deg)
+    reaches = (1.0,) if first is None else (first, 1.0)
     for reach in reaches:
         search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
         searches = list(map_fn(search, todo))
@@ -91,7 +95,13 @@ def _measure(
     owner = np.array([k for k, s in enumerate(searches) for _ in s.cands], dtype=np.intp)
     measured: list[Measurement] = []
     if len(owner):
-        # Each blob's rim is looked for within its coarse pixel and a tenth of its radius.
+        # An image's blobs have their rims looked for within the image's finest coarse pixel
+        # and a tenth of its largest blob's radius.
+        reach_px = [
+            2.0 + min(s.scales) + 0.1 * max(c.ellipse.radius for _, c in s.cands)
+            if s.cands else 0.0
+            for s in searches
+        ]
         measured = measure_in(
             images,
             owner,
@@ -100,9 +110,7 @@ def _measure(
             options.min_contrast,
             options.max_fit_residual_px,
             options.min_edge_fraction,
-            search_px=np.array([2.0 + scale + 0.1 * c.ellipse.radius
-                                for s in searches
-                                for scale, (_, c) in zip(s.scales, s.cands, strict=True)]),
+            search_px=np.array([reach_px[k] for k in owner.tolist()]),
         )
     out = []
     first = 0

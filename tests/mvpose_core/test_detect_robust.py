@@ -236,8 +236,10 @@ def test_the_first_reach_finds_what_the_whole_tolerance_finds(  # type: ignore[n
     T = T0 @ xyzwpr_to_matrix([mm, -mm, 0.5 * mm, deg, -deg, 0.5 * deg])
     rng = np.random.default_rng(41)
     frames = [(render_view(c, recipe, T, rng).image, c) for c in cams]
-    two = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach=0.25))
-    one = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach=None))
+    assert DetectOptions().first_reach(recipe.tolerances.max_offset_mm,
+                                       recipe.tolerances.max_offset_deg) == pytest.approx(0.25)
+    two = detect_marks_many(frames, recipe, T0, DetectOptions())
+    one = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
     assert sum(d.found for dets in one for d in dets) == sum(len(dets) for dets in one)
     for a_dets, b_dets in zip(two, one, strict=True):
         for a, b in zip(a_dets, b_dets, strict=True):
@@ -257,7 +259,12 @@ def test_windows_of_the_first_reach_are_smaller(lab) -> None:  # type: ignore[no
             assert np.array_equal(a.correction, b.correction)
 
 
-def test_first_reach_must_be_a_share_of_the_tolerance() -> None:
-    for bad in (0.0, 1.0, 1.5, -0.1):
+def test_the_first_reach_is_used_only_inside_wider_tolerances() -> None:
+    opts = DetectOptions(first_reach_mm=25.0, first_reach_deg=2.5)
+    assert opts.first_reach(100.0, 10.0) == pytest.approx(0.25)
+    assert opts.first_reach(50.0, 10.0) == pytest.approx(0.5)  # the larger share of the two
+    assert opts.first_reach(20.0, 2.0) is None  # no wider than the first reach: one search
+    assert DetectOptions(first_reach_mm=None).first_reach(100.0, 10.0) is None
+    for mm, deg in ((0.0, 2.5), (-1.0, 2.5), (25.0, 0.0)):
         with pytest.raises(ValueError, match="first_reach"):
-            DetectOptions(first_reach=bad)
+            DetectOptions(first_reach_mm=mm, first_reach_deg=deg)
