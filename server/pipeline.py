@@ -42,12 +42,13 @@ from mvpose_core.detect import (
     MarkDetection,
     check_image,
     detect_marks_many,
+    perspective_corrections,
     recorrect,
 )
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.gate import ReasonCode
 from mvpose_core.measure import Measurement, measure
-from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
+from mvpose_core.scene import ViewCamera, project_recipe_marks, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array
 from server.detect_pool import DetectPool
@@ -174,6 +175,30 @@ class Pipeline:
         self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
+
+    def warm_up(self, recipe: RecipeConfig) -> None:
+        """Run the trigger's computations once on made-up input (blank frames, the recipe's own
+        marks projected at its taught pose; nothing is stored), so that the first real trigger
+        finds its caches filled (window predictions, layouts) and every code path loaded.
+        Measured in `mvpose demo` before this existed: the first trigger after start took
+        46 ms before the store (detect 39, measure 5), the next ones 7-13 ms."""
+        prior = recipe.T_rf_from_pf0.matrix
+        obs: list[Observation] = []
+        cams: list[ViewCamera] = []
+        for view in sorted({s.view for s in recipe.sightings}):
+            posed = self.view_cameras(view, None)
+            frames = [(np.zeros((vc.model.height, vc.model.width), np.uint8), vc)
+                      for cid, vc in posed.items() if sighted_marks(recipe, view, cid)]
+            detect_marks_many(frames, recipe, prior, self.options.detect,
+                              map_fn=self._pool.map if self._pool is not None else map)
+            for _, vc in frames:
+                cams.append(vc)
+                obs += [Observation(view=view, camera_id=vc.camera_id, mark_id=pm.mark_id,
+                                    uv=pm.uv) for pm in project_recipe_marks(vc, recipe, prior)]
+        meas = measure(self.station, recipe, obs, None, self.options.estimate, cameras=cams)
+        perspective_corrections([(vc, [o.mark_id for o in obs if o.camera_id == vc.camera_id
+                                       and o.view == vc.view]) for vc in cams],
+                                recipe, meas.T_rf_from_pf)
 
     def close(self) -> None:
         if self._pool is not None:

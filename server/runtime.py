@@ -110,6 +110,7 @@ class StationRuntime:
         self._watch: asyncio.Task[None] | None = None
         self.gate = TriggerFirst(self.options.rest_yield_ms / 1000.0)
         self.collector = CollectorPause(self.options.gc_pause)
+        self.warmed_ms: dict[str, float] = {}  # recipe → how long its start-up warm-up took
 
     # ------------------------------------------------------------------ app protocol
     def routers(self) -> Sequence[APIRouter]:
@@ -165,6 +166,14 @@ class StationRuntime:
                 self.station.name, tid, at, ok, cams),
             options=self.options.pipeline,
         )
+        for recipe in self.book.recipes.values():
+            t = time.monotonic()
+            try:
+                self.pipeline.warm_up(recipe.config)
+            except Exception:  # a recipe the engine cannot measure still fails its triggers
+                log.warning("recipe %s: warm-up failed", recipe.config.name, exc_info=True)
+                continue
+            self.warmed_ms[recipe.config.name] = (time.monotonic() - t) * 1e3
         self._trigger_exec = ThreadPoolExecutor(1, thread_name_prefix="trigger")
         self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive",
                                                 initializer=_lower_priority)
@@ -410,4 +419,6 @@ class StationRuntime:
             "last_result": None if last is None else last.__dict__,
             # HTTP requests that waited for a running trigger (server.priority), since start
             "rest": {"yield_ms": self.gate.max_wait_s * 1e3, "held_for_triggers": self.gate.held},
+            # how long each recipe's start-up warm-up took (Pipeline.warm_up)
+            "warm_up_ms": {k: round(v, 1) for k, v in self.warmed_ms.items()},
         }

@@ -237,3 +237,24 @@ async def test_detection_in_worker_processes_matches_detection_in_process(tmp_pa
     for name in blocks:  # the shared-memory blocks are gone with the runtime
         with pytest.raises(FileNotFoundError):
             shared_memory.SharedMemory(name=name)
+
+
+async def test_start_up_warms_the_pipeline_without_recording_anything(tmp_path: Path) -> None:
+    """The runtime runs detection and measurement once on blank frames and the recipe's own
+    projections before it takes triggers: nothing of that is stored, and the first trigger
+    measures as any other."""
+    from server.store.schemas import MeasurementFilter
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        rt = lb.runtime
+        recipe = rt.active.config
+        assert set(rt.warmed_ms) == set(rt.book.recipes) and rt.warmed_ms[recipe.name] > 0
+        assert rt.status()["warm_up_ms"] == {k: round(v, 1) for k, v in rt.warmed_ms.items()}
+        assert rt.services.store.measurements.count(MeasurementFilter()) == 0
+        T = _at(recipe, np.random.default_rng(5))
+        await move_part(rt, lb.twin, T)
+        status, _ = await trigger(lb.twin, recipe, 1, T)
+        assert status.result_code == 0
+        rt.wait_idle()
+        assert rt.services.store.measurements.count(MeasurementFilter()) == 1
