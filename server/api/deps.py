@@ -81,9 +81,10 @@ def _no_pause() -> None:
 
 async def get_pause(request: Request) -> Callable[[], None]:
     """A checkpoint for an endpoint's own long work in the threadpool: it returns at once, or
-    when the trigger that started meanwhile has ended (server.priority)."""
+    when the trigger that started meanwhile has ended; all its calls in one request wait at
+    most the gate's bound together (server.priority)."""
     gate = _gate(request)
-    return gate.wait_in_thread if gate is not None else _no_pause
+    return gate.budget() if gate is not None else _no_pause
 
 
 PauseDep = Annotated[Callable[[], None], Depends(get_pause)]

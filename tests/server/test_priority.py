@@ -126,6 +126,23 @@ async def test_http_requests_wait_for_a_running_trigger_but_liveness_does_not(
             assert gate.held >= 1
 
 
+def test_one_request_waits_at_its_checkpoints_at_most_the_bound_in_total() -> None:
+    gate = TriggerFirst(max_wait_s=0.05)
+    gate.begin()  # a trigger that does not end while the request runs
+    try:
+        pause = gate.budget()
+        t = time.monotonic()
+        for _ in range(20):  # a long page: 20 checkpoints
+            pause()
+        took = time.monotonic() - t
+        # the first checkpoint waits out the bound, the others find it spent
+        assert 0.045 <= took < 0.5 and gate.held == 1
+    finally:
+        gate.end()
+    idle = TriggerFirst(max_wait_s=0.05).budget()
+    idle()  # no trigger: returns at once and is not counted
+
+
 def test_a_page_being_built_stops_at_its_checkpoints_while_a_trigger_runs(tmp_path: Path) -> None:
     """A MES list request already past the middleware when a trigger starts: the store calls
     the checkpoint after its query and every 10 rows, and the rows after it wait."""
