@@ -48,8 +48,9 @@ from mvpose_core.detect import (
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.gate import ReasonCode
 from mvpose_core.measure import Measurement, measure
-from mvpose_core.scene import ViewCamera, project_recipe_marks, sighted_marks, view_cameras
+from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
+from mvpose_core.synth import synthetic_observations
 from mvpose_core.transforms import Array
 from server.detect_pool import DetectPool
 from server.recipes import ActiveRecipe
@@ -183,7 +184,6 @@ class Pipeline:
         Measured in `mvpose demo` before this existed: the first trigger after start took
         46 ms before the store (detect 39, measure 5), the next ones 7-13 ms."""
         prior = recipe.T_rf_from_pf0.matrix
-        obs: list[Observation] = []
         cams: list[ViewCamera] = []
         for view in sorted({s.view for s in recipe.sightings}):
             posed = self.view_cameras(view, None)
@@ -191,14 +191,12 @@ class Pipeline:
                       for cid, vc in posed.items() if sighted_marks(recipe, view, cid)]
             detect_marks_many(frames, recipe, prior, self.options.detect,
                               map_fn=self._pool.map if self._pool is not None else map)
-            for _, vc in frames:
-                cams.append(vc)
-                obs += [Observation(view=view, camera_id=vc.camera_id, mark_id=pm.mark_id,
-                                    uv=pm.uv) for pm in project_recipe_marks(vc, recipe, prior)]
+            cams += [vc for _, vc in frames]
+        obs = synthetic_observations(self.station, recipe, prior, np.random.default_rng(0), 0.0,
+                                     require_in_image=False)
         meas = measure(self.station, recipe, obs, None, self.options.estimate, cameras=cams)
-        perspective_corrections([(vc, [o.mark_id for o in obs if o.camera_id == vc.camera_id
-                                       and o.view == vc.view]) for vc in cams],
-                                recipe, meas.T_rf_from_pf)
+        perspective_corrections([(vc, sighted_marks(recipe, vc.view, vc.camera_id))
+                                 for vc in cams], recipe, meas.T_rf_from_pf)
 
     def close(self) -> None:
         if self._pool is not None:
