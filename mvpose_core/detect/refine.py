@@ -288,23 +288,19 @@ def measure_in(
     ell, failed, *_ = _pass(images, owner, ell, failed, 16, _STEP * float(steps.max()), span,
                             dark, min_contrast, min_edge_fraction)
     groups = np.unique(n_fine).tolist()  # usually one: the cameras of a station are alike
-    if len(groups) == 1:
-        ell, failed, residual, npts, contrast = _fine(
-            images, owner, ell, failed, groups[0], dark, min_contrast, min_edge_fraction,
+    contrast, residual = np.zeros(C), np.zeros(C)
+    npts = np.zeros(C, dtype=int)
+    final = [ell.centre.copy(), ell.a.copy(), ell.b.copy(), ell.angle.copy()]
+    for n in groups:
+        # one group: every candidate, as views (no copies)
+        idx: slice | np.ndarray = slice(None) if len(groups) == 1 else np.flatnonzero(n_fine == n)
+        sub = Ellipses(ell.centre[idx], ell.a[idx], ell.b[idx], ell.angle[idx])
+        e, failed[idx], residual[idx], npts[idx], contrast[idx] = _fine(
+            images, owner[idx], sub, failed[idx], n, dark, min_contrast, min_edge_fraction,
             max_fit_residual_px)
-    else:
-        contrast, residual = np.zeros(C), np.zeros(C)
-        npts = np.zeros(C, dtype=int)
-        final = [ell.centre.copy(), ell.a.copy(), ell.b.copy(), ell.angle.copy()]
-        for n in groups:
-            idx = np.flatnonzero(n_fine == n)
-            sub = Ellipses(ell.centre[idx], ell.a[idx], ell.b[idx], ell.angle[idx])
-            e, failed[idx], residual[idx], npts[idx], contrast[idx] = _fine(
-                images, owner[idx], sub, failed[idx], n, dark, min_contrast, min_edge_fraction,
-                max_fit_residual_px)
-            for out, part in zip(final, (e.centre, e.a, e.b, e.angle), strict=True):
-                out[idx] = part
-        ell = Ellipses(*final)
+        for out, part in zip(final, (e.centre, e.a, e.b, e.angle), strict=True):
+            out[idx] = part
+    ell = Ellipses(*final)
     return [
         Measurement(
             ell[c] if failed[c] == 0 else None,

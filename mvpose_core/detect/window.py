@@ -5,9 +5,8 @@ anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``),
 geometry of this camera. The search first uses windows for a part near the prior pose
 (``DetectOptions.first_reach_mm`` / ``first_reach_deg``, when the tolerances are wider: small
 windows, quickly searched) and widens them to the whole tolerance for an image where a mark was
-not found. Accepted candidates from all
-windows are assigned to marks jointly (least total distance to the predictions), so two marks
-never take the same blob.
+not found. Accepted candidates from all windows are assigned to marks jointly (least total
+distance to the predictions), so two marks never take the same blob.
 """
 
 from __future__ import annotations
