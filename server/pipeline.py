@@ -173,6 +173,8 @@ class Pipeline:
         self.deadline_s = station.deadline_ms / 1000.0
         self._pool = (ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
                       if options.detect_workers > 0 else None)
+        # how detect_marks_many searches a view's images: on the pool, or on the calling thread
+        self._map = self._pool.map if self._pool is not None else map
         self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
@@ -189,8 +191,7 @@ class Pipeline:
             posed = self.view_cameras(view, None)
             frames = [(np.zeros((vc.model.height, vc.model.width), np.uint8), vc)
                       for cid, vc in posed.items() if sighted_marks(recipe, view, cid)]
-            detect_marks_many(frames, recipe, prior, self.options.detect,
-                              map_fn=self._pool.map if self._pool is not None else map)
+            detect_marks_many(frames, recipe, prior, self.options.detect, map_fn=self._map)
             cams += [vc for _, vc in frames]
         obs = synthetic_observations(self.station, recipe, prior, np.random.default_rng(0), 0.0,
                                      require_in_image=False)
@@ -257,8 +258,7 @@ class Pipeline:
             # One call for the view's images: their windows are searched on the pool's
             # threads, and all their candidates measured in one batch (mvpose_core.detect).
             found = detect_marks_many([(img, vc) for _, img, vc in batch], recipe, prior,
-                                      self.options.detect,
-                                      map_fn=self._pool.map if self._pool is not None else map)
+                                      self.options.detect, map_fn=self._map)
             for (cid, _, _), dets in zip(batch, found, strict=True):
                 vcap.detections[cid] = dets
         for cid, fut in jobs.items():
