@@ -133,8 +133,9 @@ def estimate_pose(
     prob = build_problem(observations, cameras, marks_pf, sigma_px)
     pk_all, mi = prob.pk, prob.mi
     n = len(observations)
+    # "all": build_problem has checked that the observations hold three distinct marks.
     objective = np.ones(n, dtype=bool) if options.objective == "all" else prob.table.left[prob.ci]
-    if len(set(mi[objective].tolist())) < 3:
+    if options.objective != "all" and len(set(mi[objective].tolist())) < 3:
         raise PoseInputError(
             f"too few marks for the {options.objective} objective: "
             f"{sorted({prob.mark_ids[j] for j in mi[objective]})}",
@@ -148,7 +149,6 @@ def estimate_pose(
     active = objective.copy()
     best: tuple[LMResult, str] | None = None
     best_in_front = False
-    best_depth = np.zeros(0)
     iterations = 0
     for name, make in starts:
         start = make()
@@ -158,10 +158,9 @@ def estimate_pose(
         lm = _refine(pk, start, options)
         iterations += lm.iterations
         # A mirrored minimum with marks behind the cameras can fit well: rank it last.
-        depth = _depths(pk, lm)
-        in_front = bool(np.all(depth > 0))
+        in_front = bool((lm.depth > 0).all())
         if best is None or (in_front, -lm.final_cost) > (best_in_front, -best[0].final_cost):
-            best, best_in_front, best_depth = (lm, name), in_front, depth
+            best, best_in_front = (lm, name), in_front
         if in_front and _rms(lm) <= options.restart_rms_px:
             break
     if best is None:
@@ -198,9 +197,9 @@ def estimate_pose(
             lm = _refine(pk_all.subset(active), (lm.R, lm.t), options)
             iterations += lm.iterations
 
-    if active.all():
-        res, J = lm.residuals, lm.jacobian
-        depth = best_depth  # of the kept start over every observation (nothing was rejected)
+    all_used = bool(active.all())
+    if all_used:  # the last refinement saw every observation
+        res, J, depth = lm.residuals, lm.jacobian, lm.depth
     else:
         res, J, depth = residuals_and_jacobian(pk_all, lm.R, lm.t)
     behind = np.flatnonzero(~(depth > 0))
@@ -211,7 +210,6 @@ def estimate_pose(
             f"(depth {depth[behind[0]]:.1f} mm): wrong camera, mark or camera pose",
             ReasonCode.MARK_BEHIND_CAMERA,
         )
-    all_used = bool(active.all())
     Jw = (J if all_used else J[active]) * (pk_all.weight if all_used else pk_all.weight[active])[
         :, None, None
     ]
@@ -243,13 +241,6 @@ def _refine(pk: Packed, start: tuple[Array, Array], options: EstimateOptions) ->
         max_iterations=options.max_iterations,
         step_tol=options.step_tol,
         cost_tol=options.cost_tol,
-    )
-
-
-def _depths(pk: Packed, lm: LMResult) -> Array:
-    return (
-        np.einsum("nj,nj->n", pk.R_cf_from_rf[:, 2, :], pk.p_pf @ lm.R.T + lm.t)
-        + pk.t_cf_from_rf[:, 2]
     )
 
 

@@ -59,6 +59,7 @@ class CameraTable:
     k: Array  # [C, 8]
     left: NDArray[np.bool_]  # [C] first camera of its rig
     one_lens: bool  # every camera has the same intrinsics and distortion
+    lens: tuple[Array, Array] | None  # that lens as (K, distortion) for OpenCV, if one_lens
 
     @classmethod
     def of(cls, cameras: Sequence[ViewCamera]) -> CameraTable:
@@ -72,6 +73,9 @@ class CameraTable:
         R = np.transpose(T[:, :3, :3], (0, 2, 1))
         m = [c.model for c in cameras]
         lens = {(x.fx, x.fy, x.cx, x.cy, tuple(x.dist) + (0.0,) * (8 - len(x.dist))) for x in m}
+        one = (m[0].K, m[0].dist_array) if len(lens) == 1 else None
+        for a in one or ():
+            a.flags.writeable = False  # shared by every problem packed from this table
         return cls(
             index=index,
             R_cf_from_rf=R,
@@ -82,13 +86,14 @@ class CameraTable:
             k=np.array([tuple(x.dist) + (0.0,) * (8 - len(x.dist)) for x in m]),
             left=np.array([c.rig_position == 0 for c in cameras]),
             one_lens=len(lens) == 1,
+            lens=one,
         )
 
     def rows(self, ci: NDArray[np.intp], p_pf: Array, uv: Array, weight: Array) -> Packed:
         k = self.k[ci]
         return Packed(
             self.R_cf_from_rf[ci], self.t_cf_from_rf[ci], p_pf, uv, weight,
-            self.f[ci], self.c[ci], k, bool(np.any(k[:, 5:])),
+            self.f[ci], self.c[ci], k, bool(np.any(k[:, 5:])), self.lens,
         )  # fmt: skip
 
 

@@ -27,6 +27,12 @@ def group_matrix(group: NDArray[np.intp], n_groups: int) -> Array:
     return (group[None, :] == np.arange(n_groups)[:, None]).astype(float)
 
 
+_EYE3 = np.eye(3)
+#: For two rays at angle θ, Σ(I − d dᵀ) has eigenvalues 1 − cos θ, 1 + cos θ and 2, so its
+#: determinant is 2 sin²θ; more rays only add to it. Below this, depth is unobservable.
+_MIN_DET = 2.0 * float(np.sin(MIN_RAY_ANGLE_RAD)) ** 2
+
+
 def rays_intersection(
     centres: Array, directions: Array, group: NDArray[np.intp], n_groups: int,
     onehot: Array | None = None,
@@ -38,20 +44,17 @@ def rays_intersection(
     keeps one). Returns points ``[n_groups, 3]`` and a mask of groups with at least two rays
     that are not near-parallel (others hold NaN).
     """
-    P = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]  # [N, 3, 3] I - d dᵀ
     # Sum per group with a one-hot matrix product (much cheaper than np.add.at for small N).
     if onehot is None:
         onehot = group_matrix(group, n_groups)
+    P = _EYE3 - directions[:, :, None] * directions[:, None, :]  # [N, 3, 3] I − d dᵀ
     A = (onehot @ P.reshape(-1, 9)).reshape(n_groups, 3, 3)
-    b = onehot @ np.einsum("nij,nj->ni", P, centres)
-    counts = onehot.sum(axis=1)
-    # For two rays at angle θ, Σ(I − d dᵀ) has eigenvalues 1 − cos θ, 1 + cos θ and 2, so its
-    # determinant is 2 sin²θ; more rays only add to it. Near-parallel rays: depth unobservable.
-    ok = (counts >= 2) & (np.linalg.det(A) > 2.0 * np.sin(MIN_RAY_ANGLE_RAD) ** 2)
-    points = np.full((n_groups, 3), np.nan)
-    if np.any(ok):
-        points[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
-    return points, ok
+    b = onehot @ (P @ centres[:, :, None])[:, :, 0]
+    # One ray (or none) gives a singular A, so its determinant test fails too.
+    ok = np.linalg.det(A) > _MIN_DET
+    # Groups that fail solve an identity system and are then set to NaN: one batched solve.
+    x = np.linalg.solve(np.where(ok[:, None, None], A, _EYE3), b[:, :, None])[:, :, 0]
+    return np.where(ok[:, None], x, np.nan), ok
 
 
 @dataclass(frozen=True)

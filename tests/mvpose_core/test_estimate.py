@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from estimate_scenes import NAMES, noiseless, station
@@ -207,3 +209,21 @@ def test_default_step_tolerance_stops_a_negligible_distance_from_full_convergenc
         dT = np.linalg.inv(fast.T_rf_from_pf) @ full.T_rf_from_pf  # right perturbation
         d = np.concatenate([[dT[2, 1], dT[0, 2], dT[1, 0]], dT[:3, 3]])
         assert float(d @ np.linalg.solve(fast.covariance, d)) ** 0.5 < 1e-3
+
+
+@pytest.mark.parametrize(("name", "rational"), [("lab", False), ("station1", True)])
+def test_one_lens_projection_matches_the_general_path(name: str, rational: bool) -> None:
+    """Rows sharing one lens project through cv2.projectPoints; the numpy model gives the same."""
+    pk, T = packed_with_uv(name, rational)
+    f, c, k = pk.f[0], pk.c[0], pk.k[0]
+    assert np.all(pk.f == f) and np.all(pk.c == c) and np.all(pk.k == k)
+    K = np.array([[f[0], 0.0, c[0]], [0.0, f[1], c[1]], [0.0, 0.0, 1.0]])
+    with_lens = replace(pk, lens=(K, k if rational else k[:5]))
+    rng = np.random.default_rng(3)
+    R, t = perturbed(T, np.r_[rng.normal(0, 0.02, 3), rng.normal(0, 20, 3)])
+    for a, b in zip(
+        residuals_and_jacobian(pk, R, t), residuals_and_jacobian(with_lens, R, t), strict=True
+    ):
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(a)))
+    assert not np.allclose(residuals_and_jacobian(pk, R, t)[0], 0.0)
+    assert with_lens.subset(np.arange(3)).lens is with_lens.lens
