@@ -332,9 +332,7 @@ class Pipeline:
 
         # The verdict is final here: keep the store's usual slow write (p90 of the last 50) in
         # reserve. Not the maximum: one fsync stall would otherwise fail the next 50 triggers.
-        recent = list(self._store_ms)[-50:]
-        reserve = max(self.options.store_reserve_ms,
-                      float(np.percentile(recent, 90)) if recent else 0.0)
+        reserve = max(self.options.store_reserve_ms, _p90(self._store_ms))
         elapsed = (time.monotonic() - t0) * 1e3
         if code == 0 and elapsed + reserve > self.station.deadline_ms:
             code = int(StationReason.DEADLINE_EXCEEDED)
@@ -411,6 +409,17 @@ class Pipeline:
             timings_ms={k: round(v, 4) for k, v in timings.items()},
             images=images,
         )
+
+
+def _p90(values: Sequence[float]) -> float:
+    """The 90th percentile (linear interpolation, as ``np.percentile``) of a few values, 0 if
+    none: sorting 50 floats costs a few µs, ``np.percentile`` about a hundred."""
+    s = sorted(values)
+    if not s:
+        return 0.0
+    pos = 0.9 * (len(s) - 1)
+    i = int(pos)
+    return s[i] if i + 1 >= len(s) else s[i] + (pos - i) * (s[i + 1] - s[i])
 
 
 def _finite(x: float) -> float | None:

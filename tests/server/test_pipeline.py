@@ -19,7 +19,7 @@ from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, 
 from drivers.plc.registers import Command, Status
 from mvpose_core.synth import random_displacement
 from server.loopback import move_part, running_station, trigger
-from server.pipeline import StationReason
+from server.pipeline import StationReason, _p90
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -258,3 +258,12 @@ async def test_start_up_warms_the_pipeline_without_recording_anything(tmp_path: 
         assert status.result_code == 0
         rt.wait_idle()
         assert rt.services.store.measurements.count(MeasurementFilter()) == 1
+
+
+def test_the_store_reserve_is_the_p90_of_recent_writes() -> None:
+    """The deadline's store reserve (p90 of recent write times) agrees with np.percentile."""
+    rng = np.random.default_rng(4)
+    assert _p90([]) == 0.0
+    for n in (1, 2, 5, 50):
+        times = list(rng.exponential(2.0, n))
+        assert _p90(times) == pytest.approx(float(np.percentile(times, 90)), abs=1e-12)
