@@ -68,8 +68,9 @@ def ensure_bootstrap(repo: TokenRepository, secret: str) -> TokenInfo:
     return repo.upsert_secret(BOOTSTRAP_NAME, Role.ENGINEER.value, hash_secret(secret))
 
 
-def authenticate(repo: TokenRepository, authorization: str | None) -> Principal:
-    """The principal behind an ``Authorization: Bearer <token>`` header, or UnauthenticatedError."""
+def bearer_hash(authorization: str | None) -> str:
+    """The sha256 of the token in an ``Authorization: Bearer <token>`` header, or
+    UnauthenticatedError naming what is wrong with the header."""
     if not authorization:
         raise UnauthenticatedError(
             "missing Authorization header; send 'Authorization: Bearer <token>'"
@@ -77,12 +78,25 @@ def authenticate(repo: TokenRepository, authorization: str | None) -> Principal:
     scheme, _, secret = authorization.partition(" ")
     if scheme.lower() != "bearer" or not secret.strip():
         raise UnauthenticatedError(f"Authorization scheme {scheme[:20]!r} is not 'Bearer <token>'")
+    return hash_secret(secret.strip())
+
+
+def authenticate(repo: TokenRepository, authorization: str | None) -> Principal:
+    """The principal behind an ``Authorization: Bearer <token>`` header, or UnauthenticatedError."""
     # The lookup is by the hash (a unique index): timing can reveal the hash's prefix at most,
     # never the secret, so no constant-time compare of secrets is needed.
-    info = repo.by_hash(hash_secret(secret.strip()))
+    info = repo.by_hash(bearer_hash(authorization))
     if info is None:
         raise UnauthenticatedError("unknown or revoked token")
     return Principal(name=info.name, role=Role(info.role))
+
+
+def authenticate_recent(repo: TokenRepository, authorization: str | None) -> Principal | None:
+    """:func:`authenticate` without a query, for a token verified within the repository's TTL
+    (:meth:`TokenRepository.recent`); None when it has to be looked up. A malformed header
+    raises UnauthenticatedError here already."""
+    info = repo.recent(bearer_hash(authorization))
+    return Principal(name=info.name, role=Role(info.role)) if info is not None else None
 
 
 def authorize(principal: Principal, needed: Role) -> Principal:

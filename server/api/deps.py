@@ -8,8 +8,9 @@ from typing import Annotated
 from fastapi import Depends, Request, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel
+from starlette.concurrency import run_in_threadpool
 
-from server.auth import Principal, Role, authenticate, authorize
+from server.auth import Principal, Role, authenticate, authenticate_recent, authorize
 from server.priority import TriggerFirst
 from server.state import Services
 from server.store import Store
@@ -36,19 +37,23 @@ async def get_store(services: ServicesDep) -> Store:
 StoreDep = Annotated[Store, Depends(get_store)]
 
 
-def current_principal(
+async def current_principal(
     request: Request,
     services: ServicesDep,
     _scheme: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Principal:
     # _scheme only documents the bearer scheme in OpenAPI; the raw header is checked here so a
-    # wrong scheme gets its own message. A plain def: the look-up is a database query, so
-    # FastAPI runs it in the threadpool, off the event loop. A trigger that started since the
-    # request came in goes first (server.priority).
-    gate = _gate(request)
-    if gate is not None:
-        gate.wait_in_thread()
-    return authenticate(services.store.tokens, request.headers.get("authorization"))
+    # wrong scheme gets its own message. A trigger that started since the request came in goes
+    # first (server.priority). A token verified within the last seconds is known without a
+    # query (TokenRepository.recent); otherwise the look-up, a database query, runs in the
+    # threadpool, off the event loop.
+    if (gate := _gate(request)) is not None:
+        await gate.wait()
+    tokens, header = services.store.tokens, request.headers.get("authorization")
+    principal = authenticate_recent(tokens, header)
+    if principal is None:
+        principal = await run_in_threadpool(authenticate, tokens, header)
+    return principal
 
 
 def _gate(request: Request) -> TriggerFirst | None:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import cast
 
@@ -25,9 +28,42 @@ class TokenInfo(BaseModel):
     revoked_at: datetime | None
 
 
+#: how long a verified token is trusted without asking the database again (s)
+VERIFIED_TTL_S = 2.0
+
+
 class TokenRepository:
-    def __init__(self, engine: Engine) -> None:
+    """Tokens in the database, with the live tokens verified in the last ``verified_ttl_s``
+    remembered (:meth:`recent`): MES clients poll with the same token many times a second.
+
+    A create, revoke or upsert through this repository forgets them all at once; a change made
+    by another process on the same database (another station's server on a shared PostgreSQL)
+    takes effect here within ``verified_ttl_s``.
+    """
+
+    def __init__(
+        self, engine: Engine, verified_ttl_s: float = VERIFIED_TTL_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self._engine = engine
+        self._ttl = verified_ttl_s
+        self._clock = clock
+        self._verified: dict[str, tuple[float, TokenInfo]] = {}  # hash -> (expiry, info)
+        self._generation = 0  # counts changes made here: a look-up older than one is not kept
+        self._lock = threading.Lock()
+
+    def recent(self, token_sha256: str) -> TokenInfo | None:
+        """The live token with this hash if it was verified less than the TTL ago; None means
+        "not known here": ask :meth:`by_hash` (a query)."""
+        hit = self._verified.get(token_sha256)
+        if hit is None or hit[0] <= self._clock():
+            return None
+        return hit[1]
+
+    def _forget(self) -> None:
+        with self._lock:
+            self._verified.clear()
+            self._generation += 1
 
     def create(self, name: str, role: str, token_sha256: str) -> TokenInfo:
         try:
@@ -54,18 +90,38 @@ class TokenRepository:
         return _info(row)
 
     def by_hash(self, token_sha256: str) -> TokenInfo | None:
-        """The live token with this hash (None when unknown or revoked)."""
+        """The live token with this hash (None when unknown or revoked), from the database."""
+        expiry = self._clock() + self._ttl  # from before the query: a revoke after it counts
+        generation = self._generation
         with self._engine.connect() as conn:
             row = conn.execute(
                 select(T).where(T.c.token_sha256 == token_sha256, T.c.revoked_at.is_(None))
             ).first()
-        return _info(row) if row else None
+        if row is None:  # unknown or revoked: nothing remembered for it either
+            with self._lock:
+                self._verified.pop(token_sha256, None)
+            return None
+        info = _info(row)
+        with self._lock:
+            if generation != self._generation:  # a change here during the query: not kept
+                return info
+            if len(self._verified) > 1000:  # a bound, not a policy: stale entries go first
+                now = self._clock()
+                self._verified = {h: v for h, v in self._verified.items() if v[0] > now}
+            self._verified[token_sha256] = (expiry, info)
+        return info
 
     def list(self) -> list[TokenInfo]:
         with self._engine.connect() as conn:
             return [_info(r) for r in conn.execute(select(T).order_by(T.c.id)).all()]
 
     def revoke(self, name: str) -> TokenInfo:
+        try:
+            return self._revoke(name)
+        finally:  # after the commit: a request verified meanwhile is not remembered past it
+            self._forget()
+
+    def _revoke(self, name: str) -> TokenInfo:
         with self._engine.begin() as conn:
             n = conn.execute(
                 update(T)
@@ -78,6 +134,12 @@ class TokenRepository:
 
     def upsert_secret(self, name: str, role: str, token_sha256: str) -> TokenInfo:
         """Make ``name`` a live token with this secret and role (bootstrap token at start-up)."""
+        try:
+            return self._upsert(name, role, token_sha256)
+        finally:
+            self._forget()
+
+    def _upsert(self, name: str, role: str, token_sha256: str) -> TokenInfo:
         with self._engine.begin() as conn:
             n = conn.execute(
                 update(T)

@@ -136,11 +136,13 @@ async def test_health_and_openapi(tmp_path: Path) -> None:
 def test_database_work_never_runs_on_the_event_loop() -> None:
     """Plain ``def`` endpoints and dependencies run in FastAPI's threadpool; only the loop-only
     liveness probe is ``async``, and the dependencies that only pick objects or parse the query
-    (a thread hop each would cost more than they do). A coroutine endpoint that queried the
-    store would block every other request for the duration of the query."""
+    (a thread hop each would cost more than they do), and the token check, which answers a
+    token verified seconds ago from memory and sends any look-up to the threadpool. A coroutine
+    endpoint that queried the store would block every other request for the duration of the
+    query."""
     async_ok = {"live"}
     pure_deps = {"get_services", "get_store", "get_pause", "measurement_filter", "require_read",
-                 "require_operator", "require_engineer"}
+                 "require_operator", "require_engineer", "current_principal"}
     routes = list(_api_routes(api_router()))
     assert len(routes) >= 20
     for route in routes:

@@ -287,3 +287,32 @@ def test_stations_starting_together_migrate_once(postgres_cluster: PostgresClust
     outs = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [err[-500:] for _, err in outs]
     assert [out.strip() for out, _ in outs] == [head_revision()] * 2
+
+
+def test_a_verified_token_is_remembered_for_the_ttl_and_forgotten_on_a_change(store: Store) -> None:
+    """Two servers on one database: a revoke through one takes effect in the other within the
+    TTL (a clock handed in, not slept on), and at once in the server that made it."""
+    from server.store.tokens import TokenRepository
+
+    now = [100.0]
+    here = TokenRepository(store.engine, verified_ttl_s=2.0, clock=lambda: now[0])
+    other = TokenRepository(store.engine, verified_ttl_s=2.0, clock=lambda: now[0])
+    here.create("mes", "read", "a" * 64)
+    assert here.recent("a" * 64) is None  # never looked up yet: the database decides
+    assert here.by_hash("a" * 64) is not None
+    assert here.recent("a" * 64) is not None
+    assert here.by_hash("b" * 64) is None and here.recent("b" * 64) is None  # unknown: not kept
+
+    other.revoke("mes")  # through the other server
+    now[0] += 1.9
+    assert here.recent("a" * 64) is not None  # still within the TTL here
+    assert here.by_hash("a" * 64) is None  # the database already says revoked ...
+    assert here.recent("a" * 64) is None  # ... and a revoked look-up is not remembered
+    here.upsert_secret("mes", "read", "a" * 64)  # live again, through this server
+    assert here.by_hash("a" * 64) is not None
+    now[0] += 2.0
+    assert here.recent("a" * 64) is None  # the TTL passed: asked again
+
+    assert here.by_hash("a" * 64) is not None and here.recent("a" * 64) is not None
+    here.revoke("mes")  # through this server: forgotten at once
+    assert here.recent("a" * 64) is None and here.by_hash("a" * 64) is None
