@@ -261,8 +261,8 @@ def measure_in(
     Candidate ``k`` starts from ``starts[k]`` in ``images[owner[k]]``: the candidates of several
     images (the cameras of one trigger) are measured together. Two passes: 16 rays searching
     ± ``search_px`` (one for all, or one per candidate; rounded up to the 0.5 px sample step)
-    around the start ellipse locate the rim; then 32-96 rays (about one per 1.5 px of rim of the
-    largest candidate of the image) within ± 3 px of that rim give the final edge points and
+    around the start ellipse locate the rim; then 32-96 rays (one per 1.5 px of rim or closer,
+    of the largest candidate of the image) within ± 3 px of that rim give the final edge points and
     fit. Every step is one array operation over all candidates, or over the images with the same
     ray count (a Python loop per candidate, or per image, would cost more than the arithmetic).
     A candidate's result depends on its ``search_px`` and its image's candidates only, not on
@@ -314,7 +314,10 @@ def measure_in(
 
 
 def _fine_rays(radius_px: float) -> int:
-    return int(min(max(4.0 * radius_px, 32.0), _FINE_RAYS))
+    """Rays about 1.5 px of rim apart, rounded up to a multiple of 16 (32 ... 96): the cameras of
+    a station see their marks at somewhat different sizes, and one ray count for all of them
+    measures every image of a trigger in one pass instead of one pass per size."""
+    return int(min(max(16 * np.ceil(4.0 * radius_px / 16.0), 32), _FINE_RAYS))
 
 
 def _fine(
