@@ -17,7 +17,7 @@ Two starts, chosen by what the layout offers (see :func:`mvpose_core.estimate.es
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg.lapack import dgesdd
+from scipy.linalg.lapack import dgesdd, dposv
 
 from mvpose_core.refine import Array
 
@@ -55,6 +55,13 @@ def align_points(p_pf: Array, p_rf: Array) -> tuple[Array, Array]:
     return R, mu_rf - R @ mu_pf
 
 
+#: ``d @ _SKEW`` reshaped to [N, 3, 3] is [d]× of each row d: ([d]×)_ij = −ε_ijk d_k
+_SKEW = -np.array(
+    [[[0, 0, 0], [0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, 0, 0], [1, 0, 0]],
+     [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]], dtype=float,
+).transpose(2, 0, 1).reshape(3, 9)
+
+
 def generalized_dlt(centres: Array, directions: Array, p_pf: Array) -> tuple[Array, Array] | None:
     """Linear pose from N ≥ 6 rays (RF) of marks at ``p_pf``; None when the system is degenerate."""
     n = p_pf.shape[0]
@@ -62,31 +69,32 @@ def generalized_dlt(centres: Array, directions: Array, p_pf: Array) -> tuple[Arr
         return None
     # Normalise for conditioning: marks about their centroid and size, rays about their centre.
     mu_p = p_pf.mean(axis=0)
-    scale = float(np.sqrt(np.mean(np.sum((p_pf - mu_p) ** 2, axis=1)))) or 1.0
-    q = (p_pf - mu_p) / scale
+    q = p_pf - mu_p
+    scale = float(np.sqrt(np.einsum("ni,ni->", q, q) / n)) or 1.0
+    q /= scale
     mu_c = centres.mean(axis=0)
     c = centres - mu_c
     d = directions
-    # [d]× as [N, 3, 3]
-    Dx = np.zeros((n, 3, 3))
-    Dx[:, 0, 1], Dx[:, 0, 2] = -d[:, 2], d[:, 1]
-    Dx[:, 1, 0], Dx[:, 1, 2] = d[:, 2], -d[:, 0]
-    Dx[:, 2, 0], Dx[:, 2, 1] = -d[:, 1], d[:, 0]
-    # unknowns: M = scale·R (row-major, 9) and s = R mu_p + t − mu_c (3): [d]× (M q + s) = [d]× c
-    A = np.zeros((n, 3, 12))
-    for j in range(3):  # (M q)_i = Σ_j M_ij q_j → column 3 i + j carries q_j in row i
-        A[:, :, j::3][:, :, :3] += Dx * q[:, j][:, None, None]
-    A[:, :, 9:] = Dx
-    b = np.einsum("nij,nj->ni", Dx, c).reshape(-1)
-    U, S, Vt = np.linalg.svd(A.reshape(3 * n, 12), full_matrices=False)
-    if S[-1] < 1e-9 * S[0]:
+    Dx = (d @ _SKEW).reshape(n, 3, 3)  # [d]× per ray
+    # unknowns: M = scale·R (row-major, 9) and s = R mu_p + t − mu_c (3): [d]× (M q + s) = [d]× c;
+    # (M q)_i = Σ_j M_ij q_j, so column 3 i + j of a ray's 3 rows is column i of [d]× times q_j.
+    A = np.concatenate([(Dx[:, :, :, None] * q[:, None, None, :]).reshape(n, 3, 9), Dx], axis=2)
+    b = (Dx @ c[:, :, None]).reshape(-1)
+    U, S, Vt, code = dgesdd(A.reshape(3 * n, 12), full_matrices=0)  # LAPACK directly (see above)
+    if code != 0 or S[-1] < 1e-9 * S[0]:
         return None
     x = Vt.T @ ((U.T @ b) / S)
     M = x[:9].reshape(3, 3)
     if not np.all(np.isfinite(M)) or np.linalg.norm(M) < 1e-12:
         return None
     R = _nearest_rotation(M)
-    # Re-solve the translation with the rotation fixed: [d]× s = [d]× (c − scale·R q)
-    rhs = np.einsum("nij,nj->ni", Dx, c - scale * q @ R.T).reshape(-1)
-    s = np.linalg.lstsq(Dx.reshape(3 * n, 3), rhs, rcond=None)[0]
+    # Re-solve the translation with the rotation fixed: Σ [d]×ᵀ[d]× s = Σ [d]×ᵀ[d]× w with
+    # w = c − scale·R q, and [d]×ᵀ[d]× = |d|² I − d dᵀ (3 × 3 normal equations).
+    w = c - scale * q @ R.T
+    dd = np.einsum("ni,ni->n", d, d)
+    lhs = dd.sum() * np.eye(3) - d.T @ d
+    rhs = dd @ w - d.T @ np.einsum("ni,ni->n", d, w)
+    _, s, bad = dposv(lhs, rhs)
+    if bad:  # every ray parallel: the translation along them is free
+        return None
     return R, s + mu_c - R @ mu_p
