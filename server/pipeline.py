@@ -4,8 +4,8 @@ One trigger, in order (every stage timed, the times go into the record)::
 
     capture   every camera of the view at once (CaptureGroup, one deadline)
     detect    each image in windows predicted from the recipe at the taught reference pose: the
-              windows searched on the detection threads (OpenCV releases the GIL), then every
-              candidate of every image measured in one batch
+              windows searched (on the trigger thread, or detection threads or processes), then
+              every candidate of every image measured in one batch
     measure   estimate + offset + uncertainty + gate (mvpose_core.measure) from every observation
               of every view gathered so far
     correct   the perspective correction of each centre recomputed at the estimated pose (detect
@@ -102,7 +102,10 @@ class PipelineOptions:
     # pose measured again only if some correction moved by more than ``recorrect_px``.
     detect: DetectOptions = DetectOptions(correct_perspective=True)
     estimate: EstimateOptions = EstimateOptions()
-    detect_workers: int = 2  # threads, when detect_processes is 0
+    # Threads for the detection's window search when detect_processes is 0; 0 = on the trigger
+    # thread. On the 2-core machine the trigger thread was faster (six A/B pairs of `bench
+    # station`, docs/performance.md): the threads mostly wait for each other's GIL.
+    detect_workers: int = 0
     # Worker processes for detection (server.detect_pool); 0 = threads in this process. The
     # threads serialise on the GIL; `mvpose serve` uses processes (see docs/performance.md).
     detect_processes: int = 0

@@ -7,8 +7,8 @@ Threads, and why:
   queued on that loop can delay reading a trigger or publishing a result.
 - ``trigger``: one worker that runs every trigger (PLC or REST) in order, so measurements never
   overlap and the robot-mounted sequence needs no lock.
-- ``detect-*``: per-image detection threads, or worker processes (server.detect_pool) on
-  machines with 4+ cores; see docs/performance.md for why.
+- ``detect-*``: detection worker processes (server.detect_pool) on machines with 4+ cores, or
+  threads if asked for; below 4 cores detection runs on the trigger thread (docs/performance.md).
 - ``archive``: PNG writes of archived frames, after the PLC has its answer, niced.
 - one thread per camera inside drivers.cameras.CaptureGroup.
 

@@ -193,14 +193,20 @@ async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -
             pass
 
 
-async def test_detection_in_worker_processes_matches_detection_in_process(tmp_path: Path) -> None:
+@pytest.mark.parametrize("where", ["processes", "threads"])
+async def test_detection_in_workers_matches_detection_in_process(
+    tmp_path: Path, where: str
+) -> None:
+    """Detection on worker processes or on detection threads (the default is the trigger
+    thread) gives what one image detected alone gives."""
     from multiprocessing import shared_memory
 
     from mvpose_core.detect import detect_marks
     from server.pipeline import PipelineOptions
     from server.runtime import RuntimeOptions
 
-    opts = PipelineOptions(detect_processes=2)
+    opts = (PipelineOptions(detect_processes=2) if where == "processes"
+            else PipelineOptions(detect_workers=2))
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
     rt_opts = RuntimeOptions(sim_seed=0, sim_render=runtime_options().sim_render, pipeline=opts)
     async with running_station(settings, rt_opts, http_port=None) as lb:
@@ -212,15 +218,20 @@ async def test_detection_in_worker_processes_matches_detection_in_process(tmp_pa
         assert status.result_code == 0 and row is not None
         assert row.trans_err_mm < recipe.tolerances.translation_mm
         rec = rt.services.store.measurements.get(rt.last.measurement_id).record
-        blocks = [b.name for b in rt.pipeline._procs._blocks.values()]
-        assert len(blocks) == 4
-        # Each (camera, recipe) pair went to the workers pickled once, under one token; the
-        # next trigger reuses them (the workers keep the objects, so their caches hit).
-        tokens = sorted(token for token, _ in rt.pipeline._procs._sent.values())
-        assert len(tokens) == 4
-        status, _ = await trigger(lb.twin, recipe, 6, T)
-        assert status.result_code == 0
-        assert sorted(token for token, _ in rt.pipeline._procs._sent.values()) == tokens
+        blocks: list[str] = []
+        if where == "processes":
+            assert rt.pipeline._pool is None
+            blocks = [b.name for b in rt.pipeline._procs._blocks.values()]
+            assert len(blocks) == 4
+            # Each (camera, recipe) pair went to the workers pickled once, under one token; the
+            # next trigger reuses them (the workers keep the objects, so their caches hit).
+            tokens = sorted(token for token, _ in rt.pipeline._procs._sent.values())
+            assert len(tokens) == 4
+            status, _ = await trigger(lb.twin, recipe, 6, T)
+            assert status.result_code == 0
+            assert sorted(token for token, _ in rt.pipeline._procs._sent.values()) == tokens
+        else:
+            assert rt.pipeline._procs is None and rt.pipeline._pool is not None
         cams = rt.pipeline.view_cameras(1, None)
         for cd in rec.detections:
             here = detect_marks(rt.scene.frame(cd.camera_id), cams[cd.camera_id], recipe,
