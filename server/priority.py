@@ -7,6 +7,14 @@ trigger as it starts and ends (:meth:`TriggerFirst.begin` / :meth:`TriggerFirst.
 thread), and :class:`TriggerFirstMiddleware` holds each new HTTP request until no trigger runs —
 at most ``max_wait_s``, so the API never starves on a station triggering back to back. A request
 already being handled when a trigger starts is not interrupted. The liveness probe is never held.
+
+The HTTP server's event loop itself also sleeps while a trigger runs (``hold_loop``): a callback
+scheduled on it at :meth:`TriggerFirst.begin` blocks the loop thread, with the GIL released,
+until the trigger ends or ``max_wait_s`` passes. Without it, requests already inside the
+framework (parsing, routing, dependencies, sending) keep taking the GIL from the trigger thread
+each time detection releases it for an OpenCV call. Everything on that loop, the liveness probe
+included, answers up to one trigger (at most ``max_wait_s``) later; the PLC link has a loop of
+its own and is never held.
 """
 
 from __future__ import annotations
@@ -24,11 +32,13 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 class TriggerFirst:
     """Counts running triggers; lets coroutines on one event loop wait until none runs."""
 
-    def __init__(self, max_wait_s: float = 0.1) -> None:
+    def __init__(self, max_wait_s: float = 0.1, hold_loop: bool = True) -> None:
         if not max_wait_s >= 0:
             raise ValueError(f"max_wait_s must be >= 0, got {max_wait_s}")
         self.max_wait_s = max_wait_s
+        self.hold_loop = hold_loop
         self.waiting = 0  # requests held right now (read by tests and the status page)
+        self.holding = 0  # 1 while the HTTP loop sleeps in a hold (read by tests)
         self.held = 0  # requests that had to wait, since start
         self._running = 0
         self._lock = threading.Lock()
@@ -72,6 +82,17 @@ class TriggerFirst:
         if loop is None or event is None or loop.is_closed():
             return
         loop.call_soon_threadsafe(event.set if idle else event.clear)
+        if not idle and self.hold_loop and self.max_wait_s > 0:
+            loop.call_soon_threadsafe(self._hold)
+
+    def _hold(self) -> None:
+        """On the HTTP loop: sleep until no trigger runs, at most ``max_wait_s`` (module doc)."""
+        if not self._idle_thread.is_set():
+            self.holding += 1
+            try:
+                self._idle_thread.wait(self.max_wait_s)
+            finally:
+                self.holding -= 1
 
     async def wait(self) -> None:
         """Return when no trigger runs, or after ``max_wait_s`` at most."""

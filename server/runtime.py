@@ -346,9 +346,10 @@ class StationRuntime:
             result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0,
                                                 at)
         finally:
-            self.gate.end()
-            # The collector resumes once the PLC link has published this outcome (it does so
-            # as soon as this returns, within the next loop passes), not before.
+            # HTTP requests and the collector resume once the PLC link has published this
+            # outcome (it does so as soon as this returns, within the next loop passes) and the
+            # PLC's next poll can find it, not before.
+            loop.call_later(0.001, self.gate.end)
             loop.call_later(0.001, self.collector.end)
         return result.outcome
 

@@ -1,4 +1,4 @@
-"""Triggers first: HTTP requests wait for a running trigger, bounded, and liveness never waits."""
+"""Triggers first: HTTP requests, and the HTTP loop itself, wait for a running trigger, bounded."""
 
 from __future__ import annotations
 
@@ -26,8 +26,12 @@ async def until(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
         await asyncio.sleep(0.002)
 
 
+# The tests of the request-level waiting bind the gate to the test's own loop and drive it from
+# there: the loop hold is off for them (it would stop the test itself); it has tests of its own.
+
+
 async def test_a_waiting_request_goes_on_only_after_the_trigger_ends() -> None:
-    gate = TriggerFirst(max_wait_s=10.0)
+    gate = TriggerFirst(max_wait_s=10.0, hold_loop=False)
     gate.bind(asyncio.get_running_loop())
     await asyncio.wait_for(gate.wait(), 1.0)  # idle: no wait
     assert gate.held == 0
@@ -53,7 +57,7 @@ async def test_a_waiting_request_goes_on_only_after_the_trigger_ends() -> None:
 
 
 async def test_overlapping_triggers_keep_requests_waiting_until_the_last_ends() -> None:
-    gate = TriggerFirst(max_wait_s=10.0)
+    gate = TriggerFirst(max_wait_s=10.0, hold_loop=False)
     gate.bind(asyncio.get_running_loop())
     gate.begin()
     gate.begin()
@@ -66,7 +70,7 @@ async def test_overlapping_triggers_keep_requests_waiting_until_the_last_ends() 
 
 
 async def test_a_request_never_waits_longer_than_the_bound() -> None:
-    gate = TriggerFirst(max_wait_s=0.05)
+    gate = TriggerFirst(max_wait_s=0.05, hold_loop=False)
     gate.bind(asyncio.get_running_loop())
     gate.begin()  # and never ends: a station triggering back to back
     t = time.monotonic()
@@ -95,35 +99,102 @@ def test_threadpool_code_waits_for_the_trigger_too() -> None:
     assert not waiting.is_alive() and order == ["trigger ended", "request"] and gate.held == 1
 
 
-async def test_http_requests_wait_for_a_running_trigger_but_liveness_does_not(
-    tmp_path: Path,
-) -> None:
+def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    """:func:`until` for a thread that is not on the held loop."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached before the deadline"
+        time.sleep(0.001)
+
+
+def test_the_http_loop_sleeps_while_a_trigger_runs() -> None:
+    """A callback on the HTTP loop waits for the trigger's end; a trigger that never ends holds
+    the loop at most the bound."""
+    loop = asyncio.new_event_loop()
+    runner = threading.Thread(target=loop.run_forever)
+    runner.start()
+    try:
+        gate = TriggerFirst(max_wait_s=10.0)
+        asyncio.run_coroutine_threadsafe(_bind(gate), loop).result(5)
+        events: list[str] = []
+        gate.begin()
+        wait_until(lambda: gate.holding == 1)  # the loop has reached the hold
+        loop.call_soon_threadsafe(events.append, "callback")
+        time.sleep(0.05)  # the loop may run the callback only if the hold let it go
+        assert events == [] and gate.holding == 1
+        events.append("trigger ended")
+        gate.end()
+        wait_until(lambda: len(events) == 2)
+        assert events == ["trigger ended", "callback"] and gate.holding == 0
+
+        gate.max_wait_s = 0.05  # a trigger that does not end: the loop goes on after the bound
+        t = time.monotonic()
+        gate.begin()
+        done = asyncio.run_coroutine_threadsafe(asyncio.sleep(0), loop)
+        done.result(5)
+        assert 0.04 <= time.monotonic() - t < 2.0 and gate.busy
+        gate.end()
+        off = TriggerFirst(max_wait_s=10.0, hold_loop=False)
+        asyncio.run_coroutine_threadsafe(_bind(off), loop).result(5)
+        off.begin()  # no hold: the loop answers at once
+        asyncio.run_coroutine_threadsafe(asyncio.sleep(0), loop).result(1.0)
+        assert off.holding == 0
+        off.end()
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        runner.join(10)
+        loop.close()
+
+
+async def _bind(gate: TriggerFirst) -> None:
+    gate.bind(asyncio.get_running_loop())
+
+
+async def test_http_requests_wait_for_a_running_trigger(tmp_path: Path) -> None:
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
     async with running_station(settings, runtime_options()) as lb:
         gate = lb.runtime.gate
-        assert gate.max_wait_s == pytest.approx(0.1)
+        assert gate.max_wait_s == pytest.approx(0.1) and gate.hold_loop
         async with httpx.AsyncClient(base_url=lb.base_url + "/api/v1", timeout=20,
                                      headers={"Authorization": f"Bearer {ENGINEER}"}) as api:
-            # A long trigger, as the gate sees it (held open here so the test decides when it
-            # ends; the bound is raised so the request cannot time out of the wait meanwhile).
+            # A long trigger, as the gate sees it, started and ended by another thread: the
+            # server's loop, which is this test's loop too, sleeps while it runs, so the
+            # requests are sent from threads of their own once the hold has begun.
             gate.max_wait_s = 30.0
-            await asyncio.to_thread(gate.begin)
-            ready = asyncio.create_task(api.get("/health/ready"))
-            await until(lambda: gate.waiting == 1)
-            live = await api.get("/health/live")
-            assert live.status_code == 200 and not ready.done()
-            await asyncio.to_thread(gate.end)
-            assert (await asyncio.wait_for(ready, 10.0)).status_code == 200
+            answers: dict[str, int] = {}
+
+            def get(path: str) -> None:
+                with httpx.Client(base_url=lb.base_url + "/api/v1", timeout=20,
+                                  headers={"Authorization": f"Bearer {ENGINEER}"}) as c:
+                    answers[path] = c.get(path).status_code
+
+            def trigger_thread() -> list[str]:
+                gate.begin()
+                wait_until(lambda: gate.holding == 1)
+                clients = [threading.Thread(target=get, args=(p,)) for p in ("/health/ready",
+                                                                             "/health/live")]
+                for c in clients:
+                    c.start()
+                for c in clients:
+                    c.join(0.05)  # no answer can come while the loop sleeps
+                seen = [f"answered {sorted(answers)}", "trigger ended"]
+                gate.end()
+                for c in clients:
+                    c.join(20)
+                return seen + [f"{k} {v}" for k, v in sorted(answers.items())]
+
+            assert await asyncio.to_thread(trigger_thread) == [
+                "answered []", "trigger ended", "/health/live 200", "/health/ready 200"]
             gate.max_wait_s = 0.1
             # A real PLC trigger marks the gate and leaves it idle when it is done.
             recipe = lb.runtime.active.config
             T = recipe.T_rf_from_pf0.matrix.copy()
             await move_part(lb.runtime, lb.twin, T)
             status, _ = await trigger(lb.twin, recipe, 9, T)
-            assert status.result_code == 0 and not gate.busy
+            assert status.result_code == 0
+            await until(lambda: not gate.busy)
             rest = (await api.get("/station/status")).json()["rest"]
             assert rest == {"yield_ms": pytest.approx(100.0), "held_for_triggers": gate.held}
-            assert gate.held >= 1
 
 
 def test_one_request_waits_at_its_checkpoints_at_most_the_bound_in_total() -> None:
