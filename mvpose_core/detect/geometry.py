@@ -110,6 +110,9 @@ class Ellipses:
         return (q - 1.0) / grad
 
 
+_EYE5 = np.eye(5)
+
+
 def fit_ellipses(pts: Array, weights: Array) -> Ellipses:
     """Least-squares conics through point sets ``["C", "N", 2]`` with weights ``["C", "N"]``.
 
@@ -118,17 +121,20 @@ def fit_ellipses(pts: Array, weights: Array) -> Ellipses:
     noise the algebraic fit's bias is O(σ²/r), far below the noise; sets that give no real
     ellipse come back with ``valid`` False.
     """
+    # np.add.reduce rather than .sum(): the ufunc without the method's Python wrapper (this runs
+    # in every measuring pass)
     w = weights.astype(float)
-    n = np.maximum(w.sum(axis=1), 1.0)
-    mean = (pts * w[..., None]).sum(axis=1) / n[:, None]
+    count = np.add.reduce(w, axis=1)
+    n = np.maximum(count, 1.0)
+    mean = np.add.reduce(pts * w[..., None], axis=1) / n[:, None]
     d = pts - mean[:, None, :]
-    scale = np.sqrt((w * (d**2).sum(axis=2)).sum(axis=1) / n) + 1e-12
+    scale = np.sqrt(np.add.reduce(w * np.add.reduce(d * d, axis=2), axis=1) / n) + 1e-12
     x, y = d[..., 0] / scale[:, None], d[..., 1] / scale[:, None]
     M = np.stack([x * x, x * y, y * y, x, y], axis=2)  # [C, N, 5]
     Mw = M * w[..., None]
-    N = np.matmul(Mw.transpose(0, 2, 1), M) + 1e-12 * np.eye(5)
-    rhs = Mw.sum(axis=1)
-    valid = w.sum(axis=1) >= 6
+    N = np.matmul(Mw.transpose(0, 2, 1), M) + 1e-12 * _EYE5
+    rhs = np.add.reduce(Mw, axis=1)
+    valid = count >= 6
     try:
         p = np.linalg.solve(N, rhs[..., None])[..., 0]
     except np.linalg.LinAlgError:

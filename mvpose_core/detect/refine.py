@@ -203,15 +203,16 @@ def _crossings(
     """
     S = prof.shape[-1]
     if lo is None:
-        inner = prof[..., :_LEVEL_SAMPLES].mean(axis=-1)
-        outer = prof[..., -_LEVEL_SAMPLES:].mean(axis=-1)
+        # np.add.reduce: the ufunc itself, without np.mean's Python wrapper (called per pass)
+        inner = np.add.reduce(prof[..., :_LEVEL_SAMPLES], axis=-1) / _LEVEL_SAMPLES
+        outer = np.add.reduce(prof[..., -_LEVEL_SAMPLES:], axis=-1) / _LEVEL_SAMPLES
     else:
         k = np.arange(_LEVEL_SAMPLES)
         shape = prof.shape[:2] + (_LEVEL_SAMPLES,)
         first = np.broadcast_to((lo[:, None] + k)[:, None, :], shape)
         last = np.broadcast_to((S - 1 - lo[:, None] - k)[:, None, :], shape)
-        inner = np.take_along_axis(prof, first, axis=2).mean(axis=-1)
-        outer = np.take_along_axis(prof, last, axis=2).mean(axis=-1)
+        inner = np.add.reduce(np.take_along_axis(prof, first, axis=2), axis=-1) / _LEVEL_SAMPLES
+        outer = np.add.reduce(np.take_along_axis(prof, last, axis=2), axis=-1) / _LEVEL_SAMPLES
     level = 0.5 * (inner + outer)
     above = prof >= level[..., None]
     # Upward crossings (inside -> outside) between samples j and j+1; keep the one nearest the
