@@ -158,6 +158,11 @@ async def _main() -> int:
             per_path = lines[-1][2:] if lines else []
     for t in (quiet_s, busy_s, quiet_rt, busy_rt, far_s, far_rt):
         print(t.line())
+    # The part of the roundtrip outside the server's processing, trigger by trigger: the TRIGGER
+    # write reaching the runtime, the result's publication and the twin's next poll (Modbus).
+    for name, srv, rt in (("idle", quiet_s, quiet_rt), ("loaded", busy_s, busy_rt)):
+        print(Timing(f"{name}: roundtrip - server processing", rt.samples_ms - srv.samples_ms)
+              .line())
     print("  stages from the records (ms):")
     for line in stages:
         print("   ", line)
