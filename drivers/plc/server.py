@@ -249,7 +249,10 @@ class PlcServer:
         t0 = self.clock()
         timeout = self.config.measure_timeout_s or None
         try:
-            outcome = await asyncio.wait_for(self.handler.measure(req), timeout)
+            # asyncio.timeout runs the handler in this task; wait_for would wrap it in another
+            # one, a loop pass more between the TRIGGER write and the measurement's start.
+            async with asyncio.timeout(timeout):
+                outcome = await self.handler.measure(req)
             if not isinstance(outcome, TriggerOutcome):
                 raise TypeError(f"measure() returned {type(outcome).__name__}, not TriggerOutcome")
         except TimeoutError:
