@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+import statistics
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -416,13 +417,11 @@ class Pipeline:
 
 def _p90(values: Sequence[float]) -> float:
     """The 90th percentile (linear interpolation, as ``np.percentile``) of a few values, 0 if
-    none: sorting 50 floats costs a few µs, ``np.percentile`` about a hundred."""
-    s = sorted(values)
-    if not s:
-        return 0.0
-    pos = 0.9 * (len(s) - 1)
-    i = int(pos)
-    return s[i] if i + 1 >= len(s) else s[i] + (pos - i) * (s[i + 1] - s[i])
+    none: the standard library's ``statistics.quantiles`` takes ~10 µs for 50 values,
+    ``np.percentile`` about a hundred."""
+    if len(values) < 2:  # quantiles needs two points (before Python 3.13)
+        return float(values[0]) if values else 0.0
+    return statistics.quantiles(values, n=10, method="inclusive")[-1]
 
 
 def _finite(x: float) -> float | None:
