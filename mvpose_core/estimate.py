@@ -261,7 +261,7 @@ def _starts(
     def get_rays() -> tuple[Array, Array]:
         if not rays:
             pk, ci = prob.pk, prob.ci
-            if prob.table.one_lens:
+            if prob.table.lens is not None:
                 # One lens model for the whole station (the usual case): one undistortion call.
                 xy = cameras[int(ci[0])].model.undistort_normalized(pk.uv)
             else:

@@ -58,8 +58,8 @@ class CameraTable:
     c: Array  # [C, 2]
     k: Array  # [C, 8]
     left: NDArray[np.bool_]  # [C] first camera of its rig
-    one_lens: bool  # every camera has the same intrinsics and distortion
-    lens: tuple[Array, Array] | None  # that lens as (K, distortion) for OpenCV, if one_lens
+    #: (K, distortion) for OpenCV when every camera has the same intrinsics and distortion
+    lens: tuple[Array, Array] | None
 
     @classmethod
     def of(cls, cameras: Sequence[ViewCamera]) -> CameraTable:
@@ -85,7 +85,6 @@ class CameraTable:
             c=np.array([(x.cx, x.cy) for x in m]),
             k=np.array([tuple(x.dist) + (0.0,) * (8 - len(x.dist)) for x in m]),
             left=np.array([c.rig_position == 0 for c in cameras]),
-            one_lens=len(lens) == 1,
             lens=one,
         )
 

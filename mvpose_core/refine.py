@@ -168,12 +168,16 @@ def residuals_and_jacobian(pk: Packed, R: Array, t: Array) -> tuple[Array, Array
     D[:, 1, 0] = off
     D[:, 1, 1] = radial + yy * drad2 + 6.0 * p1 * y + 2.0 * p2 * x
     D *= (pk.f * iz[:, None])[:, :, None]
-    # d(x, y)/d p_cf = [I2 | -xy] / Z, so d uv / d p_cf = [D | -D·xy]
-    B = D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :])
+    # d(x, y)/d p_cf = [I2 | -xy] / Z, so d uv / d p_cf = [D | -D·xy]; times A: d uv / d v
+    return res, _pose_jacobian(D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :]), pk), Z
+
+
+def _pose_jacobian(B: Array, pk: Packed) -> Array:
+    """``[N, 2, 6]`` from ``B`` = d uv / d v ``[N, 2, 3]``: d p_cf / dω = −A [p]×."""
     J = np.empty((pk.n, 2, 6))
-    J[:, :, :3] = B @ pk.neg_px  # d p_cf/dω = −A [p]×
+    J[:, :, :3] = B @ pk.neg_px
     J[:, :, 3:] = B
-    return res, J, Z
+    return J
 
 
 _NO_MOTION = np.zeros(3)
@@ -191,10 +195,7 @@ def _residuals_and_jacobian_cv(pk: Packed, A: Array, p_cf: Array) -> tuple[Array
     uv, jac = cv2.projectPoints(p_cf, _NO_MOTION, _NO_MOTION, K, dist)
     res = pk.uv - uv.reshape(-1, 2)
     B = jac[:, 3:6].reshape(-1, 2, 3) @ A  # d uv / d v = d uv/d p_cf · A
-    J = np.empty((pk.n, 2, 6))
-    J[:, :, :3] = B @ pk.neg_px  # d p_cf/dω = −A [p]×
-    J[:, :, 3:] = B
-    return res, J, p_cf[:, 2]
+    return res, _pose_jacobian(B, pk), p_cf[:, 2]
 
 
 @dataclass(frozen=True)
