@@ -6,7 +6,8 @@ MES polls and can wait a few tens of milliseconds; the PLC cannot. So the runtim
 trigger as it starts and ends (:meth:`TriggerFirst.begin` / :meth:`TriggerFirst.end`, from any
 thread), and :class:`TriggerFirstMiddleware` holds each new HTTP request until no trigger runs —
 at most ``max_wait_s``, so the API never starves on a station triggering back to back. A request
-already being handled when a trigger starts is not interrupted. The liveness probe is never held.
+already being handled when a trigger starts is not interrupted. The middleware never holds the
+liveness probe.
 
 The HTTP server's event loop itself also sleeps while a trigger runs (``hold_loop``): a callback
 scheduled on it at :meth:`TriggerFirst.begin` blocks the loop thread, with the GIL released,
