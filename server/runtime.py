@@ -335,23 +335,35 @@ class StationRuntime:
         await asyncio.get_running_loop().run_in_executor(self._trigger_exec,
                                                          self.runner.sequence.clear)
 
-    async def measure(self, request: TriggerRequest) -> TriggerOutcome:
+    def measure(self, request: TriggerRequest) -> asyncio.Future[TriggerOutcome]:
+        """Start one PLC trigger on the trigger thread now; the future holds its outcome.
+
+        The PLC link calls this as the TRIGGER write arrives, so the HTTP loop's hold and the
+        pipeline start before the link has even answered the write.
+        """
         t0 = time.monotonic()
         at = datetime.now(UTC)
         loop = asyncio.get_running_loop()
-        assert self.runner is not None
+        runner = self.runner
+        assert runner is not None
         self.gate.begin()
         self.collector.begin()
-        try:
-            result = await loop.run_in_executor(self._trigger_exec, self.runner.run, request, t0,
-                                                at)
-        finally:
+
+        def release(_: object) -> None:
             # HTTP requests and the collector resume once the PLC link has published this
-            # outcome (it does so as soon as this returns, within the next loop passes) and the
-            # PLC's next poll can find it, not before.
+            # outcome (it does so as soon as the future is done, within the next loop passes)
+            # and the PLC's next poll can find it, not before.
             loop.call_later(0.001, self.gate.end)
             loop.call_later(0.001, self.collector.end)
-        return result.outcome
+
+        try:
+            fut = loop.run_in_executor(self._trigger_exec,
+                                       lambda: runner.run(request, t0, at).outcome)
+        except BaseException:
+            release(None)
+            raise
+        fut.add_done_callback(release)
+        return fut
 
     # ------------------------------------------------------------------ REST entry points
     def trigger(self, part_id: str | None = None, view_index: int = 0,

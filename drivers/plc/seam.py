@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Awaitable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -43,7 +44,14 @@ class TriggerOutcome:
 class PlcHandler(Protocol):
     """What the server plugs into the PLC link. Every call may be slow or raise."""
 
-    async def measure(self, request: TriggerRequest) -> TriggerOutcome: ...
+    def measure(self, request: TriggerRequest) -> Awaitable[TriggerOutcome]:
+        """The measurement of one accepted trigger (an ``async def`` is fine).
+
+        Called the moment the TRIGGER write is taken, before the PLC gets the write's response;
+        a handler may start its work in the call itself and return a future. The link bounds the
+        wait by ``PlcConfig.measure_timeout_s`` and cancels the awaitable then.
+        """
+        ...
 
     async def select_recipe(self, recipe: int) -> int:
         """Return 0 when the recipe is now active, else a NOK code (1..999)."""

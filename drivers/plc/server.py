@@ -1,8 +1,10 @@
 """The Modbus/TCP server of the PLC link: pymodbus 3.x inside the caller's asyncio loop.
 
-pymodbus calls the device ``action`` on every register access, before a write is committed, so
-the action only validates, copies the handshake's image into the registers being read, and
-enqueues writes; one consumer task feeds them to the Handshake in order.
+pymodbus calls the device ``action`` on every register access, before a write is committed: the
+action validates, copies the handshake's image into the registers being read, and hands writes to
+the Handshake at once, in the order they come. A TRIGGER write starts its measurement right there
+(``PlcHandler.measure`` is called before this request's response is sent; see ``_spawn``); only
+the wait for the outcome runs in a task of its own.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from pymodbus.constants import ExcCodes
@@ -82,7 +84,6 @@ class PlcServer:
         self.clock = clock
         self._machine: Handshake | None = None
         self._listener: _Listener | None = None
-        self._inbox: asyncio.Queue[tuple[int, list[int]]] = asyncio.Queue()
         self._tasks: set[asyncio.Task[None]] = set()
         self._workers: list[asyncio.Task[None]] = []
         self.stats = PlcStats(HandshakeStats())
@@ -107,10 +108,7 @@ class PlcServer:
                 )
         self._listener = _Listener(self, self._device(), host, port)
         await self._listener.serve_forever(background=True)
-        self._workers = [
-            asyncio.create_task(self._consume(), name="plc-consume"),
-            asyncio.create_task(self._ticker(), name="plc-tick"),
-        ]
+        self._workers = [asyncio.create_task(self._ticker(), name="plc-tick")]
 
     @property
     def port(self) -> int:
@@ -177,7 +175,7 @@ class PlcServer:
         regs: list[int],
         values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
-        # Runs before pymodbus commits a write and on every read: validate and copy, never work.
+        # Runs before pymodbus commits a write and on every read: no waiting, no slow work.
         if values is None:
             if fc not in _READ_FCS:
                 return self._reject(ExcCodes.ILLEGAL_FUNCTION)
@@ -196,7 +194,7 @@ class PlcServer:
         words = [int(v) for v in values]
         if address == r.HR_CONTROL and words[0] & ~CONTROL_DEFINED:
             return self._reject(ExcCodes.ILLEGAL_VALUE)
-        self._inbox.put_nowait((address, words))
+        self._write(address, words)
         return None
 
     def _reject(self, code: ExcCodes) -> ExcCodes:
@@ -209,17 +207,18 @@ class PlcServer:
 
     # ------------------------------------------------------------------ workers
 
-    async def _consume(self) -> None:
-        while True:
-            address, words = await self._inbox.get()
-            self.stats.writes += 1
-            try:
-                effects = self.machine.write(address, words, self.clock())
-            except Exception as err:  # noqa: BLE001 — one bad write must not stop the link
-                self._note(f"write of {words} at {address} failed: {err!r}")
-                continue
-            for effect in effects:
-                self._spawn(effect)
+    def _write(self, address: int, words: list[int]) -> None:
+        # In the action, not in a task fed by a queue: each loop pass between the TRIGGER write
+        # and the measurement's start is a chance for another thread of the process (the REST
+        # API's) to take the GIL for up to a switch interval (docs/performance.md).
+        self.stats.writes += 1
+        try:
+            effects = self.machine.write(address, words, self.clock())
+        except Exception as err:  # noqa: BLE001 — one bad write must not stop the link
+            self._note(f"write of {words} at {address} failed: {err!r}")
+            return
+        for effect in effects:
+            self._spawn(effect)
 
     async def _ticker(self) -> None:
         while True:
@@ -231,7 +230,14 @@ class PlcServer:
 
     def _spawn(self, effect: Effect) -> None:
         if isinstance(effect, Measure):
-            coro = self._measure(effect)
+            # measure() is called here, not in the task: a handler that starts its work when
+            # called (the station runtime does) starts it before the task's first step.
+            try:
+                pending: Awaitable[TriggerOutcome] | Exception = self.handler.measure(
+                    effect.request)
+            except Exception as err:  # noqa: BLE001 — reported as the measurement's failure
+                pending = err
+            coro = self._measure(effect, pending, self.clock())
         elif isinstance(effect, RunCommand):
             coro = self._command(effect)
         else:
@@ -244,15 +250,18 @@ class PlcServer:
         log.warning("PLC link: %s", text)
         self.stats.last_errors = [*self.stats.last_errors[-9:], text]
 
-    async def _measure(self, effect: Measure) -> None:
+    async def _measure(
+        self, effect: Measure, pending: Awaitable[TriggerOutcome] | Exception, t0: float
+    ) -> None:
         req = effect.request
-        t0 = self.clock()
         timeout = self.config.measure_timeout_s or None
         try:
-            # asyncio.timeout runs the handler in this task; wait_for would wrap it in another
-            # one, a loop pass more between the TRIGGER write and the measurement's start.
+            if isinstance(pending, Exception):
+                raise pending
+            # asyncio.timeout awaits the handler in this task; wait_for would wrap it in another
+            # one, a loop pass more between the work's end and the outcome's publication.
             async with asyncio.timeout(timeout):
-                outcome = await self.handler.measure(req)
+                outcome = await pending
             if not isinstance(outcome, TriggerOutcome):
                 raise TypeError(f"measure() returned {type(outcome).__name__}, not TriggerOutcome")
         except TimeoutError:

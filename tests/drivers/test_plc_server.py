@@ -314,6 +314,52 @@ async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) ->
     assert server.stats.timeouts == 1 and server.stats.handler_errors == 1
 
 
+class StartsWhenCalled(ArithmeticHandler):
+    """A pipeline whose ``measure`` starts the work in the call and returns a future (as the
+    station runtime's does); the test completes each future by hand."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pending: list[asyncio.Future[TriggerOutcome]] = []
+        self.write: asyncio.Task[None] | None = None  # the PLC's TRIGGER write, when watched
+        self.write_answered: list[bool] = []  # whether it was answered when measure() came
+
+    def measure(self, request: TriggerRequest) -> asyncio.Future[TriggerOutcome]:  # type: ignore[override]
+        self.requests.append(request)
+        if self.write is not None:
+            self.write_answered.append(self.write.done())
+        if self.fail:
+            raise RuntimeError(f"trigger thread gone at trigger {request.trigger_id}")
+        fut: asyncio.Future[TriggerOutcome] = asyncio.get_running_loop().create_future()
+        self.pending.append(fut)
+        return fut
+
+
+async def test_a_trigger_starts_its_measurement_before_the_write_is_answered(
+    plc: ServerFactory,
+) -> None:
+    handler = StartsWhenCalled()
+    server, twin = await plc(handler, cfg(measure_timeout_s=0.2))
+    await twin.wait_for(lambda s: s.has(Status.READY), 2.0, "READY")
+    handler.write = asyncio.create_task(twin.write_trigger(61))
+    await handler.write
+    # measure() ran while the write was still waiting for its response, not passes later.
+    assert handler.write_answered == [False] and len(handler.pending) == 1
+    handler.pending[0].set_result(expected_outcome(61))
+    status = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), 2.0, "result")
+    check_result(status, 61)
+    await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)
+    # A measurement past the deadline: its future is cancelled, the PLC gets TIMEOUT.
+    late = await twin.cycle(62)
+    assert late.result_code == ResultCode.TIMEOUT and handler.pending[1].cancelled()
+    # measure() raising in the call itself: an INTERNAL_ERROR result, the link carries on.
+    handler.fail = True
+    broken = await twin.cycle(63)
+    assert broken.result_code == ResultCode.INTERNAL_ERROR and broken.result_id == 3
+    assert server.stats.handler_errors == 1 and server.stats.timeouts == 1
+    assert handler.resets == 2  # each failure dropped any half-done view sequence
+
+
 async def test_disconnect_mid_handshake_loses_nothing(plc: ServerFactory) -> None:
     handler = ArithmeticHandler()
     handler.gate = asyncio.Event()
