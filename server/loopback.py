@@ -167,10 +167,17 @@ async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asynci
 
 
 async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
-    """Stop the heartbeat task and disconnect; bounded even if the task's cancel is lost."""
+    """Stop the heartbeat task and disconnect, bounded.
+
+    The stop lets a heartbeat write in flight finish (a cancel in the middle of it would leave
+    the server answering a closed connection, which pymodbus logs as an error with a dump of
+    the last frames); only a heartbeat still running after that is cancelled.
+    """
     twin.stop_keep_alive()
-    beat.cancel()
-    await asyncio.wait({beat}, timeout=5.0)  # a lost cancel: the flag ends it within a period
+    await asyncio.wait({beat}, timeout=2.0)
+    if not beat.done():
+        beat.cancel()
+        await asyncio.wait({beat}, timeout=2.0)
     if beat.done() and not beat.cancelled():
         beat.exception()  # retrieved: a failed heartbeat is not news at disconnect
     twin.close()

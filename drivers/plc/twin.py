@@ -7,6 +7,7 @@ that a word-order or scaling mistake in the server cannot cancel itself out in t
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -137,6 +138,7 @@ class PlcTwin:
         self.control = Control(0)
         self.heartbeat = 0
         self._beating = False
+        self._beat_stop: asyncio.Event | None = None
         #: seconds from writing the last cycle's TRIGGER to reading its answer (RESULT_VALID or
         #: VIEW_DONE): the PLC's view of the latency, without the READY check before it and the
         #: RESULT_ACK handshake after it
@@ -201,16 +203,22 @@ class PlcTwin:
         cyclic task does; run it as a task next to the handshake (pymodbus serialises the
         client's requests)."""
         self._beating = True
+        self._beat_stop = asyncio.Event()
         while self._beating:
             await self.beat()
-            await asyncio.sleep(period_s)
+            with contextlib.suppress(TimeoutError):  # a stop ends the wait, not the write
+                async with asyncio.timeout(period_s):
+                    await self._beat_stop.wait()
 
     def stop_keep_alive(self) -> None:
         """End :meth:`keep_alive` at its next cycle. Cancelling its task alone is not enough on
         Python 3.11: ``asyncio.wait_for`` (pymodbus awaits every response with it) drops a
         cancellation that arrives in the same loop pass as the response (CPython gh-86296),
-        and the heartbeat would then run for ever."""
+        and the heartbeat would then run for ever. A heartbeat write in flight is finished
+        first, so a twin that then disconnects leaves no request unanswered."""
         self._beating = False
+        if self._beat_stop is not None:
+            self._beat_stop.set()
 
     async def wait_for(
         self, predicate: Callable[[PlcStatus], bool], timeout: float = 2.0, what: str = "condition"

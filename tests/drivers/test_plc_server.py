@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 
 import numpy as np
@@ -45,6 +46,7 @@ from mvpose_core.transforms import (
     to_robot,
     transform_error,
 )
+from server.loopback import detach_twin
 
 
 async def until(predicate, timeout: float = 3.0) -> None:
@@ -296,6 +298,26 @@ async def test_heartbeat_task_ends_on_stop_without_a_cancel(plc: ServerFactory) 
     stopped_at = twin.heartbeat
     await until(lambda: server.machine.error is ErrorCode.WATCHDOG)
     assert twin.heartbeat == stopped_at
+
+
+async def test_detaching_a_twin_leaves_no_request_unanswered(
+    plc: ServerFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A heartbeat every 0.5 ms: a write is in flight at almost any moment of the detach. It must
+    # end by the stop, which lets that write finish, not by a cancel: a cancelled write leaves
+    # the server answering a closed connection, which pymodbus logs as an error with a dump of
+    # the last frames (seen with the twin in a process of its own, bench/twin_process.py).
+    server, _ = await plc()
+    for _ in range(5):
+        twin = await PlcTwin("127.0.0.1", server.port).connect()
+        beat = asyncio.create_task(twin.keep_alive(0.0005))
+        await until(lambda t=twin: t.heartbeat >= 3)
+        await detach_twin(twin, beat)
+        assert beat.done() and not beat.cancelled()
+    await until(lambda: server.stats.writes >= 15)
+    await asyncio.sleep(0)  # let the server handle anything still buffered
+    errors = [rec.getMessage() for rec in caplog.records if rec.levelno >= logging.ERROR]
+    assert errors == []
 
 
 async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) -> None:
