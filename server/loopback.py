@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -115,34 +116,36 @@ async def running_server(
     station = load_station(settings.station)
     runtime = StationRuntime(station, options or RuntimeOptions())
     app = create_app(settings, runtime)
-    server: uvicorn.Server | None = None
-    serve_task = None
-    base_url = None
-    if http_port is not None:
-        config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
-                                lifespan="on")
-        server = uvicorn.Server(config)
-        serve_task = asyncio.create_task(_serve(server))
+    if http_port is None:
+        # No HTTP server: the gate would bind to (and hold) the caller's loop, the PLC twin's.
+        runtime.gate.hold_loop = False
+        async with _lifespan(app):
+            yield RunningServer(runtime=runtime, server=None, base_url=None)
+        return
+    config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
+                            lifespan="on")
+    server = uvicorn.Server(config)
+    failed: list[str] = []
+    # uvicorn on a thread and event loop of its own, as `mvpose serve` runs it apart from the
+    # station loop and the PLC: the gate holds that loop during triggers (server/priority.py),
+    # never the caller's, where an in-process PLC twin may run.
+    thread = threading.Thread(target=_serve, args=(server, failed), name="http", daemon=True)
+    thread.start()
+    try:
         deadline = time.monotonic() + 60
         while not server.started:
-            if serve_task.done():
-                await serve_task  # raises why it stopped
-                raise RuntimeError("the station server failed to start (see the log)")
+            if not thread.is_alive():
+                why = "".join(failed) or "see the log"
+                raise RuntimeError(f"the station server failed to start ({why})")
             if time.monotonic() > deadline:
                 raise TimeoutError("the station server did not start within 60 s")
             await asyncio.sleep(0.02)
         sock = server.servers[0].sockets[0].getsockname()
-        base_url = f"http://{sock[0]}:{sock[1]}"
-        lifespan_cm: contextlib.AbstractAsyncContextManager[None] = contextlib.nullcontext()
-    else:
-        lifespan_cm = _lifespan(app)
-    try:
-        async with lifespan_cm:
-            yield RunningServer(runtime=runtime, server=server, base_url=base_url)
+        yield RunningServer(runtime=runtime, server=server,
+                            base_url=f"http://{sock[0]}:{sock[1]}")
     finally:
-        if server is not None and serve_task is not None:
-            server.should_exit = True
-            await serve_task
+        server.should_exit = True
+        await asyncio.to_thread(thread.join, 60)
 
 
 async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asyncio.Task[None]]:
@@ -200,14 +203,12 @@ async def running_station(
             await detach_twin(twin, beat)
 
 
-async def _serve(server: uvicorn.Server) -> None:
-    # uvicorn calls sys.exit() when the lifespan fails; a SystemExit escaping a task would stop
-    # the whole event loop, so it becomes an ordinary error here.
+def _serve(server: uvicorn.Server, failed: list[str]) -> None:
+    # uvicorn calls sys.exit() when the lifespan fails; here that ends this thread with a reason.
     try:
-        await server.serve()
+        server.run()
     except SystemExit as err:
-        raise RuntimeError(f"the station server failed to start (exit {err.code}; see the log)") \
-            from None
+        failed.append(f"exit {err.code}; see the log")
 
 
 @contextlib.asynccontextmanager
