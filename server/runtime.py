@@ -26,7 +26,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import AsyncIterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -76,6 +76,9 @@ class RuntimeOptions:
     # HTTP requests arriving during a trigger wait for it to end, at most this long (0: never):
     # the MES can wait, the PLC cannot (server.priority).
     rest_yield_ms: float = 100.0
+    # ... and after a PLC trigger's outcome is ready, until the PLC has read it, at most this
+    # long (a PLC task polls every 1-10 ms); the bound of rest_yield_ms still applies.
+    answer_read_wait_ms: float = 20.0
     # Python's garbage collector waits while a trigger runs, and what start-up allocated is
     # frozen out of its sight (server.priority.CollectorPause).
     gc_pause: bool = True
@@ -110,6 +113,7 @@ class StationRuntime:
         self._watch: asyncio.Task[None] | None = None
         self.gate = TriggerFirst(self.options.rest_yield_ms / 1000.0)
         self.collector = CollectorPause(self.options.gc_pause)
+        self._end_at_answer: Callable[[], None] | None = None  # ends the last trigger's pause
         self.warmed_ms: dict[str, float] = {}  # recipe → how long its start-up warm-up took
 
     # ------------------------------------------------------------------ app protocol
@@ -189,7 +193,7 @@ class StationRuntime:
             measure_timeout_s=self.station.deadline_ms / 1000.0 + 1.0,
             initial_recipe=self.active.number if self.active else 0,
         )
-        plc = PlcServer(self, cfg)
+        plc = PlcServer(self, cfg, on_answer_read=self._answer_read)
         asyncio.run_coroutine_threadsafe(
             plc.start(self.options.plc_host, self.options.plc_port), self._loop
         ).result(timeout=10)
@@ -348,13 +352,22 @@ class StationRuntime:
         assert runner is not None
         self.gate.begin()
         self.collector.begin()
+        ended = False
+
+        def end() -> None:
+            nonlocal ended
+            if not ended:
+                ended = True
+                self.gate.end()
+                self.collector.end()
 
         def release(_: object) -> None:
-            # HTTP requests and the collector resume once the PLC link has published this
-            # outcome (it does so as soon as the future is done, within the next loop passes)
-            # and the PLC's next poll can find it, not before.
-            loop.call_later(0.001, self.gate.end)
-            loop.call_later(0.001, self.collector.end)
+            # HTTP requests and the collector resume once the PLC has read this outcome (the
+            # PLC link calls _answer_read), or answer_read_wait_ms after it is ready at the
+            # latest: a REST request let through between the publication and the PLC's next
+            # poll would delay that poll's answer (docs/performance.md).
+            self._end_at_answer = end
+            loop.call_later(self.options.answer_read_wait_ms / 1000.0, end)
 
         try:
             fut = loop.run_in_executor(self._trigger_exec,
@@ -364,6 +377,12 @@ class StationRuntime:
             raise
         fut.add_done_callback(release)
         return fut
+
+    def _answer_read(self) -> None:
+        """The PLC link: the PLC has read the last published answer (on the station loop)."""
+        end, self._end_at_answer = self._end_at_answer, None
+        if end is not None:
+            end()
 
     # ------------------------------------------------------------------ REST entry points
     def trigger(self, part_id: str | None = None, view_index: int = 0,

@@ -78,10 +78,16 @@ class PlcServer:
         handler: PlcHandler,
         config: PlcConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
+        on_answer_read: Callable[[], None] | None = None,
     ) -> None:
+        """``on_answer_read``: called on this loop, once per published answer (result block or
+        VIEW_DONE), right after the PLC's first read of the status word that follows it has
+        been answered: the moment the PLC has its answer."""
         self.handler = handler
         self.config = config or PlcConfig()
         self.clock = clock
+        self.on_answer_read = on_answer_read
+        self._answer_unread = False
         self._machine: Handshake | None = None
         self._listener: _Listener | None = None
         self._tasks: set[asyncio.Task[None]] = set()
@@ -182,10 +188,17 @@ class PlcServer:
             image = self.machine.image
             if fc == 4:
                 regs[address - start : address - start + count] = image[address : address + count]
+                status = address <= r.IR_STATUS < address + count
             else:
                 lo, hi = max(address, r.HR_MIRROR), min(address + count, r.HR_MIRROR + r.IR_COUNT)
                 if lo < hi:
                     regs[lo - start : hi - start] = image[lo - r.HR_MIRROR : hi - r.HR_MIRROR]
+                status = lo <= r.HR_MIRROR + r.IR_STATUS < hi
+            if status and self._answer_unread:
+                self._answer_unread = False
+                if self.on_answer_read is not None:
+                    # the next loop pass: after pymodbus has sent this read's response
+                    asyncio.get_running_loop().call_soon(self.on_answer_read)
             return None
         if fc not in _WRITE_FCS:
             return self._reject(ExcCodes.ILLEGAL_FUNCTION)
@@ -273,6 +286,7 @@ class PlcServer:
             self._note(f"trigger {req.trigger_id}: measurement raised {err!r}")
             outcome = await self._failed(ResultCode.INTERNAL_ERROR, t0)
         self.machine.measured(outcome)
+        self._answer_unread = True
 
     async def _failed(self, code: ResultCode, t0: float) -> TriggerOutcome:
         # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.

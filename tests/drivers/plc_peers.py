@@ -94,9 +94,11 @@ async def plc() -> AsyncIterator[ServerFactory]:
         handler: object | None = None,
         config: PlcConfig | None = None,
         connect: bool = True,
+        on_answer_read: Callable[[], None] | None = None,
         **twin_kw: object,
     ) -> tuple[PlcServer, PlcTwin]:
-        server = PlcServer(handler or ArithmeticHandler(), config or cfg())
+        server = PlcServer(handler or ArithmeticHandler(), config or cfg(),
+                           on_answer_read=on_answer_read)
         await server.start()
         servers.append(server)
         order = server.config.word_order

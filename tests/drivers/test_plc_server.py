@@ -26,6 +26,7 @@ from drivers.plc import (
     Command,
     Control,
     ErrorCode,
+    PlcServer,
     ResultCode,
     State,
     Status,
@@ -298,6 +299,43 @@ async def test_heartbeat_task_ends_on_stop_without_a_cancel(plc: ServerFactory) 
     stopped_at = twin.heartbeat
     await until(lambda: server.machine.error is ErrorCode.WATCHDOG)
     assert twin.heartbeat == stopped_at
+
+
+async def test_the_first_status_read_after_an_answer_is_reported_once(plc: ServerFactory) -> None:
+    seen: list[int] = []  # the status word the PLC had been sent when the hook ran
+    server: PlcServer | None = None
+
+    def answer_read() -> None:
+        assert server is not None
+        seen.append(server.machine.image[r.IR_STATUS])
+
+    handler = ArithmeticHandler()
+    handler.gate = asyncio.Event()
+    server, twin = await plc(handler, on_answer_read=answer_read)
+    await twin.wait_for(lambda s: s.has(Status.READY), 2.0, "READY")
+    await twin.write_trigger(71)
+    for _ in range(3):
+        assert not (await twin.read_status()).has(Status.RESULT_VALID)
+    assert seen == []  # reads while the measurement runs are not the answer's
+    handler.gate.set()
+    await until(lambda: server.machine.result_id == 1)
+    # A read that leaves out the status word (the result block alone) does not count.
+    rr = await twin.client.read_input_registers(10, count=20, device_id=twin.device_id)
+    assert not rr.isError()
+    # (the hook is scheduled before a read's response is sent, so it would have run by now)
+    assert seen == []
+    check_result(await twin.read_status(), 71)
+    assert len(seen) == 1 and seen[0] & Status.RESULT_VALID
+    for _ in range(3):  # later reads of the same answer: no more calls
+        await twin.read_status()
+    assert len(seen) == 1
+    # The mirror (fc 3) is a status read too; each answer is reported once.
+    await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)
+    twin.use_mirror = True
+    handler.gate = None
+    check_result(await twin.cycle(72), 72)
+    await until(lambda: len(seen) == 2)
+    assert seen[1] & Status.RESULT_VALID
 
 
 async def test_detaching_a_twin_leaves_no_request_unanswered(

@@ -157,9 +157,9 @@ async def test_http_requests_wait_for_a_running_trigger(tmp_path: Path) -> None:
         assert gate.max_wait_s == pytest.approx(0.1) and gate.hold_loop
         async with httpx.AsyncClient(base_url=lb.base_url + "/api/v1", timeout=20,
                                      headers={"Authorization": f"Bearer {ENGINEER}"}) as api:
-            # A long trigger, as the gate sees it, started and ended by another thread: the
-            # server's loop, which is this test's loop too, sleeps while it runs, so the
-            # requests are sent from threads of their own once the hold has begun.
+            # A long trigger, as the gate sees it, started and ended by another thread; the
+            # requests are sent from threads of their own once the server's loop (on a thread
+            # of its own, as in production) sleeps in the hold.
             gate.max_wait_s = 30.0
             answers: dict[str, int] = {}
 
@@ -297,3 +297,29 @@ async def test_a_served_station_pauses_the_collector_only_during_triggers(
         assert status.result_code == 0 and seen == [False]
         await until(lambda: gc.isenabled())
     assert gc.isenabled() and gc.get_freeze_count() == 0
+
+
+@pytest.mark.parametrize("wait_ms", [60_000.0, 50.0])
+async def test_a_plc_trigger_holds_rest_until_the_plc_has_read_its_answer(
+    tmp_path: Path, wait_ms: float
+) -> None:
+    import dataclasses
+
+    from drivers.plc import Status
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    opts = dataclasses.replace(runtime_options(), answer_read_wait_ms=wait_ms)
+    async with running_station(settings, opts) as lb:
+        rt, twin = lb.runtime, lb.twin
+        recipe = rt.active.config
+        T = recipe.T_rf_from_pf0.matrix.copy()
+        await move_part(rt, twin, T)
+        await twin.wait_for(lambda s: s.has(Status.READY), 5.0, "READY")
+        await twin.write_trigger(31)
+        await until(lambda: rt.plc.machine.result_id == 1)  # published
+        if wait_ms > 1000:  # a long bound: only the PLC's read can end the hold
+            assert rt.gate.busy and rt.collector.paused
+            status = await twin.read_status()
+            assert status.has(Status.RESULT_VALID | Status.RESULT_OK) and status.trigger_id == 31
+        # else a PLC that does not read: the hold ends wait_ms after the outcome at the latest
+        await until(lambda: not rt.gate.busy and not rt.collector.paused)
