@@ -6,6 +6,11 @@ frames (the part does not move, so no rendering happens during the run). The PLC
 from a process of its own (bench/twin_process.py), as the PLC is another device, and the MES load
 comes from a separate process over HTTP, as a remote MES would.
 
+Idle and loaded triggers come in alternating blocks of 50 (idle, loaded, loaded, idle, ...; the
+MES load process is switched on and off between blocks): a machine shared with other work is
+faster or slower over tens of seconds, and two phases one after the other would count that
+drift as an effect of the REST load, either way.
+
 Two latencies per trigger: ``server`` is the processing time the server publishes to the PLC
 (trigger taken → record durable and result ready); ``roundtrip`` is what the twin sees from
 writing TRIGGER to reading RESULT_VALID, Modbus polling included.
@@ -31,7 +36,9 @@ from bench.timing import Timing, check
 from mvpose_core.transforms import xyzwpr_to_matrix
 
 ROOT = Path(__file__).resolve().parents[1]
-N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "200"))
+#: triggers per condition (idle REST, REST load), in blocks of BLOCK
+N_TRIGGERS = int(os.environ.get("MVPOSE_BENCH_TRIGGERS", "400"))
+BLOCK = 50
 IDLE_IDS, LOAD_IDS, FAR_IDS = 20_000, 30_000, 40_000  # trigger ids of the phases
 #: how often the twin reads the status block, like a PLC task cycle (MVPOSE_BENCH_TWIN_POLL_MS)
 TWIN_POLL_S = float(os.environ.get("MVPOSE_BENCH_TWIN_POLL_MS", "1")) / 1000.0
@@ -44,16 +51,25 @@ TOKEN = "mvp_bench-station-token-0000000000000000000000"
 FAR = xyzwpr_to_matrix([45.0, -40.0, 20.0, 4.0, -3.0, 3.0])
 
 _LOAD = textwrap.dedent("""
-    import sys, time, httpx
+    import sys, threading, time, httpx
     base, token, rate = sys.argv[1], sys.argv[2], float(sys.argv[3])
     paths = ["/api/v1/measurements?limit=50", "/api/v1/station/status",
              "/api/v1/measurements?limit=10&result=OK", "/api/v1/health/ready"]
+    on = threading.Event()  # stdin switches the load: "on" / "off" lines
+
+    def control():
+        for line in sys.stdin:
+            on.set() if line.strip() == "on" else on.clear()
+
+    threading.Thread(target=control, daemon=True).start()
     n = errors = 0
     took = {}
-    t_next = time.monotonic()
     with httpx.Client(base_url=base, headers={"Authorization": "Bearer " + token},
                       timeout=5) as c:
         while True:
+            if not on.is_set():
+                on.wait()
+                t_next = time.monotonic()
             path = paths[n % len(paths)]
             t = time.perf_counter()
             try:
@@ -71,22 +87,66 @@ _LOAD = textwrap.dedent("""
 """)
 
 
-async def _run(label: str, port: int, n: int, first_id: int) -> tuple[Timing, Timing, int]:
-    """One phase of ``n`` handshakes by the PLC twin, run in a process of its own."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "bench.twin_process", str(port), str(first_id), str(n),
-        str(TRIGGER_PERIOD_S * 1e3), str(TWIN_POLL_S * 1e3),
-        cwd=ROOT, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-    )
-    out, err = await proc.communicate()
-    if proc.returncode != 0:
-        raise RuntimeError(f"PLC twin process failed ({proc.returncode}): {err.decode()[-2000:]}")
-    res = json.loads(out.decode().strip().splitlines()[-1])
-    return (
-        Timing(f"{label}: server processing", np.array(res["server_ms"])),
-        Timing(f"{label}: roundtrip", np.array(res["roundtrip_ms"])),
-        int(res["nok"]),
-    )
+class _Twin:
+    """The PLC twin process (bench/twin_process.py): one connection, blocks of handshakes."""
+
+    async def start(self, port: int, log: Path) -> None:
+        self.log = log  # its stderr: a file, which no pipe left unread can block
+        with log.open("wb") as err:
+            self.proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "bench.twin_process", str(port),
+                str(TRIGGER_PERIOD_S * 1e3), str(TWIN_POLL_S * 1e3),
+                cwd=ROOT, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+                stderr=err,
+            )
+        await self._line()  # "ready": connected, heartbeat running, station READY
+
+    async def _line(self) -> str:
+        assert self.proc.stdout is not None
+        line = await self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"PLC twin process failed: {self.log.read_text()[-2000:]}")
+        return line.decode()
+
+    async def block(self, first_id: int, n: int) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(f"{first_id} {n}\n".encode())
+        await self.proc.stdin.drain()
+        return json.loads(await self._line())
+
+    async def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        try:
+            await asyncio.wait_for(self.proc.wait(), 10.0)
+        except TimeoutError:
+            self.proc.kill()
+            await self.proc.wait()
+
+
+class _Phase:
+    """The samples and the server's CPU time of one condition, gathered block by block."""
+
+    def __init__(self, label: str, first_id: int) -> None:
+        self.label, self.next_id = label, first_id
+        self.server: list[float] = []
+        self.roundtrip: list[float] = []
+        self.nok = 0
+        self.cpu_s = self.wall_s = 0.0
+
+    async def run(self, twin: _Twin, n: int) -> None:
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        res = await twin.block(self.next_id, n)
+        self.cpu_s += time.process_time() - cpu0
+        self.wall_s += time.monotonic() - wall0
+        self.next_id += n
+        self.server += res["server_ms"]
+        self.roundtrip += res["roundtrip_ms"]
+        self.nok += int(res["nok"])
+
+    def timings(self) -> tuple[Timing, Timing]:
+        return (Timing(f"{self.label}: server processing", np.array(self.server)),
+                Timing(f"{self.label}: roundtrip", np.array(self.roundtrip)))
 
 
 async def _main() -> int:
@@ -126,36 +186,50 @@ async def _main() -> int:
             print("  rendering 4 x 2048 x 2048 frames once at a displaced pose ...", flush=True)
             await asyncio.to_thread(lb.runtime.scene.set_part_pose, T)
             bare = _bare_detection(lb.runtime)
-            await _run("warm-up", port, 20, 1)
-            cpu0, wall0 = time.process_time(), time.monotonic()
-            quiet_s, quiet_rt, nok_q = await _run("idle REST", port, N_TRIGGERS, IDLE_IDS)
-            cpu_idle = (time.process_time() - cpu0) / (time.monotonic() - wall0)
+            twin = _Twin()
+            await twin.start(port, Path(tmp) / "twin.log")
             load = subprocess.Popen(
                 [sys.executable, "-c", _LOAD, lb.base_url, TOKEN, "50"],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                 preexec_fn=(lambda: os.nice(MES_NICE)) if MES_NICE else None,  # noqa: PLW1509
             )
+            idle, loaded = _Phase("idle REST", IDLE_IDS), _Phase("50 REST req/s", LOAD_IDS)
+            load_on_s = 0.0
             try:
-                await asyncio.sleep(1.0)  # the load is running before the first trigger
-                t0, cpu0 = time.monotonic(), time.process_time()
-                busy_s, busy_rt, nok_b = await _run("50 REST req/s", port, N_TRIGGERS, LOAD_IDS)
-                load_s = time.monotonic() - t0
-                cpu_busy = (time.process_time() - cpu0) / load_s
+                await twin.block(1, 20)  # warm-up
+                n_blocks = -(-N_TRIGGERS // BLOCK)
+                for k in range(n_blocks):
+                    n = min(BLOCK, N_TRIGGERS - k * BLOCK)
+                    for phase in (idle, loaded) if k % 2 == 0 else (loaded, idle):
+                        assert load.stdin is not None
+                        load.stdin.write("on\n" if phase is loaded else "off\n")
+                        load.stdin.flush()
+                        t_switch = time.monotonic()
+                        # the load is running (or its last requests are answered) before the block
+                        await asyncio.sleep(0.5 if phase is loaded else 0.2)
+                        await phase.run(twin, n)
+                        if phase is loaded:
+                            load_on_s += time.monotonic() - t_switch
+                load_cpu = _process_cpu_s(load.pid) / max(load_on_s, 1e-9)
+                # A part beyond the detector's first reach (a quarter of the ±100 mm / ±10°
+                # tolerance): every image is searched twice, the second time over the whole
+                # tolerance. Reported, not a target: parts usually arrive near the taught pose.
+                await asyncio.to_thread(lb.runtime.scene.set_part_pose, T @ FAR)
+                far = _Phase("part 60 mm / 6 deg off", FAR_IDS)
+                await far.run(twin, N_TRIGGERS // 4)
             finally:
-                load_cpu = _process_cpu_s(load.pid) / max(time.monotonic() - t0 + 1.0, 1e-9)
                 load.terminate()
                 out, err = load.communicate(timeout=10)
-            # A part beyond the detector's first reach (a quarter of the ±100 mm / ±10°
-            # tolerance): every image is searched twice, the second time over the whole
-            # tolerance. Reported, not a target: parts usually arrive near the taught pose.
-            await asyncio.to_thread(lb.runtime.scene.set_part_pose, T @ FAR)
-            far_s, far_rt, nok_f = await _run("part 60 mm / 6 deg off", port, N_TRIGGERS // 4,
-                                              FAR_IDS)
+                await twin.close()
             lb.runtime.wait_idle(300)
             stages = _stages(lb.runtime)
             lines = [ln.split() for ln in out.splitlines() if ln.strip()]
             sent, errors = (int(lines[-1][0]), int(lines[-1][1])) if lines else (0, 0)
             per_path = lines[-1][2:] if lines else []
+    (quiet_s, quiet_rt), (busy_s, busy_rt), (far_s, far_rt) = (
+        idle.timings(), loaded.timings(), far.timings())
+    nok_q, nok_b, nok_f = idle.nok, loaded.nok, far.nok
+    cpu_idle, cpu_busy = idle.cpu_s / idle.wall_s, loaded.cpu_s / loaded.wall_s
     for t in (quiet_s, busy_s, quiet_rt, busy_rt, far_s, far_rt):
         print(t.line())
     # The part of the roundtrip outside the server's processing, trigger by trigger: the TRIGGER
@@ -167,7 +241,10 @@ async def _main() -> int:
     for line in stages:
         print("   ", line)
     print(f"  reference, same process before the run: {bare.line()}")
-    print(f"  REST load: {sent} requests in ~{load_s + 1:.0f} s ({errors} errors); "
+    print(f"  blocks of {BLOCK} triggers, idle and loaded alternating (idle, loaded, loaded, "
+          f"idle, ...)")
+    print(f"  REST load: {sent} requests in the {load_on_s:.0f} s it was on "
+          f"({errors} errors); "
           f"NOK results: {nok_q} idle, {nok_b} loaded, {nok_f} far part")
     print("  REST response time, median per path (ms, seen by the MES client while triggering):")
     for item in per_path:

@@ -1,11 +1,12 @@
-"""The PLC twin in a process of its own, for the station benchmark: one phase of handshakes.
+"""The PLC twin in a process of its own, for the station benchmark.
 
-``python -m bench.twin_process PORT FIRST_ID N PERIOD_MS POLL_MS`` connects to the station's
-Modbus/TCP port, resets a watchdog error left by an earlier PLC, triggers N times (one every
-PERIOD_MS, polling every POLL_MS like a PLC task) and prints one JSON line: the roundtrip
-(trigger written → RESULT_VALID read) and the processing time the server published, per trigger.
+``python -m bench.twin_process PORT PERIOD_MS POLL_MS`` connects to the station's Modbus/TCP
+port, resets a watchdog error left by an earlier PLC and then takes blocks from stdin, one line
+``FIRST_ID N`` each: it triggers N times (one every PERIOD_MS, polling every POLL_MS like a PLC
+task) and prints one JSON line per block, the roundtrip (trigger written → RESULT_VALID read) and
+the processing time the server published, per trigger. End of input: it detaches and exits.
 A real PLC is another device; running the twin here keeps its client-side Modbus work out of the
-server process's CPU and GIL.
+server process's CPU and GIL, and one connection serves the whole run, as a PLC's does.
 """
 
 from __future__ import annotations
@@ -16,31 +17,38 @@ import sys
 import time
 
 from drivers.plc.registers import Status
+from drivers.plc.twin import PlcTwin
 from server.loopback import attach_twin, detach_twin
 
 
-async def _phase(port: int, first_id: int, n: int, period_s: float, poll_s: float) -> dict:
-    twin, beat = await attach_twin(port, poll_s)
+async def _block(twin: PlcTwin, first_id: int, n: int, period_s: float) -> dict:
     rt: list[float] = []
     server: list[float] = []
     nok = 0
-    try:
-        for i in range(n):
-            t_next = time.monotonic() + period_s
-            status = await twin.cycle(first_id + i, 0, timeout=5.0)
-            rt.append(twin.last_answer_s * 1e3)  # TRIGGER written → RESULT_VALID read
-            server.append(status.processing_ms)
-            nok += status.result_code != 0 or not status.has(Status.RESULT_VALID)
-            await asyncio.sleep(max(0.0, t_next - time.monotonic()))
-    finally:
-        await detach_twin(twin, beat)
+    for i in range(n):
+        t_next = time.monotonic() + period_s
+        status = await twin.cycle(first_id + i, 0, timeout=5.0)
+        rt.append(twin.last_answer_s * 1e3)  # TRIGGER written → RESULT_VALID read
+        server.append(status.processing_ms)
+        nok += status.result_code != 0 or not status.has(Status.RESULT_VALID)
+        await asyncio.sleep(max(0.0, t_next - time.monotonic()))
     return {"roundtrip_ms": rt, "server_ms": server, "nok": nok}
 
 
+async def _main(port: int, period_s: float, poll_s: float) -> None:
+    twin, beat = await attach_twin(port, poll_s)
+    try:
+        print("ready", flush=True)
+        while line := await asyncio.to_thread(sys.stdin.readline):
+            first_id, n = (int(x) for x in line.split())
+            print(json.dumps(await _block(twin, first_id, n, period_s)), flush=True)
+    finally:
+        await detach_twin(twin, beat)
+
+
 def main(argv: list[str]) -> int:
-    port, first_id, n = int(argv[0]), int(argv[1]), int(argv[2])
-    period_s, poll_s = float(argv[3]) / 1000.0, float(argv[4]) / 1000.0
-    print(json.dumps(asyncio.run(_phase(port, first_id, n, period_s, poll_s))), flush=True)
+    port, period_s, poll_s = int(argv[0]), float(argv[1]) / 1000.0, float(argv[2]) / 1000.0
+    asyncio.run(_main(port, period_s, poll_s))
     return 0
 
 
