@@ -450,7 +450,9 @@ class StationRuntime:
             "sequence_views": [v.view for v in runner.sequence] if runner else [],
             "last_result": None if last is None else last.__dict__,
             # HTTP requests that waited for a running trigger (server.priority), since start
-            "rest": {"yield_ms": self.gate.max_wait_s * 1e3, "held_for_triggers": self.gate.held},
+            "rest": {"yield_ms": self.gate.max_wait_s * 1e3,
+                     "answer_read_wait_ms": self.options.answer_read_wait_ms,
+                     "held_for_triggers": self.gate.held},
             # how long each recipe's start-up warm-up took (Pipeline.warm_up)
             "warm_up_ms": {k: round(v, 1) for k, v in self.warmed_ms.items()},
         }

@@ -45,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rest-yield-ms", type=float, default=None,
                         help="an HTTP request arriving during a trigger waits for it, at most "
                         "this long (default MVPOSE_REST_YIELD_MS or 100; 0 = never)")
+    parser.add_argument("--answer-read-wait-ms", type=float, default=None,
+                        help="after a PLC trigger's result is ready, HTTP requests keep waiting "
+                        "until the PLC has read it, at most this long (default "
+                        "MVPOSE_ANSWER_READ_WAIT_MS or 20; set it near the PLC's task cycle)")
     parser.add_argument("--log-level", default="info",
                         choices=["debug", "info", "warning", "error"])
 
@@ -87,10 +91,14 @@ def run(args: argparse.Namespace) -> int:
     rest_yield_ms = _number(args.rest_yield_ms, "MVPOSE_REST_YIELD_MS", 100.0, float, "a number")
     if not 0.0 <= rest_yield_ms <= 1000.0:
         raise CliError(f"--rest-yield-ms must be within 0 ... 1000, got {rest_yield_ms}")
+    answer_wait_ms = _number(args.answer_read_wait_ms, "MVPOSE_ANSWER_READ_WAIT_MS", 20.0, float,
+                             "a number")
+    if not 0.0 <= answer_wait_ms <= 1000.0:
+        raise CliError(f"--answer-read-wait-ms must be within 0 ... 1000, got {answer_wait_ms}")
     runtime = StationRuntime(station, RuntimeOptions(
         plc_host=plc_host, plc_port=plc_port, sim_part_at_reference=True,
         pipeline=PipelineOptions(detect_processes=args.detect_processes),
-        rest_yield_ms=rest_yield_ms))
+        rest_yield_ms=rest_yield_ms, answer_read_wait_ms=answer_wait_ms))
     app = create_app(settings, runtime)
     print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 "
           f"(docs /docs), Modbus/TCP {plc_host}:{plc_port}", flush=True)

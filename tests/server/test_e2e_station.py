@@ -201,7 +201,7 @@ def test_malformed_station_file_stops_startup_naming_file_field_value(
     assert not (tmp_path / "var").exists(), "nothing opened before the station file was valid"
 
 
-def test_a_bad_rest_yield_stops_startup_naming_the_option(
+def test_bad_triggers_first_options_stop_startup_naming_them(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path = station_file(tmp_path, "station1")
@@ -212,4 +212,10 @@ def test_a_bad_rest_yield_stops_startup_naming_the_option(
     monkeypatch.setenv("MVPOSE_REST_YIELD_MS", "soon")
     assert cli_main(base) == 2
     assert "MVPOSE_REST_YIELD_MS: expected a number, got 'soon'" in capsys.readouterr().err
+    monkeypatch.delenv("MVPOSE_REST_YIELD_MS")
+    assert cli_main([*base, "--answer-read-wait-ms", "2000"]) == 2
+    assert "--answer-read-wait-ms must be within 0 ... 1000, got 2000.0" in capsys.readouterr().err
+    monkeypatch.setenv("MVPOSE_ANSWER_READ_WAIT_MS", "later")
+    assert cli_main(base) == 2
+    assert "MVPOSE_ANSWER_READ_WAIT_MS: expected a number, got 'later'" in capsys.readouterr().err
     assert not (tmp_path / "var").exists(), "nothing opened before the options were valid"

@@ -194,7 +194,8 @@ async def test_http_requests_wait_for_a_running_trigger(tmp_path: Path) -> None:
             assert status.result_code == 0
             await until(lambda: not gate.busy)
             rest = (await api.get("/station/status")).json()["rest"]
-            assert rest == {"yield_ms": pytest.approx(100.0), "held_for_triggers": gate.held}
+            assert rest == {"yield_ms": pytest.approx(100.0), "answer_read_wait_ms": 20.0,
+                            "held_for_triggers": gate.held}
 
 
 def test_one_request_waits_at_its_checkpoints_at_most_the_bound_in_total() -> None:
