@@ -350,16 +350,7 @@ class StationRuntime:
         loop = asyncio.get_running_loop()
         runner = self.runner
         assert runner is not None
-        self.gate.begin()
-        self.collector.begin()
-        ended = False
-
-        def end() -> None:
-            nonlocal ended
-            if not ended:
-                ended = True
-                self.gate.end()
-                self.collector.end()
+        end = self._pause_for_trigger()
 
         def release(_: object) -> None:
             # HTTP requests and the collector resume once the PLC has read this outcome (the
@@ -373,10 +364,26 @@ class StationRuntime:
             fut = loop.run_in_executor(self._trigger_exec,
                                        lambda: runner.run(request, t0, at).outcome)
         except BaseException:
-            release(None)
+            end()  # nothing runs: nothing to wait for
             raise
         fut.add_done_callback(release)
         return fut
+
+    def _pause_for_trigger(self) -> Callable[[], None]:
+        """Hold REST requests and the garbage collector for a trigger (server.priority); returns
+        the end of the hold, which may be called more than once."""
+        self.gate.begin()
+        self.collector.begin()
+        ended = False
+
+        def end() -> None:
+            nonlocal ended
+            if not ended:
+                ended = True
+                self.gate.end()
+                self.collector.end()
+
+        return end
 
     def _answer_read(self) -> None:
         """The PLC link: the PLC has read the last published answer (on the station loop)."""
@@ -392,15 +399,13 @@ class StationRuntime:
             raise RuntimeError("runtime not started")
         req = TriggerRequest(trigger_id=REST_TRIGGER_ID, view_index=view_index, robot_pose=None,
                              part_id=part_id or "", recipe=self.active.number)
-        self.gate.begin()
-        self.collector.begin()
+        end = self._pause_for_trigger()
         try:
             fut: Future[TriggerResult] = self._trigger_exec.submit(
                 self.runner.run, req, time.monotonic(), datetime.now(UTC))
             return fut.result(timeout=timeout_s)
         finally:
-            self.gate.end()
-            self.collector.end()
+            end()
 
     def wait_idle(self, timeout_s: float = 10.0) -> None:
         """Block until every trigger and archive write submitted so far is done (tests, demo)."""

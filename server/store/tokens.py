@@ -36,7 +36,7 @@ class TokenRepository:
     """Tokens in the database, with the live tokens verified in the last ``verified_ttl_s``
     remembered (:meth:`recent`): MES clients poll with the same token many times a second.
 
-    A create, revoke or upsert through this repository forgets them all at once; a change made
+    A revoke or upsert through this repository forgets them all at once; a change made
     by another process on the same database (another station's server on a shared PostgreSQL)
     takes effect here within ``verified_ttl_s``.
     """
