@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.timing import Timing, check, measure
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention, to_robot
 from server.metrics import Metrics
@@ -42,7 +42,7 @@ def station1_record(rng: np.random.Generator, trigger_id: int) -> MeasurementRec
         station="bench", trigger_id=trigger_id, part_id=f"VIN{trigger_id:08d}",
         triggered_at=datetime.now(UTC), recipe="floor_panel", recipe_version=3,
         calibration_id="cal-1", calibration_hash="cd" * 32, software_version="0.1.0",
-        **MeasurementRecord.reason_fields(ReasonCode.OK), detections=dets,
+        **MeasurementRecord.reason_fields(Reason.OK), detections=dets,
         T_rf_from_pf=MeasurementRecord.matrix(delta),
         offset=Offset(convention=RobotConvention.FANUC,
                       values=[float(v) for v in to_robot(delta, RobotConvention.FANUC)]),

@@ -22,9 +22,9 @@ from typing import Literal
 
 import numpy as np
 
-from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, align_points, collinearity, generalized_dlt
 from mvpose_core.problem import Observation, PoseInputError, Problem, build_problem, pack_layout
+from mvpose_core.reasons import Reason
 from mvpose_core.refine import Array, LMResult, Packed, levenberg_marquardt, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import check_transform, make_transform
@@ -139,7 +139,7 @@ def estimate_pose(
         raise PoseInputError(
             f"too few marks for the {options.objective} objective: "
             f"{sorted({prob.mark_ids[j] for j in mi[objective]})}",
-            ReasonCode.TOO_FEW_MARKS,
+            Reason.TOO_FEW_MARKS,
         )
 
     starts = _starts(prob, cameras, initial_T_rf_from_pf)
@@ -167,7 +167,7 @@ def estimate_pose(
         raise PoseInputError(
             "no start for the pose: need 3 non-collinear marks each seen by two cameras, or 6 "
             "single observations in general position, or a prior pose",
-            ReasonCode.POSE_NOT_DETERMINED,
+            Reason.POSE_NOT_DETERMINED,
         )
     lm, initializer = best
     initial_cost = lm.initial_cost
@@ -208,7 +208,7 @@ def estimate_pose(
         raise PoseInputError(
             f"mark {o.mark_id!r} would be behind camera v{o.view}/{o.camera_id} "
             f"(depth {depth[behind[0]]:.1f} mm): wrong camera, mark or camera pose",
-            ReasonCode.MARK_BEHIND_CAMERA,
+            Reason.MARK_BEHIND_CAMERA,
         )
     Jw = (J if all_used else J[active]) * (pk_all.weight if all_used else pk_all.weight[active])[
         :, None, None
@@ -216,7 +216,7 @@ def estimate_pose(
     try:
         cov = invert_information(information_from_jacobian(Jw))
     except ValueError as err:
-        raise PoseInputError(str(err), ReasonCode.POSE_NOT_DETERMINED) from None
+        raise PoseInputError(str(err), Reason.POSE_NOT_DETERMINED) from None
     r_act = res if all_used else res[active]
     info = SolveInfo(
         iterations=iterations,

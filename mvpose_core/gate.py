@@ -30,27 +30,9 @@ noise model.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 
+from mvpose_core.reasons import Reason
 from mvpose_core.station import Tolerances
-
-
-class ReasonCode(IntEnum):
-    """Why a measurement is NOK (0 = OK). Stable numbers: they go on the PLC interface."""
-
-    OK = 0
-    MARKS_MISSING = 1
-    NOT_CONVERGED = 2
-    RESIDUAL_RMS_HIGH = 3
-    RESIDUAL_MAX_HIGH = 4
-    ROTATION_UNCERTAINTY_HIGH = 5
-    TRANSLATION_UNCERTAINTY_HIGH = 6
-    OFFSET_TRANSLATION_OUT_OF_RANGE = 7
-    OFFSET_ROTATION_OUT_OF_RANGE = 8
-    BAD_INPUT = 9
-    TOO_FEW_MARKS = 10
-    POSE_NOT_DETERMINED = 11
-    MARK_BEHIND_CAMERA = 12
 
 
 @dataclass(frozen=True)
@@ -58,7 +40,7 @@ class GateVerdict:
     """OK/NOK, the reason code and a one-line message naming the value and the limit."""
 
     ok: bool
-    reason: ReasonCode
+    reason: Reason
     message: str
 
 
@@ -83,43 +65,43 @@ def evaluate_gate(x: GateInputs, tol: Tolerances, min_marks: int) -> GateVerdict
     if x.marks_used < min_marks:
         shown = ", ".join(x.missing) if x.missing else "?"
         return _nok(
-            ReasonCode.MARKS_MISSING,
+            Reason.MARKS_MISSING,
             f"{x.marks_used} marks found, recipe needs {min_marks} (missing: {shown})",
         )
     if not x.converged:
-        return _nok(ReasonCode.NOT_CONVERGED, f"solver did not converge ({x.termination})")
+        return _nok(Reason.NOT_CONVERGED, f"solver did not converge ({x.termination})")
     checks = [
-        (ReasonCode.RESIDUAL_RMS_HIGH, "RMS reprojection error", x.rms_px, tol.max_rms_px, "px"),
+        (Reason.RESIDUAL_RMS_HIGH, "RMS reprojection error", x.rms_px, tol.max_rms_px, "px"),
         (
-            ReasonCode.RESIDUAL_MAX_HIGH,
+            Reason.RESIDUAL_MAX_HIGH,
             "largest residual",
             x.max_residual_px,
             tol.max_residual_px,
             "px",
         ),
         (
-            ReasonCode.ROTATION_UNCERTAINTY_HIGH,
+            Reason.ROTATION_UNCERTAINTY_HIGH,
             "1σ rotation at the grasp",
             x.sigma_rot_deg,
             tol.rotation_deg,
             "°",
         ),
         (
-            ReasonCode.TRANSLATION_UNCERTAINTY_HIGH,
+            Reason.TRANSLATION_UNCERTAINTY_HIGH,
             "1σ translation at the grasp",
             x.sigma_trans_mm,
             tol.translation_mm,
             "mm",
         ),
         (
-            ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE,
+            Reason.OFFSET_TRANSLATION_OUT_OF_RANGE,
             "grasp point offset",
             x.offset_mm,
             tol.max_offset_mm,
             "mm",
         ),
         (
-            ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE,
+            Reason.OFFSET_ROTATION_OUT_OF_RANGE,
             "rotation offset",
             x.offset_deg,
             tol.max_offset_deg,
@@ -129,8 +111,8 @@ def evaluate_gate(x: GateInputs, tol: Tolerances, min_marks: int) -> GateVerdict
     for code, what, value, limit, unit in checks:
         if not value <= limit:  # NaN fails too
             return _nok(code, f"{what} {value:.3f} {unit} exceeds {limit:g} {unit}")
-    return GateVerdict(True, ReasonCode.OK, "OK")
+    return GateVerdict(True, Reason.OK, "OK")
 
 
-def _nok(code: ReasonCode, message: str) -> GateVerdict:
+def _nok(code: Reason, message: str) -> GateVerdict:
     return GateVerdict(False, code, message)

@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mvpose_core.cache import IdentityCache
-from mvpose_core.gate import ReasonCode
 from mvpose_core.initial import COLLINEAR_RATIO, collinearity
+from mvpose_core.reasons import Reason
 from mvpose_core.refine import Array, Packed
 from mvpose_core.scene import ViewCamera
 from mvpose_core.triangulate import group_matrix
@@ -26,7 +26,7 @@ from mvpose_core.triangulate import group_matrix
 class PoseInputError(ValueError):
     """The estimator refuses its input; ``reason`` is the gate code the server reports."""
 
-    def __init__(self, message: str, reason: ReasonCode = ReasonCode.BAD_INPUT) -> None:
+    def __init__(self, message: str, reason: Reason = Reason.BAD_INPUT) -> None:
         super().__init__(message)
         self.reason = reason
 
@@ -202,7 +202,7 @@ def _new_layout(
         raise PoseInputError(
             f"too few marks: a pose needs at least 3 distinct marks, got {len(mark_ids)} "
             f"{mark_ids}",
-            ReasonCode.TOO_FEW_MARKS,
+            Reason.TOO_FEW_MARKS,
         )
     P = _marks(marks_pf, mark_ids)
     ratio = collinearity(P)
@@ -210,7 +210,7 @@ def _new_layout(
         raise PoseInputError(
             f"marks {mark_ids} are collinear (spread ratio {ratio:.1e}): rotation about their "
             "line is undetermined",
-            ReasonCode.POSE_NOT_DETERMINED,
+            Reason.POSE_NOT_DETERMINED,
         )
     pos = {m: i for i, m in enumerate(mark_ids)}
     mi = np.array([pos[m] for _, _, m in keys], dtype=np.intp)

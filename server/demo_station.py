@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from drivers.plc.registers import Status
+from mvpose_core.reasons import reason_name
 from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
 from server.loopback import Loopback, TriggerRow, move_part, running_station, trigger
-from server.pipeline import PipelineOptions, auto_detect_processes, reason_name
+from server.pipeline import PipelineOptions, auto_detect_processes
 from server.runtime import RuntimeOptions
 from server.settings import Settings
 

@@ -31,7 +31,6 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime
-from enum import IntEnum
 
 import numpy as np
 
@@ -47,8 +46,8 @@ from mvpose_core.detect import (
     recorrect,
 )
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
-from mvpose_core.gate import ReasonCode
 from mvpose_core.measure import Measurement, measure
+from mvpose_core.reasons import Reason, reason_name
 from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import synthetic_observations
@@ -67,26 +66,6 @@ from server.store.schemas import (
 )
 
 log = logging.getLogger(__name__)
-
-
-class StationReason(IntEnum):
-    """NOK reasons of the station itself, beside the engine's gate codes (1..99); PLC codes too."""
-
-    CAMERA_FAILED = 101  # a camera the recipe needs gave no frame, and marks are missing because
-    DETECTION_FAILED = 102  # the detector refused an image (wrong size, format)
-    DEADLINE_EXCEEDED = 103  # the result could not reach the PLC within station.deadline_ms
-    UNKNOWN_RECIPE = 104  # the PLC selected a recipe number the station does not have
-    UNKNOWN_VIEW = 105  # a view index the station does not have, or one the recipe never uses
-    INTERNAL_ERROR = 106  # a bug: the exception is in the log and the record's reason text
-
-
-def reason_name(code: int) -> str:
-    for enum in (ReasonCode, StationReason):
-        try:
-            return enum(code).name
-        except ValueError:
-            continue
-    return f"CODE_{code}"
 
 
 def auto_detect_processes() -> int:
@@ -327,11 +306,11 @@ class Pipeline:
             code, message = int(err.reason), str(err)
         except Exception as err:  # the record must still be written, with the reason
             log.exception("trigger %d: measurement failed", trigger_id)
-            code, message = int(StationReason.INTERNAL_ERROR), f"{type(err).__name__}: {err}"
+            code, message = int(Reason.INTERNAL_ERROR), f"{type(err).__name__}: {err}"
         failed_cams = {cid for v in views for cid in v.camera_errors}
-        if code in (ReasonCode.MARKS_MISSING, ReasonCode.TOO_FEW_MARKS) and failed_cams:
+        if code in (Reason.MARKS_MISSING, Reason.TOO_FEW_MARKS) and failed_cams:
             errs = "; ".join(e for v in views for e in v.camera_errors.values())
-            code = int(StationReason.CAMERA_FAILED)
+            code = int(Reason.CAMERA_FAILED)
             message = f"{message}; {errs}"
 
         # The verdict is final here: keep the store's usual slow write (p90 of the last 50) in
@@ -339,7 +318,7 @@ class Pipeline:
         reserve = max(self.options.store_reserve_ms, _p90(self._store_ms))
         elapsed = (time.monotonic() - t0) * 1e3
         if code == 0 and elapsed + reserve > self.station.deadline_ms:
-            code = int(StationReason.DEADLINE_EXCEEDED)
+            code = int(Reason.DEADLINE_EXCEEDED)
             message = (f"result ready after {elapsed:.1f} ms, {reserve:.1f} ms kept for the store: "
                        f"past the {self.station.deadline_ms:g} ms deadline")
         ok = code == 0

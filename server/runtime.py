@@ -46,7 +46,7 @@ from mvpose_core.station import StationConfig
 from server.pipeline import (
     Pipeline,
     PipelineOptions,
-    StationReason,
+    Reason,
     TriggerResult,
 )
 from server.priority import CollectorPause, TriggerFirst
@@ -321,7 +321,7 @@ class StationRuntime:
         assert self.book is not None
         found = self.book.by_number(recipe)
         if found is None:
-            return int(StationReason.UNKNOWN_RECIPE)
+            return int(Reason.UNKNOWN_RECIPE)
         self.activate_recipe(found.config.name, None, "plc")
         return 0
 

@@ -18,9 +18,10 @@ import numpy as np
 
 from drivers.plc.codecs import plc_to_pose
 from drivers.plc.seam import TriggerOutcome, TriggerRequest
+from mvpose_core.reasons import Reason, reason_name
 from mvpose_core.station import StationConfig
 from mvpose_core.transforms import from_robot
-from server.pipeline import Pipeline, StationReason, TriggerResult, ViewCapture, reason_name
+from server.pipeline import Pipeline, TriggerResult, ViewCapture
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
 from server.store.schemas import MeasurementRecord
@@ -62,13 +63,13 @@ class TriggerRunner:
         self.counts["triggers"] += 1
         recipe = self.book.by_number(req.recipe) if req.recipe else self.book.selected
         if recipe is None:
-            return self._reject(req, t0, at, self.book.selected, StationReason.UNKNOWN_RECIPE,
+            return self._reject(req, t0, at, self.book.selected, Reason.UNKNOWN_RECIPE,
                                 f"recipe number {req.recipe} is not in the station file")
         views = sorted({s.view for s in recipe.config.sightings})
         view = req.view_index or (views[0] if len(views) == 1 else 0)
         if view not in views:
             self.sequence = []
-            return self._reject(req, t0, at, recipe, StationReason.UNKNOWN_VIEW,
+            return self._reject(req, t0, at, recipe, Reason.UNKNOWN_VIEW,
                                 f"view index {req.view_index} not among the recipe's views {views}")
         flange = None
         if req.robot_pose is not None and self.station.robot_mounted:
@@ -91,7 +92,7 @@ class TriggerRunner:
         return result
 
     def _reject(self, req: TriggerRequest, t0: float, at: datetime, recipe: ActiveRecipe | None,
-                code: StationReason, message: str) -> TriggerResult:
+                code: Reason, message: str) -> TriggerResult:
         """A trigger the pipeline cannot run: still one NOK record, and its code to the PLC."""
         rc = recipe or next(iter(self.book.recipes.values()))
         calib = self.pipeline.calibration

@@ -1,7 +1,7 @@
 """PLC link over Modbus/TCP: register map, codecs, handshake state machine, server and PLC twin."""
 
 from .machine import Handshake, HandshakeStats
-from .registers import Command, Control, ErrorCode, ResultCode, State, Status, WordOrder
+from .registers import Command, Control, ErrorCode, State, Status, WordOrder
 from .seam import PlcConfig, PlcHandler, TriggerOutcome, TriggerRequest
 from .server import PlcServer, PlcStats
 
@@ -15,7 +15,6 @@ __all__ = [
     "PlcHandler",
     "PlcServer",
     "PlcStats",
-    "ResultCode",
     "State",
     "Status",
     "TriggerOutcome",

@@ -11,11 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
 
 from . import codecs
 from . import registers as r
-from .registers import Command, Control, ErrorCode, ResultCode, State, Status
+from .registers import Command, Control, ErrorCode, State, Status
 from .seam import PlcConfig, TriggerOutcome, TriggerRequest
 
 
@@ -203,18 +204,18 @@ class Handshake:
         self.stats.commands += 1
         code, arg = self.holding[r.HR_COMMAND], self.holding[r.HR_COMMAND_ARG]
         if self._busy or self._command_busy:
-            return self._command_failed(ResultCode.BUSY)
+            return self._command_failed(Reason.BUSY)
         try:
             command = Command(code)
         except ValueError:
-            return self._command_failed(ResultCode.UNKNOWN_COMMAND)
+            return self._command_failed(Reason.UNKNOWN_COMMAND)
         if command is Command.SELECT_RECIPE and arg == 0:
-            return self._command_failed(ResultCode.BAD_ARGUMENT)
+            return self._command_failed(Reason.BAD_ARGUMENT)
         self._command_busy = True
         self.image[r.IR_COMMAND_RESULT] = 0
         return [RunCommand(command, arg)]
 
-    def _command_failed(self, code: ResultCode) -> list[Effect]:
+    def _command_failed(self, code: Reason) -> list[Effect]:
         self.stats.commands_failed += 1
         self._flags |= Status.COMMAND_FAILED
         self.image[r.IR_COMMAND_RESULT] = int(code)
@@ -295,13 +296,13 @@ class Handshake:
             or not codecs.fits_int32(offset, self._convention)
         ):
             self.stats.invalid_outcomes += 1
-            offset, code = (0.0,) * 6, int(ResultCode.INVALID_OUTCOME)
+            offset, code = (0.0,) * 6, int(Reason.INVALID_OUTCOME)
             outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done)
-        if code != ResultCode.OK:
+        if code != Reason.OK:
             offset = (0.0,) * 6
         views = max(0, min(int(outcome.views_done), 0xFFFF))
         img[r.IR_VIEWS_DONE] = views
-        if outcome.final or code != ResultCode.OK:
+        if outcome.final or code != Reason.OK:
             self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
             img[r.IR_RESULT_ID : r.IR_RESULT_ID + 2] = codecs.encode_uint32(self._result_id, order)
             img[r.IR_RESULT_CODE] = code
@@ -319,7 +320,7 @@ class Handshake:
                 _clamp_int32(outcome.sigma_rot_deg * 1e4), order
             )
             self._flags |= Status.RESULT_VALID
-            if code == ResultCode.OK:
+            if code == Reason.OK:
                 self._flags |= Status.RESULT_OK
             self.stats.results += 1
         else:

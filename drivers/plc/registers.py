@@ -113,22 +113,6 @@ class Command(IntEnum):
     RESET = 3  # drop a half-done multi-view sequence
 
 
-class ResultCode(IntEnum):
-    """Result codes (register 10) and command results (register 5) set by the PLC link itself.
-
-    0 is OK; 1..999 are NOK reasons of the measurement pipeline (the server defines them);
-    1000 and above come from the handshake layer.
-    """
-
-    OK = 0
-    TIMEOUT = 1001  # the measurement or command missed its deadline
-    INTERNAL_ERROR = 1002  # the measurement or command raised an exception
-    INVALID_OUTCOME = 1003  # the pipeline returned non-finite or mis-sized values
-    BUSY = 1004  # command refused: a measurement or another command is running
-    UNKNOWN_COMMAND = 1005  # command code not in Command
-    BAD_ARGUMENT = 1006  # command argument out of range
-
-
 class ErrorCode(IntEnum):
     """Why the station is in state Error (register 3)."""
 

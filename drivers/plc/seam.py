@@ -75,7 +75,7 @@ class PlcConfig:
     """Settings of the PLC link; times in seconds, 0 disables a watch."""
 
     word_order: WordOrder = WordOrder.ABCD
-    measure_timeout_s: float = 2.0  # a slower measurement becomes ResultCode.TIMEOUT
+    measure_timeout_s: float = 2.0  # a slower measurement becomes Reason.TIMEOUT
     command_timeout_s: float = 5.0
     watchdog_s: float = 1.0  # PLC heartbeat must change within this time once seen
     trigger_hold_s: float = 1.0  # TRIGGER high this long after the answer → Error TRIGGER_HELD

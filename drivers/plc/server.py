@@ -21,9 +21,11 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from mvpose_core.reasons import Reason
+
 from . import registers as r
 from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
-from .registers import CONTROL_DEFINED, Command, ResultCode, State
+from .registers import CONTROL_DEFINED, Command, State
 from .seam import PlcConfig, PlcHandler, TriggerOutcome
 
 log = logging.getLogger(__name__)
@@ -280,15 +282,15 @@ class PlcServer:
         except TimeoutError:
             self.stats.timeouts += 1
             self._note(f"trigger {req.trigger_id}: measurement exceeded {timeout} s")
-            outcome = await self._failed(ResultCode.TIMEOUT, t0)
+            outcome = await self._failed(Reason.TIMEOUT, t0)
         except Exception as err:  # noqa: BLE001 — any pipeline failure becomes a result code
             self.stats.handler_errors += 1
             self._note(f"trigger {req.trigger_id}: measurement raised {err!r}")
-            outcome = await self._failed(ResultCode.INTERNAL_ERROR, t0)
+            outcome = await self._failed(Reason.HANDLER_FAILED, t0)
         self.machine.measured(outcome)
         self._answer_unread = True
 
-    async def _failed(self, code: ResultCode, t0: float) -> TriggerOutcome:
+    async def _failed(self, code: Reason, t0: float) -> TriggerOutcome:
         # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.
         await self._reset(ResetPipeline())
         return TriggerOutcome(int(code), processing_ms=(self.clock() - t0) * 1e3, views_done=0)
@@ -311,11 +313,11 @@ class PlcServer:
         except TimeoutError:
             self.stats.timeouts += 1
             self._note(f"command {effect.command.name} exceeded {timeout} s")
-            result = int(ResultCode.TIMEOUT)
+            result = int(Reason.TIMEOUT)
         except Exception as err:  # noqa: BLE001 — any handler failure becomes a command result
             self.stats.handler_errors += 1
             self._note(f"command {effect.command.name} raised {err!r}")
-            result = int(ResultCode.INTERNAL_ERROR)
+            result = int(Reason.HANDLER_FAILED)
         self.machine.command_done(effect.command, effect.argument, result)
 
     async def _reset(self, _effect: ResetPipeline) -> None:

@@ -58,7 +58,7 @@ def status(request: Request, _user: ReadUser) -> dict[str, Any]:
 def trigger(request: Request, user: EngineerUser,
             body: Annotated[TriggerBody | None, Body()] = None) -> TriggerAnswer:
     """Measure now, as a PLC trigger would (commissioning); the record gets trigger id 0."""
-    from server.pipeline import reason_name
+    from mvpose_core.reasons import reason_name
 
     runtime = _runtime(request)
     body = body or TriggerBody(part_id=None, view=0)

@@ -90,7 +90,7 @@ Matrix4 = Annotated[
 class MeasurementRecord(_Model):
     """Everything one trigger produced; written before the PLC sees RESULT_VALID.
 
-    ``result`` is "OK" exactly when ``reason_code`` is 0 (mvpose_core.gate.ReasonCode.OK); the
+    ``result`` is "OK" exactly when ``reason_code`` is 0 (mvpose_core.gate.Reason.OK); the
     reason is stored as the int the PLC receives and its name, so that the record stays readable
     when codes are added later. An OK record carries a pose and an offset.
     """
@@ -130,7 +130,7 @@ class MeasurementRecord(_Model):
 
     @staticmethod
     def reason_fields(code: IntEnum) -> dict[str, Any]:
-        """``result``, ``reason_code`` and ``reason`` from a ReasonCode member."""
+        """``result``, ``reason_code`` and ``reason`` from a Reason member."""
         return {
             "result": "OK" if int(code) == 0 else "NOK",
             "reason_code": int(code),

@@ -13,13 +13,13 @@ from drivers.plc import (
     Command,
     Control,
     ErrorCode,
-    ResultCode,
     State,
     Status,
     TriggerOutcome,
     TriggerRequest,
     WordOrder,
 )
+from mvpose_core.reasons import Reason
 
 DOC = (Path(__file__).resolve().parents[2] / "docs" / "plc-interface.md").read_text()
 
@@ -34,7 +34,7 @@ def test_bit_and_code_tables_match_the_enums() -> None:
     for state in State:
         camel = "".join(w.capitalize() for w in state.name.split("_"))
         assert _rows(str(state.value), camel), state
-    for code in ResultCode:
+    for code in Reason:
         if code:
             assert re.search(rf"^\| {code.value} \| {code.name}", DOC, re.M), code
     for err in ErrorCode:

@@ -9,8 +9,9 @@ import pytest
 from drivers.plc import codecs as c
 from drivers.plc import registers as r
 from drivers.plc.machine import Handshake, Measure, ResetPipeline, RunCommand
-from drivers.plc.registers import Command, Control, ErrorCode, ResultCode, State, Status, WordOrder
+from drivers.plc.registers import Command, Control, ErrorCode, State, Status, WordOrder
 from drivers.plc.seam import PlcConfig, TriggerOutcome
+from mvpose_core.reasons import Reason
 
 EN = Control.TRIGGER_ENABLE
 
@@ -187,11 +188,11 @@ def test_commands() -> None:
     p.m.write(r.HR_COMMAND, [99, 0], p.t)
     assert p.ctl(EN | Control.EXECUTE_COMMAND) == []
     assert p.status() & Status.COMMAND_FAILED
-    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.UNKNOWN_COMMAND
+    assert p.m.image[r.IR_COMMAND_RESULT] == Reason.UNKNOWN_COMMAND
     p.ctl(EN)
     p.m.write(r.HR_COMMAND, [Command.SELECT_RECIPE, 0], p.t)
     p.ctl(EN | Control.EXECUTE_COMMAND)
-    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.BAD_ARGUMENT
+    assert p.m.image[r.IR_COMMAND_RESULT] == Reason.BAD_ARGUMENT
     p.ctl(EN)
     p.m.write(r.HR_COMMAND, [Command.TEACH_REFERENCE, 0], p.t)
     p.ctl(EN | Control.EXECUTE_COMMAND)
@@ -205,7 +206,7 @@ def test_command_while_busy_is_refused() -> None:
     p.m.write(r.HR_COMMAND, [Command.RESET, 0], p.t)
     assert p.ctl(EN | Control.TRIGGER | Control.EXECUTE_COMMAND) == []
     assert p.status() & Status.COMMAND_FAILED
-    assert p.m.image[r.IR_COMMAND_RESULT] == ResultCode.BUSY
+    assert p.m.image[r.IR_COMMAND_RESULT] == Reason.BUSY
 
 
 @pytest.mark.parametrize(
@@ -224,7 +225,7 @@ def test_invalid_outcome_becomes_a_nok_result(outcome: TriggerOutcome) -> None:
     p.m.measured(outcome)
     s = p.status()
     assert s & Status.RESULT_VALID and not s & Status.RESULT_OK
-    assert p.m.image[r.IR_RESULT_CODE] == ResultCode.INVALID_OUTCOME
+    assert p.m.image[r.IR_RESULT_CODE] == Reason.INVALID_OUTCOME
     assert p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12] == [0] * 12
 
 

@@ -27,7 +27,6 @@ from drivers.plc import (
     Control,
     ErrorCode,
     PlcServer,
-    ResultCode,
     State,
     Status,
     TriggerOutcome,
@@ -37,6 +36,7 @@ from drivers.plc import (
 from drivers.plc import codecs as c
 from drivers.plc import registers as r
 from drivers.plc.twin import PlcStatus, PlcTwin
+from mvpose_core.reasons import Reason
 from mvpose_core.transforms import (
     RobotConvention,
     compose,
@@ -208,13 +208,13 @@ async def test_commands_select_recipe_teach_and_refusals(plc: ServerFactory) -> 
     done = await twin.command(Command.TEACH_REFERENCE)
     assert done.has(Status.COMMAND_DONE) and handler.teach_requests == 1
     failed = await twin.command(77)
-    assert failed.command_result == ResultCode.UNKNOWN_COMMAND
+    assert failed.command_result == Reason.UNKNOWN_COMMAND
 
     handler.gate = asyncio.Event()  # keep a measurement running
     await twin.write_trigger(5)
     await until(lambda: server.state is State.SINGLE_EXECUTION)
     busy = await twin.command(Command.RESET)
-    assert busy.has(Status.COMMAND_FAILED) and busy.command_result == ResultCode.BUSY
+    assert busy.has(Status.COMMAND_FAILED) and busy.command_result == Reason.BUSY
     handler.gate.set()
     answer = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
     assert answer.trigger_id == 5 and answer.result_id == 1
@@ -363,11 +363,11 @@ async def test_deadline_and_exception_become_result_codes(plc: ServerFactory) ->
     server, twin = await plc(handler, cfg(measure_timeout_s=0.2))
     handler.gate = asyncio.Event()  # never set: the measurement hangs
     late = await twin.cycle(1)
-    assert late.result_code == ResultCode.TIMEOUT and not late.has(Status.RESULT_OK)
+    assert late.result_code == Reason.TIMEOUT and not late.has(Status.RESULT_OK)
     assert late.result_id == 1 and late.processing_ms >= 190
     handler.gate, handler.fail = None, True
     broken = await twin.cycle(2)
-    assert broken.result_code == ResultCode.INTERNAL_ERROR and broken.result_id == 2
+    assert broken.result_code == Reason.HANDLER_FAILED and broken.result_id == 2
     handler.fail = False
     check_result(await twin.cycle(3), 3)
     assert handler.resets == 2  # each failure dropped any half-done view sequence
@@ -411,11 +411,11 @@ async def test_a_trigger_starts_its_measurement_before_the_write_is_answered(
     await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)
     # A measurement past the deadline: its future is cancelled, the PLC gets TIMEOUT.
     late = await twin.cycle(62)
-    assert late.result_code == ResultCode.TIMEOUT and handler.pending[1].cancelled()
+    assert late.result_code == Reason.TIMEOUT and handler.pending[1].cancelled()
     # measure() raising in the call itself: an INTERNAL_ERROR result, the link carries on.
     handler.fail = True
     broken = await twin.cycle(63)
-    assert broken.result_code == ResultCode.INTERNAL_ERROR and broken.result_id == 3
+    assert broken.result_code == Reason.HANDLER_FAILED and broken.result_id == 3
     assert server.stats.handler_errors == 1 and server.stats.timeouts == 1
     assert handler.resets == 2  # each failure dropped any half-done view sequence
 

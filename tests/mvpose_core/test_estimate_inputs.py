@@ -7,7 +7,7 @@ import pytest
 from estimate_scenes import noiseless
 
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError, estimate_pose
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from mvpose_core.scene import ViewCamera
 from mvpose_core.transforms import make_transform
 from mvpose_core.uncertainty import cramer_rao_covariance, invert_information
@@ -25,7 +25,7 @@ def test_nan_pixel_is_named() -> None:
     bad = with_obs(obs, 2, uv=np.array([np.nan, 3.0]))
     with pytest.raises(PoseInputError, match=r"observation v1/right/M2: uv contains NaN") as e:
         estimate_pose(bad, cams, marks)
-    assert e.value.reason is ReasonCode.BAD_INPUT
+    assert e.value.reason is Reason.BAD_INPUT
 
 
 def test_wrong_shapes_are_named() -> None:
@@ -44,7 +44,7 @@ def test_too_few_marks() -> None:
     two = [o for o in obs if o.mark_id in ("M2", "M3")]
     with pytest.raises(PoseInputError, match=r"too few marks: .* got 2 \['M2', 'M3'\]") as e:
         estimate_pose(two, cams, marks)
-    assert e.value.reason is ReasonCode.TOO_FEW_MARKS
+    assert e.value.reason is Reason.TOO_FEW_MARKS
     with pytest.raises(PoseInputError, match="too few marks"):
         estimate_pose([], cams, marks)
 
@@ -60,7 +60,7 @@ def test_collinear_marks() -> None:
     }
     with pytest.raises(PoseInputError, match=r"collinear") as e:
         estimate_pose(obs, cams, line)
-    assert e.value.reason is ReasonCode.POSE_NOT_DETERMINED
+    assert e.value.reason is Reason.POSE_NOT_DETERMINED
 
 
 def test_a_remembered_layout_is_checked_again_when_marks_or_cameras_change() -> None:
@@ -92,7 +92,7 @@ def test_mark_behind_a_camera() -> None:
     cams2 = [ViewCamera(c.view, c.camera_id, c.model, flipped, c.rig_id, c.rig_position), *cams[1:]]
     with pytest.raises(PoseInputError, match=r"behind camera v1/top_left") as e:
         estimate_pose(obs, cams2, marks, initial_T_rf_from_pf=T)
-    assert e.value.reason in (ReasonCode.MARK_BEHIND_CAMERA, ReasonCode.POSE_NOT_DETERMINED)
+    assert e.value.reason in (Reason.MARK_BEHIND_CAMERA, Reason.POSE_NOT_DETERMINED)
     with pytest.raises(ValueError, match=r"mark 'T1' is behind camera v1/top_left"):
         cramer_rao_covariance(cams2, marks, [o.key for o in obs], T)
 
@@ -119,7 +119,7 @@ def test_undetermined_layout() -> None:
     partial = [o for o in obs if not (o.view == 2 and o.camera_id == "left")]
     with pytest.raises(PoseInputError, match=r"too few marks for the left_only objective") as e:
         estimate_pose(partial, cams, marks, EstimateOptions(objective="left_only"))
-    assert e.value.reason is ReasonCode.TOO_FEW_MARKS
+    assert e.value.reason is Reason.TOO_FEW_MARKS
     # an information matrix with an unobservable direction (rotation about x) is refused
     J = np.random.default_rng(0).normal(size=(12, 6))
     J[:, 0] = 0.0

@@ -9,8 +9,9 @@ import pytest
 from estimate_scenes import station
 
 from mvpose_core.estimate import EstimateOptions
-from mvpose_core.gate import GateInputs, ReasonCode, evaluate_gate
+from mvpose_core.gate import GateInputs, evaluate_gate
 from mvpose_core.measure import measure
+from mvpose_core.reasons import Reason
 from mvpose_core.station import Tolerances
 from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import from_robot, transform_error
@@ -31,7 +32,7 @@ TOL = Tolerances()
 
 def test_reason_codes_are_stable() -> None:
     # These numbers are on the PLC interface and in stored audit records: never renumber.
-    assert {c.name: int(c) for c in ReasonCode} == {
+    assert {c.name: int(c) for c in Reason if c < 100} == {
         "OK": 0,
         "MARKS_MISSING": 1,
         "NOT_CONVERGED": 2,
@@ -51,26 +52,26 @@ def test_reason_codes_are_stable() -> None:
 @pytest.mark.parametrize(
     ("change", "code"),
     [
-        ({}, ReasonCode.OK),
-        ({"marks_used": 3, "missing": ("M4",)}, ReasonCode.MARKS_MISSING),
-        ({"converged": False, "termination": "max_iterations"}, ReasonCode.NOT_CONVERGED),
-        ({"rms_px": 1.5}, ReasonCode.RESIDUAL_RMS_HIGH),
-        ({"max_residual_px": 3.5}, ReasonCode.RESIDUAL_MAX_HIGH),
-        ({"sigma_rot_deg": 0.25}, ReasonCode.ROTATION_UNCERTAINTY_HIGH),
-        ({"sigma_trans_mm": 1.2}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
-        ({"offset_mm": 120.0}, ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE),
-        ({"offset_deg": 12.0}, ReasonCode.OFFSET_ROTATION_OUT_OF_RANGE),
-        ({"sigma_trans_mm": float("nan")}, ReasonCode.TRANSLATION_UNCERTAINTY_HIGH),
+        ({}, Reason.OK),
+        ({"marks_used": 3, "missing": ("M4",)}, Reason.MARKS_MISSING),
+        ({"converged": False, "termination": "max_iterations"}, Reason.NOT_CONVERGED),
+        ({"rms_px": 1.5}, Reason.RESIDUAL_RMS_HIGH),
+        ({"max_residual_px": 3.5}, Reason.RESIDUAL_MAX_HIGH),
+        ({"sigma_rot_deg": 0.25}, Reason.ROTATION_UNCERTAINTY_HIGH),
+        ({"sigma_trans_mm": 1.2}, Reason.TRANSLATION_UNCERTAINTY_HIGH),
+        ({"offset_mm": 120.0}, Reason.OFFSET_TRANSLATION_OUT_OF_RANGE),
+        ({"offset_deg": 12.0}, Reason.OFFSET_ROTATION_OUT_OF_RANGE),
+        ({"sigma_trans_mm": float("nan")}, Reason.TRANSLATION_UNCERTAINTY_HIGH),
         # the most basic cause wins
-        ({"marks_used": 3, "rms_px": 9.0, "converged": False}, ReasonCode.MARKS_MISSING),
+        ({"marks_used": 3, "rms_px": 9.0, "converged": False}, Reason.MARKS_MISSING),
     ],
 )
-def test_each_reason(change: dict, code: ReasonCode) -> None:
+def test_each_reason(change: dict, code: Reason) -> None:
     v = evaluate_gate(dataclasses.replace(GOOD, **change), TOL, min_marks=4)
-    assert v.reason is code and v.ok == (code is ReasonCode.OK)
+    assert v.reason is code and v.ok == (code is Reason.OK)
     if not v.ok:
         assert v.message  # names value and limit
-    if code is ReasonCode.RESIDUAL_RMS_HIGH:
+    if code is Reason.RESIDUAL_RMS_HIGH:
         assert "1.500 px exceeds 1 px" in v.message
     if "missing" in change:
         assert "missing: M4" in v.message
@@ -103,26 +104,26 @@ def test_measure_nok_reasons_end_to_end() -> None:
     obs = synthetic_observations(st, rec, T, rng, rec.detector_noise_px)
     # a mark not found in either camera: still a pose (3 marks), but NOK
     m = measure(st, rec, [o for o in obs if o.mark_id != "M1"])
-    assert m.gate.reason is ReasonCode.MARKS_MISSING and m.marks_missing == ("M1",)
+    assert m.gate.reason is Reason.MARKS_MISSING and m.marks_missing == ("M1",)
     # detection much worse than the recipe's noise model: residual gate
     noisy = synthetic_observations(st, rec, T, rng, 3.0)
     assert measure(st, rec, noisy).gate.reason in (
-        ReasonCode.RESIDUAL_RMS_HIGH,
-        ReasonCode.RESIDUAL_MAX_HIGH,
+        Reason.RESIDUAL_RMS_HIGH,
+        Reason.RESIDUAL_MAX_HIGH,
     )
     # a noise model too poor for the tolerance: uncertainty gate (a priori)
     coarse = rec.model_copy(update={"detector_noise_px": 5.0})
     assert measure(st, coarse, obs).gate.reason in (
-        ReasonCode.ROTATION_UNCERTAINTY_HIGH,
-        ReasonCode.TRANSLATION_UNCERTAINTY_HIGH,
+        Reason.ROTATION_UNCERTAINTY_HIGH,
+        Reason.TRANSLATION_UNCERTAINTY_HIGH,
     )
     # the part is further off than the station accepts
     far = T @ random_displacement(np.random.default_rng(1), 0.0, 0.0)
     far[:3, 3] += [0.0, 0.0, 130.0]
     m = measure(st, rec, synthetic_observations(st, rec, far, rng, rec.detector_noise_px))
-    assert m.gate.reason is ReasonCode.OFFSET_TRANSLATION_OUT_OF_RANGE
+    assert m.gate.reason is Reason.OFFSET_TRANSLATION_OUT_OF_RANGE
     # the solver stopped early
     st1, rec1, _, _ = station("station1")
     obs1 = synthetic_observations(st1, rec1, rec1.T_rf_from_pf0.matrix, rng, 0.1)
     m = measure(st1, rec1, obs1, options=EstimateOptions(max_iterations=1))
-    assert m.gate.reason is ReasonCode.NOT_CONVERGED
+    assert m.gate.reason is Reason.NOT_CONVERGED

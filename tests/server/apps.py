@@ -9,7 +9,7 @@ import anyio.to_thread
 import numpy as np
 from records import make_record
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from server.settings import Settings
 from server.state import Services
 from server.store.schemas import StoredMeasurement
@@ -25,7 +25,7 @@ def settings(tmp_path: Path, **kw: Any) -> Settings:
     return Settings(**(base | kw))
 
 
-async def record_some(services: Services, reasons: list[ReasonCode], seed: int = 0,
+async def record_some(services: Services, reasons: list[Reason], seed: int = 0,
                       **kw: Any) -> list[StoredMeasurement]:
     """Store one record per reason, as the pipeline does (from a worker thread)."""
     rng = np.random.default_rng(seed)

@@ -6,7 +6,7 @@ from datetime import UTC, datetime, timedelta
 
 import numpy as np
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention, to_robot
 from server.store.schemas import (
@@ -28,14 +28,14 @@ def make_record(
     station: str = "station1",
     *,
     trigger_id: int = 1,
-    reason: ReasonCode = ReasonCode.OK,
+    reason: Reason = Reason.OK,
     part_id: str | None = None,
     recipe: str = "floor_panel",
     recipe_version: int = 1,
     triggered_at: datetime | None = None,
     images: list[ImageRef] | None = None,
 ) -> MeasurementRecord:
-    ok = reason == ReasonCode.OK
+    ok = reason == Reason.OK
     delta = random_displacement(rng, 20.0, 2.0)
     dets = []
     for i, cam in enumerate(CAMERAS):

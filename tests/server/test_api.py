@@ -16,7 +16,7 @@ from asgi import running
 from postgres import PostgresCluster
 from records import T0
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from server.app import create_app
 
 
@@ -29,7 +29,7 @@ def db(request: pytest.FixtureRequest, tmp_path: Path) -> dict[str, str]:
     return {"database_url": cluster.create_database()}
 
 
-OK, MISSING, RMS = ReasonCode.OK, ReasonCode.MARKS_MISSING, ReasonCode.RESIDUAL_RMS_HIGH
+OK, MISSING, RMS = Reason.OK, Reason.MARKS_MISSING, Reason.RESIDUAL_RMS_HIGH
 REASONS = [OK, OK, MISSING, OK, RMS, OK, OK, MISSING, OK, OK, OK, RMS]
 
 

@@ -11,7 +11,7 @@ from typing import Any
 from apps import ENGINEER, ROOT, record_some, settings
 from asgi import running
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from server.app import create_app
 
 DOC = ROOT / "docs" / "rest-api.md"
@@ -83,8 +83,8 @@ async def test_every_documented_example_runs(tmp_path: Path) -> None:
     cases = examples()
     assert len(cases) >= 20
     async with running(create_app(settings(tmp_path))) as (client, state):  # no default token
-        await record_some(state["services"], [ReasonCode.OK, ReasonCode.MARKS_MISSING,
-                                              ReasonCode.OK])
+        await record_some(state["services"], [Reason.OK, Reason.MARKS_MISSING,
+                                              Reason.OK])
         r = await client.post("/api/v1/tokens", json={"name": "mes", "role": "read"},
                               headers={"Authorization": f"Bearer {ENGINEER}"})
         env = {"MVPOSE": "http://station", "ENGINEER_TOKEN": ENGINEER,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from records import T0, make_record
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from server.errors import NotFoundError
 from server.images import ImageArchive
 from server.store import Store, open_store
@@ -35,7 +35,7 @@ def _trigger(store: Store, archive: ImageArchive, rng: np.random.Generator, i: i
              ) -> tuple[int, list]:
     when = T0.replace(second=i % 60, minute=i // 60)
     refs = archive.plan("station1", i, when, ok, CAMS)
-    reason = ReasonCode.OK if ok else ReasonCode.MARKS_MISSING
+    reason = Reason.OK if ok else Reason.MARKS_MISSING
     stored = store.measurements.insert(
         make_record(rng, trigger_id=i, reason=reason, triggered_at=when, images=refs))
     frames = _frames(rng)

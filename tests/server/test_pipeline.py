@@ -17,9 +17,10 @@ import pytest
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
 from drivers.plc.registers import Command, Status
+from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from server.loopback import move_part, running_station, trigger
-from server.pipeline import StationReason, _p90
+from server.pipeline import _p90
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -39,7 +40,7 @@ async def test_past_the_deadline_the_plc_gets_an_error_code_never_an_offset(tmp_
         await move_part(lb.runtime, lb.twin, T)
         status, row = await trigger(lb.twin, recipe, 41, T)
         assert status.has(Status.RESULT_VALID) and not status.has(Status.RESULT_OK)
-        assert status.result_code == StationReason.DEADLINE_EXCEEDED
+        assert status.result_code == Reason.DEADLINE_EXCEEDED
         assert status.offset_float == (0.0,) * 6
         lb.runtime.wait_idle()
         stored = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id)
@@ -64,7 +65,7 @@ async def test_a_camera_that_times_out_gives_camera_failed_and_the_others_still_
         T = _at(recipe, np.random.default_rng(2))
         await move_part(lb.runtime, lb.twin, T)
         status, _ = await trigger(lb.twin, recipe, 7, T)
-        assert status.result_code == StationReason.CAMERA_FAILED
+        assert status.result_code == Reason.CAMERA_FAILED
         lb.runtime.wait_idle()
         rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
         by_cam = {c.camera_id: c.detections for c in rec.detections}
@@ -83,10 +84,10 @@ async def test_unknown_view_and_recipe_are_refused_and_recorded(tmp_path: Path) 
         T = _at(recipe, np.random.default_rng(3))
         await move_part(lb.runtime, lb.twin, T)
         status, _ = await trigger(lb.twin, recipe, 9, T, view_index=7, part_id="VIN-9")
-        assert status.result_code == StationReason.UNKNOWN_VIEW
+        assert status.result_code == Reason.UNKNOWN_VIEW
         done = await lb.twin.command(Command.SELECT_RECIPE, 2)
         assert done.has(Status.COMMAND_FAILED)
-        assert done.command_result == StationReason.UNKNOWN_RECIPE
+        assert done.command_result == Reason.UNKNOWN_RECIPE
         rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
         assert (rec.trigger_id, rec.part_id, rec.reason) == (9, "VIN-9", "UNKNOWN_VIEW")
         status, row = await trigger(lb.twin, recipe, 10, T)  # the station still measures

@@ -19,7 +19,7 @@ from postgres import PostgresCluster
 from pydantic import ValidationError
 from records import T0, make_record
 
-from mvpose_core.gate import ReasonCode
+from mvpose_core.reasons import Reason
 from server.errors import InvalidInputError, NotFoundError
 from server.store import Store, open_store
 from server.store.db import head_revision
@@ -114,8 +114,8 @@ def test_chain_verification_finds_the_first_tampered_link(store: Store, tamper: 
 
 def test_filters_and_cursor_paging(store: Store) -> None:
     rng = np.random.default_rng(4)
-    reasons = [ReasonCode.OK, ReasonCode.OK, ReasonCode.MARKS_MISSING, ReasonCode.OK,
-               ReasonCode.RESIDUAL_RMS_HIGH]
+    reasons = [Reason.OK, Reason.OK, Reason.MARKS_MISSING, Reason.OK,
+               Reason.RESIDUAL_RMS_HIGH]
     ids = []
     for i in range(1, 26):
         rec = make_record(rng, trigger_id=i, reason=reasons[i % 5],
@@ -132,8 +132,8 @@ def test_filters_and_cursor_paging(store: Store) -> None:
     def ids_of(**kw: object) -> set[int]:
         return {m.record.trigger_id for m in store.measurements.iterate(MeasurementFilter(**kw))}
 
-    assert ids_of(result="NOK") == {i for i in range(1, 26) if reasons[i % 5] != ReasonCode.OK}
-    missing = int(ReasonCode.MARKS_MISSING)
+    assert ids_of(result="NOK") == {i for i in range(1, 26) if reasons[i % 5] != Reason.OK}
+    missing = int(Reason.MARKS_MISSING)
     assert ids_of(reason_code=missing) == {i for i in range(1, 26) if i % 5 == 2}
     assert ids_of(recipe="door") == {i for i in range(1, 26) if i % 3 == 0}
     assert ids_of(part_id="VIN000007") == {7}
