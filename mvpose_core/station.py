@@ -25,6 +25,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from mvpose_core.camera import CameraModel
+from mvpose_core.linkconfig import LinksConfig
 from mvpose_core.transforms import (
     Array,
     RobotConvention,
@@ -298,6 +299,7 @@ class StationConfig(_Model):
     recipes: list[RecipeConfig] = Field(min_length=1)
     default_recipe: Identifier | None = None
     calibration: str | None = Field(None, description="calibration file this station uses")
+    links: LinksConfig = Field(LinksConfig(), description="PLC and controller links")
 
     @model_validator(mode="after")
     def _cross_check(self) -> StationConfig:

@@ -210,6 +210,16 @@ class Pipeline:
         except DriverError as group_err:  # the group itself failed: so did each of its cameras
             grabbed = {cid: group_err for cid in cams}
         vcap.timings_ms["capture"] = (time.monotonic() - t) * 1e3
+        self.detect_view(vcap, grabbed, recipe)
+        return vcap
+
+    def detect_view(self, vcap: ViewCapture, grabbed: dict[str, object],
+                    recipe: RecipeConfig) -> None:
+        """Detect the recipe's marks in a view's frames: ``grabbed`` maps each camera id to its
+        :class:`Frame` or the :class:`DriverError` that replaced it (``mvpose measure`` passes
+        frames read from files)."""
+        cams = vcap.cameras
+        view = vcap.view
         prior = recipe.T_rf_from_pf0.matrix
         jobs = {}
         batch: list[tuple[str, np.ndarray, ViewCamera]] = []
@@ -250,7 +260,6 @@ class Pipeline:
             except ValueError as err:  # the detector's refusal of a bad image names the problem
                 self._detect_failed(vcap, recipe, cid, err)
         vcap.timings_ms["detect"] = (time.monotonic() - t) * 1e3
-        return vcap
 
     @staticmethod
     def _detect_failed(vcap: ViewCapture, recipe: RecipeConfig, cid: str, err: Exception) -> None:
