@@ -297,13 +297,17 @@ class Handshake:
         ):
             self.stats.invalid_outcomes += 1
             offset, code = (0.0,) * 6, int(Reason.INVALID_OUTCOME)
-            outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done)
+            outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done,
+                                     result_id=outcome.result_id)
         if code != Reason.OK:
             offset = (0.0,) * 6
         views = max(0, min(int(outcome.views_done), 0xFFFF))
         img[r.IR_VIEWS_DONE] = views
         if outcome.final or code != Reason.OK:
-            self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
+            if outcome.result_id is not None:  # the record's seq: durable across restarts
+                self._result_id = outcome.result_id & 0xFFFFFFFF
+            else:
+                self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
             img[r.IR_RESULT_ID : r.IR_RESULT_ID + 2] = codecs.encode_uint32(self._result_id, order)
             img[r.IR_RESULT_CODE] = code
             img[r.IR_PROCESSING_TIME] = min(round(max(outcome.processing_ms, 0.0) * 10), 0xFFFF)

@@ -39,6 +39,9 @@ class TriggerOutcome:
     processing_ms: float = 0.0
     views_done: int = 1
     final: bool = True
+    # The record's seq (the durable result id published in input registers 8-9); None: the
+    # handshake numbers results itself (a handler without a store, e.g. the tests' handlers).
+    result_id: int | None = None
 
 
 class PlcHandler(Protocol):
@@ -67,6 +70,15 @@ class PlcHandler(Protocol):
 
     def convention_code(self) -> int:
         """RobotConvention.code of the active recipe (register 44)."""
+        ...
+
+
+class RecordingHandler(PlcHandler, Protocol):
+    """A handler that also records the answers the link gives on its own."""
+
+    async def record_failure(self, request: TriggerRequest, code: int, message: str,
+                             processing_ms: float) -> int:
+        """Record a TIMEOUT or HANDLER_FAILED answer; returns its result id (0: not recorded)."""
         ...
 
 

@@ -26,7 +26,7 @@ from mvpose_core.reasons import Reason
 from . import registers as r
 from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
 from .registers import CONTROL_DEFINED, Command, State
-from .seam import PlcConfig, PlcHandler, TriggerOutcome
+from .seam import PlcConfig, PlcHandler, TriggerOutcome, TriggerRequest
 
 log = logging.getLogger(__name__)
 
@@ -80,16 +80,14 @@ class PlcServer:
         handler: PlcHandler,
         config: PlcConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
-        on_answer_read: Callable[[], None] | None = None,
+        unit_id: int = 0,
     ) -> None:
-        """``on_answer_read``: called on this loop, once per published answer (result block or
-        VIEW_DONE), right after the PLC's first read of the status word that follows it has
-        been answered: the moment the PLC has its answer."""
+        """``unit_id``: the Modbus unit id answered; 0 answers every unit id (a PLC may address
+        the server with 0, 1 or 255)."""
         self.handler = handler
         self.config = config or PlcConfig()
         self.clock = clock
-        self.on_answer_read = on_answer_read
-        self._answer_unread = False
+        self.unit_id = unit_id
         self._machine: Handshake | None = None
         self._listener: _Listener | None = None
         self._tasks: set[asyncio.Task[None]] = set()
@@ -172,7 +170,8 @@ class PlcServer:
         ]
         inputs = [SimData(0, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS)]
         # id 0: answer every unit id, as a PLC may address us with 0, 1 or 255.
-        return SimDevice(0, simdata=(bits, list(bits), holding, inputs), action=self._action)
+        return SimDevice(self.unit_id, simdata=(bits, list(bits), holding, inputs),
+                         action=self._action)
 
     async def _action(
         self,
@@ -190,17 +189,10 @@ class PlcServer:
             image = self.machine.image
             if fc == 4:
                 regs[address - start : address - start + count] = image[address : address + count]
-                status = address <= r.IR_STATUS < address + count
             else:
                 lo, hi = max(address, r.HR_MIRROR), min(address + count, r.HR_MIRROR + r.IR_COUNT)
                 if lo < hi:
                     regs[lo - start : hi - start] = image[lo - r.HR_MIRROR : hi - r.HR_MIRROR]
-                status = lo <= r.HR_MIRROR + r.IR_STATUS < hi
-            if status and self._answer_unread:
-                self._answer_unread = False
-                if self.on_answer_read is not None:
-                    # the next loop pass: after pymodbus has sent this read's response
-                    asyncio.get_running_loop().call_soon(self.on_answer_read)
             return None
         if fc not in _WRITE_FCS:
             return self._reject(ExcCodes.ILLEGAL_FUNCTION)
@@ -281,19 +273,35 @@ class PlcServer:
                 raise TypeError(f"measure() returned {type(outcome).__name__}, not TriggerOutcome")
         except TimeoutError:
             self.stats.timeouts += 1
-            self._note(f"trigger {req.trigger_id}: measurement exceeded {timeout} s")
-            outcome = await self._failed(Reason.TIMEOUT, t0)
+            text = f"trigger {req.trigger_id}: measurement exceeded {timeout} s"
+            self._note(text)
+            outcome = await self._failed(req, Reason.TIMEOUT, text, t0)
         except Exception as err:  # noqa: BLE001 — any pipeline failure becomes a result code
             self.stats.handler_errors += 1
-            self._note(f"trigger {req.trigger_id}: measurement raised {err!r}")
-            outcome = await self._failed(Reason.HANDLER_FAILED, t0)
+            text = f"trigger {req.trigger_id}: measurement raised {err!r}"
+            self._note(text)
+            outcome = await self._failed(req, Reason.HANDLER_FAILED, text, t0)
         self.machine.measured(outcome)
-        self._answer_unread = True
 
-    async def _failed(self, code: Reason, t0: float) -> TriggerOutcome:
+    async def _failed(self, req: TriggerRequest, code: Reason, text: str,
+                      t0: float) -> TriggerOutcome:
         # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.
         await self._reset(ResetPipeline())
-        return TriggerOutcome(int(code), processing_ms=(self.clock() - t0) * 1e3, views_done=0)
+        ms = (self.clock() - t0) * 1e3
+        result_id = None
+        record = getattr(self.handler, "record_failure", None)
+        if record is not None:  # the answer gets a record of its own, with the same code
+            try:
+                async with asyncio.timeout(self.config.command_timeout_s or None):
+                    result_id = int(await record(req, int(code), text, ms))
+            except Exception as err:  # noqa: BLE001 — the PLC still gets its answer
+                self._note(f"trigger {req.trigger_id}: recording {code.name} failed: {err!r}")
+        return TriggerOutcome(int(code), processing_ms=ms, views_done=0, result_id=result_id)
+
+    def recipe_selected(self, number: int, convention_code: int) -> None:
+        """The station selected recipe ``number`` by another way than this link (REST, OPC UA)."""
+        self.machine.set_recipe(number)
+        self.machine.set_convention(convention_code)
 
     async def _command(self, effect: RunCommand) -> None:
         timeout = self.config.command_timeout_s or None

@@ -94,11 +94,10 @@ async def plc() -> AsyncIterator[ServerFactory]:
         handler: object | None = None,
         config: PlcConfig | None = None,
         connect: bool = True,
-        on_answer_read: Callable[[], None] | None = None,
+        unit_id: int = 0,
         **twin_kw: object,
     ) -> tuple[PlcServer, PlcTwin]:
-        server = PlcServer(handler or ArithmeticHandler(), config or cfg(),
-                           on_answer_read=on_answer_read)
+        server = PlcServer(handler or ArithmeticHandler(), config or cfg(), unit_id=unit_id)
         await server.start()
         servers.append(server)
         order = server.config.word_order

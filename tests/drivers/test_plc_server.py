@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 
@@ -26,7 +27,6 @@ from drivers.plc import (
     Command,
     Control,
     ErrorCode,
-    PlcServer,
     State,
     Status,
     TriggerOutcome,
@@ -301,41 +301,40 @@ async def test_heartbeat_task_ends_on_stop_without_a_cancel(plc: ServerFactory) 
     assert twin.heartbeat == stopped_at
 
 
-async def test_the_first_status_read_after_an_answer_is_reported_once(plc: ServerFactory) -> None:
-    seen: list[int] = []  # the status word the PLC had been sent when the hook ran
-    server: PlcServer | None = None
+class RecordingHandler(ArithmeticHandler):
+    """Numbers its results like a store (from 500) and records the link's own failures."""
 
-    def answer_read() -> None:
-        assert server is not None
-        seen.append(server.machine.image[r.IR_STATUS])
+    def __init__(self) -> None:
+        super().__init__()
+        self.next_id = 500
+        self.failures: list[tuple[int, int, str]] = []
 
-    handler = ArithmeticHandler()
-    handler.gate = asyncio.Event()
-    server, twin = await plc(handler, on_answer_read=answer_read)
+    async def measure(self, request: TriggerRequest) -> TriggerOutcome:
+        out = await super().measure(request)
+        self.next_id += 1
+        return dataclasses.replace(out, result_id=self.next_id)
+
+    async def record_failure(self, request: TriggerRequest, code: int, message: str,
+                             processing_ms: float) -> int:
+        self.next_id += 1
+        self.failures.append((request.trigger_id, code, message))
+        return self.next_id
+
+
+async def test_the_result_id_is_the_handlers_and_link_failures_are_recorded(
+    plc: ServerFactory,
+) -> None:
+    handler = RecordingHandler()
+    server, twin = await plc(handler, config=cfg(measure_timeout_s=0.2))
     await twin.wait_for(lambda s: s.has(Status.READY), 2.0, "READY")
-    await twin.write_trigger(71)
-    for _ in range(3):
-        assert not (await twin.read_status()).has(Status.RESULT_VALID)
-    assert seen == []  # reads while the measurement runs are not the answer's
-    handler.gate.set()
-    await until(lambda: server.machine.result_id == 1)
-    # A read that leaves out the status word (the result block alone) does not count.
-    rr = await twin.client.read_input_registers(10, count=20, device_id=twin.device_id)
-    assert not rr.isError()
-    # (the hook is scheduled before a read's response is sent, so it would have run by now)
-    assert seen == []
-    check_result(await twin.read_status(), 71)
-    assert len(seen) == 1 and seen[0] & Status.RESULT_VALID
-    for _ in range(3):  # later reads of the same answer: no more calls
-        await twin.read_status()
-    assert len(seen) == 1
-    # The mirror (fc 3) is a status read too; each answer is reported once.
-    await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)
-    twin.use_mirror = True
-    handler.gate = None
-    check_result(await twin.cycle(72), 72)
-    await until(lambda: len(seen) == 2)
-    assert seen[1] & Status.RESULT_VALID
+    status = await twin.cycle(71)
+    check_result(status, 71)
+    assert status.result_id == 501 == server.machine.result_id
+    handler.gate = asyncio.Event()  # never set: the link's backstop answers TIMEOUT
+    status = await twin.cycle(72, timeout=3.0)
+    assert status.result_code == Reason.TIMEOUT
+    assert status.result_id == 502  # the failure's own record, not a counter of the link
+    assert handler.failures and handler.failures[0][:2] == (72, int(Reason.TIMEOUT))
 
 
 async def test_detaching_a_twin_leaves_no_request_unanswered(

@@ -1,0 +1,117 @@
+"""The one trigger interface every link speaks (python-can style): request, outcome, handler, ABC.
+
+A link is how a controller reaches the station: Modbus/TCP for the PLC today, OPC UA next. Each
+backend lives in a module of its own and is the only code that knows its wire format (registers,
+word order, scaling; nodes and events). What crosses this seam is in the station's terms:
+
+- a :class:`LinkRequest`: trigger id, view index, the robot's actual flange pose at full precision
+  in the recipe's robot convention (``mvpose_core.transforms.to_robot`` form), part id, recipe;
+- a :class:`LinkOutcome`: one result code from the one reason table (``mvpose_core.reasons``),
+  the durable result id (the record's ``seq``: never reused, the same number in the record, the
+  REST API and every link), the offset at full precision in the recipe's robot convention, 1σ.
+
+The station implements :class:`StationHandler`; every answer it gives has a record with the same
+code. A link that cannot get an answer (its own backstop timeout, a handler that raised) asks the
+station to record that failure (:meth:`StationHandler.record_failure`) before it answers, so the
+controller and the store never disagree.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Awaitable
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+from mvpose_core.transforms import RobotConvention
+
+
+@dataclass(frozen=True)
+class LinkRequest:
+    """One accepted trigger, in the station's terms."""
+
+    link: str  # the backend's name ("modbus", "opcua", "rest")
+    trigger_id: int  # chosen by the controller, echoed in the record
+    view_index: int  # 0 = fixed station, all cameras; 1..n = a view of a robot-mounted rig
+    robot_pose: tuple[float, ...] | None  # actual flange pose, recipe convention, full precision
+    part_id: str  # VIN or data-matrix code
+    recipe: int  # recipe number selected at the link (0: the station's selected recipe)
+
+
+@dataclass(frozen=True)
+class LinkOutcome:
+    """The station's answer to one trigger."""
+
+    result_code: int  # mvpose_core.reasons.Reason: 0 = OK
+    result_id: int  # the record's seq; 0 for an intermediate view (no record)
+    offset: tuple[float, ...] | None = None  # recipe convention, full precision; None unless OK
+    sigma_trans_mm: float = 0.0
+    sigma_rot_deg: float = 0.0
+    processing_ms: float = 0.0
+    views_done: int = 1
+    final: bool = True  # False: an intermediate view of a robot-mounted rig is done
+
+
+class StationHandler(Protocol):
+    """What the station gives every link. Calls come on the link's event loop."""
+
+    def measure(self, request: LinkRequest) -> Awaitable[LinkOutcome]:
+        """Measure one trigger; the station answers within its deadline + 1 s, whatever the store
+        or the pipeline do (a recorded TIMEOUT at worst). A handler may start the work in the
+        call itself and return a future."""
+        ...
+
+    def record_failure(self, request: LinkRequest, code: int, message: str,
+                       processing_ms: float) -> Awaitable[int]:
+        """Record an answer the link gives on its own (its backstop timeout, a failed handler):
+        returns the result id, 0 if not even that could be recorded."""
+        ...
+
+    async def select_recipe(self, number: int) -> int:
+        """0 when recipe ``number`` is now selected, else a Reason code."""
+        ...
+
+    async def teach_reference(self, by: str) -> int:
+        """0 when the next final OK result will become the reference (zero offset)."""
+        ...
+
+    async def reset(self) -> None:
+        """Drop a half-done multi-view sequence."""
+        ...
+
+    def convention(self) -> RobotConvention:
+        """The selected recipe's robot convention (how poses cross the link)."""
+        ...
+
+    def selected_recipe(self) -> int:
+        """The selected recipe's number (0: none)."""
+        ...
+
+
+class Link(ABC):
+    """One link backend, started and stopped on the station's event loop."""
+
+    name: ClassVar[str]
+
+    def __init__(self, config: Any, handler: StationHandler) -> None:
+        self.config = config
+        self.handler = handler
+
+    @abstractmethod
+    async def start(self) -> None:
+        """Open the link (listen, register); raises when it cannot."""
+
+    @abstractmethod
+    async def stop(self) -> None:
+        """Close every connection; running measurements are cancelled."""
+
+    @abstractmethod
+    def status(self) -> dict[str, Any]:
+        """What the station's status page shows of this link (JSON-able)."""
+
+    @abstractmethod
+    def ready(self) -> bool:
+        """The link is up (listening, connected or registered as the backend needs)."""
+
+    def recipe_changed(self) -> None:  # noqa: B027 - optional hook
+        """The selected recipe (or its robot convention) changed outside this link."""
