@@ -5,10 +5,13 @@ cell), the views (robot flange poses at which a robot-mounted rig takes pictures
 has one view with every fixed rig), and the recipes (part types: marks from CAD, which camera sees
 which mark in which view, the taught reference pose, grasp frame, tolerances, robot convention).
 
-Poses in the file are written ``{xyz: [X, Y, Z], wpr: [W, P, R]}`` in mm and degrees with
-R = Rz(R)·Ry(P)·Rx(W) (the FANUC convention, see :mod:`mvpose_core.transforms`), and each field
-that holds a pose is named after the transform it is: ``T_gf_from_rig`` is the pose of the rig in
-the flange frame (the hand-eye transform), ``T_rf_from_pf0`` the taught part pose in the robot base.
+Poses in the file are written in one of three forms (:class:`Pose`): ``{xyz: [X, Y, Z],
+wpr: [W, P, R]}`` in mm and degrees with R = Rz(R)·Ry(P)·Rx(W) (the FANUC convention, see
+:mod:`mvpose_core.transforms`); ``{matrix: [[...], [...], [...], [0, 0, 0, 1]]}``, the 4x4
+transform row by row in mm; or ``{convention: kuka, values: [X, Y, Z, A, B, C]}`` in any robot
+convention's own values and units. Each field that holds a pose is named after the transform it
+is: ``T_gf_from_rig`` is the pose of the rig in the flange frame (the hand-eye transform),
+``T_rf_from_pf0`` the taught part pose in the robot base.
 
 Every model forbids unknown keys, so a typo stops start-up instead of being ignored.
 """
@@ -22,14 +25,25 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from mvpose_core.camera import CameraModel
 from mvpose_core.linkconfig import LinksConfig
 from mvpose_core.transforms import (
     Array,
     RobotConvention,
+    check_transform,
+    from_robot,
     matrix_to_xyzwpr,
+    to_robot,
     xyzwpr_to_matrix,
 )
 
@@ -45,6 +59,13 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+Vec4 = tuple[float, float, float, float]
+Rows4 = tuple[Vec4, Vec4, Vec4, Vec4]
+
+#: how far a ``matrix`` pose's rotation may be from orthonormal (|R·Rᵀ − I| per element)
+MATRIX_TOLERANCE = 1e-6
+
+
 @lru_cache(maxsize=256)
 def _pose_matrix(xyz: Vec3, wpr: Vec3) -> Array:
     # Every trigger asks for the recipe's reference pose several times; a pose is a frozen
@@ -54,19 +75,117 @@ def _pose_matrix(xyz: Vec3, wpr: Vec3) -> Array:
     return T
 
 
-class Pose(_Model):
-    """A rigid transform: translation in mm, rotation as FANUC W P R in degrees."""
+@lru_cache(maxsize=256)
+def _rows_matrix(rows: Rows4) -> Array:
+    T = check_transform(np.array(rows, dtype=float), "matrix", tol=MATRIX_TOLERANCE)
+    T.flags.writeable = False
+    return T
 
-    xyz: Vec3
-    wpr: Vec3 = (0.0, 0.0, 0.0)
+
+@lru_cache(maxsize=256)
+def _robot_matrix(convention: RobotConvention, values: tuple[float, ...]) -> Array:
+    T = from_robot(values, convention)
+    T.flags.writeable = False
+    return T
+
+
+class Pose(_Model):
+    """A rigid transform in one of three forms; exactly one is given.
+
+    - ``{xyz, wpr}``: translation in mm, rotation as FANUC W P R in degrees (``wpr`` may be left
+      out: no rotation);
+    - ``{matrix}``: the 4x4 transform, row by row, translation in mm; the rotation must be
+      orthonormal to :data:`MATRIX_TOLERANCE` (write 7 or more significant digits) and the last
+      row ``[0, 0, 0, 1]``; it is used exactly as written;
+    - ``{convention, values}``: a robot convention's pose vector in that convention's units
+      (:class:`~mvpose_core.transforms.RobotConvention`: ``abb`` 7 values with a quaternion,
+      ``ur`` metres and a rotation vector in radians, the others mm and degrees).
+
+    A pose keeps the form it was written in, so a file read and written again is unchanged.
+    """
+
+    xyz: Vec3 | None = None
+    wpr: Vec3 | None = None
+    rows: Rows4 | None = Field(None, alias="matrix", description="4x4 transform, row-major, mm")
+    convention: RobotConvention | None = None
+    values: tuple[float, ...] | None = None
+
+    @field_validator("convention", mode="before")
+    @classmethod
+    def _convention_any_case(cls, v: Any) -> Any:
+        return v.lower() if isinstance(v, str) else v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_rotation(cls, data: Any) -> Any:
+        # {xyz} alone is {xyz, wpr: [0, 0, 0]}: one value, one model (and one written form)
+        if isinstance(data, dict) and "xyz" in data and data.keys().isdisjoint(
+            ("wpr", "matrix", "convention", "values")
+        ):
+            return {**data, "wpr": (0.0, 0.0, 0.0)}
+        return data
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Pose:
+        given = [k for k, v in (("xyz", self.xyz), ("wpr", self.wpr), ("matrix", self.rows),
+                                ("convention", self.convention), ("values", self.values))
+                 if v is not None]
+        forms = {("xyz", "wpr"), ("matrix",), ("convention", "values")}
+        if tuple(given) not in forms:
+            raise ValueError(
+                "a pose is {xyz, wpr} (FANUC, mm and deg), {matrix} (4x4 rows, mm) or "
+                f"{{convention, values}}; got {given or 'no pose keys'}"
+            )
+        if self.xyz is not None:
+            if not np.all(np.isfinite([*self.xyz, *(self.wpr or ())])):
+                raise ValueError(
+                    f"xyz/wpr must be finite, got xyz {list(self.xyz)} wpr {list(self.wpr or ())}"
+                )
+        elif self.rows is not None:
+            try:
+                _rows_matrix(self.rows)
+            except ValueError as err:
+                raise ValueError(f"{err} (matrix: {[list(r) for r in self.rows]})") from None
+        else:
+            assert self.convention is not None and self.values is not None
+            try:
+                _robot_matrix(self.convention, self.values)
+            except ValueError as err:
+                raise ValueError(f"{err} (values: {list(self.values)})") from None
+        return self
+
+    @model_serializer(mode="plain")
+    def _written_form(self) -> dict[str, Any]:
+        if self.xyz is not None:
+            return {"xyz": list(self.xyz), "wpr": list(self.wpr or ())}
+        if self.rows is not None:
+            return {"matrix": [list(r) for r in self.rows]}
+        assert self.convention is not None and self.values is not None
+        return {"convention": self.convention.value, "values": list(self.values)}
 
     @property
     def matrix(self) -> Array:
         """The 4x4 transform (read-only: copy it to change it)."""
-        return _pose_matrix(self.xyz, self.wpr)
+        if self.xyz is not None:
+            return _pose_matrix(self.xyz, self.wpr or (0.0, 0.0, 0.0))
+        if self.rows is not None:
+            return _rows_matrix(self.rows)
+        assert self.convention is not None and self.values is not None
+        return _robot_matrix(self.convention, self.values)
 
     @classmethod
-    def from_matrix(cls, T: Array) -> Pose:
+    def from_matrix(
+        cls, T: Array, form: Literal["wpr", "matrix"] | RobotConvention = "wpr"
+    ) -> Pose:
+        """A pose of ``T`` written as FANUC ``{xyz, wpr}`` (default), as a ``matrix`` (exact),
+        or in a robot convention."""
+        T = np.asarray(T, dtype=float)
+        if form == "matrix":
+            rows = tuple(tuple(float(x) for x in r) for r in T)
+            return cls.model_validate({"matrix": rows})
+        if form != "wpr":
+            conv = RobotConvention(form)
+            return cls(convention=conv, values=tuple(float(x) for x in to_robot(T, conv)))
         v = matrix_to_xyzwpr(T)
         return cls(
             xyz=(float(v[0]), float(v[1]), float(v[2])), wpr=(float(v[3]), float(v[4]), float(v[5]))
