@@ -1,4 +1,9 @@
-"""Measurement repository: the append-only chained insert, filtered keyset paging, chain check."""
+"""Measurement repository: the append-only chained insert, filtered keyset paging, chain check.
+
+Two ways to append: :meth:`MeasurementRepository.insert` seals a record against the head it reads
+from the database; :meth:`MeasurementRepository.insert_links` writes links sealed beforehand (by
+the station's journal, server/store/writer.py) exactly as they are, idempotently.
+"""
 
 from __future__ import annotations
 
@@ -6,12 +11,14 @@ import base64
 import binascii
 import json
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, cast
 
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import Engine, Select, Table, func, insert, select
+from sqlalchemy import Connection, Engine, Select, Table, func, insert, select
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError
 
 from server.errors import ConflictError, InvalidInputError, NotFoundError
@@ -34,6 +41,80 @@ _INDEXED = ("trigger_id", "part_id", "recipe", "recipe_version", "result", "reas
 # One statement object for every append: SQLAlchemy compiles it once (building it per record cost
 # ~0.25 ms of the trigger's store time).
 _INSERT = insert(M).returning(M.c.id)
+# A sealed link written as it is: a (station, seq) already there is left alone (and compared).
+_INSERT_LINK = {
+    "postgresql": postgresql.insert(M)
+    .on_conflict_do_nothing(index_elements=["station", "seq"])
+    .returning(M.c.id),
+    "sqlite": sqlite.insert(M)
+    .on_conflict_do_nothing(index_elements=["station", "seq"])
+    .returning(M.c.id),
+}
+
+
+class ChainConflictError(ConflictError):
+    """The database holds a different chain than the one being written (another writer, a
+    database restored from an older backup, a journal from another installation)."""
+
+
+@dataclass(frozen=True)
+class Link:
+    """One sealed link of a station's chain: ``body`` is the exact text ``hash`` seals."""
+
+    station: str
+    seq: int
+    prev_hash: str
+    hash: str
+    stored_at: datetime
+    body: str
+    record: MeasurementRecord
+
+    def row(self) -> dict[str, Any]:
+        """The measurements row of this link (the indexed columns come from the record)."""
+        return {
+            "station": self.station,
+            "seq": self.seq,
+            "stored_at": self.stored_at,
+            "triggered_at": self.record.triggered_at,
+            "body": self.body,
+            "prev_hash": self.prev_hash,
+            "hash": self.hash,
+            **{k: getattr(self.record, k) for k in _INDEXED},
+        }
+
+
+def normalized(record: MeasurementRecord) -> MeasurementRecord:
+    """The record as the chain stores it: ``triggered_at`` in UTC."""
+    return record.model_copy(update={"triggered_at": record.triggered_at.astimezone(UTC)})
+
+
+def seal_link(
+    station: str,
+    seq: int,
+    prev_hash: str,
+    stored_at: datetime,
+    record: MeasurementRecord,
+    record_json: dict[str, Any] | None = None,
+) -> Link:
+    """Seal ``record`` (already :func:`normalized`) as link ``seq`` after ``prev_hash``: the one
+    definition of the body and its hash, used by both ways of appending."""
+    body = canonical_json(
+        {
+            "station": station,
+            "seq": seq,
+            "stored_at": stored_at.isoformat(),
+            "record": record_json if record_json is not None else record.model_dump(mode="json"),
+        }
+    )
+    return Link(station, seq, prev_hash, seal(prev_hash, body), stored_at, body, record)
+
+
+def link_from_body(prev_hash: str, hash_: str, body: str) -> Link:
+    """A link read back from its stored text; refuses a body that does not hash to ``hash_``."""
+    if seal(prev_hash, body) != hash_:
+        raise ValueError(f"body does not hash to {hash_[:12]}… after {prev_hash[:12]}…")
+    env = _Envelope.model_validate_json(body)
+    return Link(env.station, env.seq, prev_hash, hash_, env.stored_at, body, env.record)
 
 
 def encode_cursor(last_id: int) -> str:
@@ -76,7 +157,7 @@ class MeasurementRepository:
             raise InvalidInputError(
                 f"record of station {record.station!r} given to the store of {self.station!r}"
             )
-        record = record.model_copy(update={"triggered_at": record.triggered_at.astimezone(UTC)})
+        record = normalized(record)
         record_json = record.model_dump(mode="json")
         for attempt in range(3):
             try:
@@ -116,29 +197,95 @@ class MeasurementRepository:
                 ).first()
                 self._head = (last.seq, last.hash) if last else (0, GENESIS)
             seq, prev = self._head[0] + 1, self._head[1]
-            body = canonical_json(
-                {
-                    "station": self.station,
-                    "seq": seq,
-                    "stored_at": stored_at.isoformat(),
-                    "record": record_json,
-                }
-            )
-            digest = seal(prev, body)
-            new_id = conn.execute(
-                _INSERT,
-                {
-                    "station": self.station,
-                    "seq": seq,
-                    "stored_at": stored_at,
-                    "triggered_at": record.triggered_at,
-                    "body": body,
-                    "prev_hash": prev,
-                    "hash": digest,
-                    **{k: getattr(record, k) for k in _INDEXED},
-                },
-            ).scalar_one()
+            link = seal_link(self.station, seq, prev, stored_at, record, record_json)
+            new_id = conn.execute(_INSERT, link.row()).scalar_one()
+            digest = link.hash
         return new_id, seq, prev, digest
+
+    def insert_links(self, links: Sequence[Link]) -> list[int]:
+        """Write consecutive sealed links in one transaction, exactly as sealed; their ids.
+
+        Idempotent: a link whose (station, seq) is stored with the same hash is a no-op (its id
+        is returned), with another hash a :class:`ChainConflictError`. The first link must follow
+        the stored chain: its predecessor is stored with hash ``prev_hash`` (or it is seq 1).
+        """
+        if not links:
+            return []
+        for a, b in zip(links, links[1:], strict=False):
+            if b.seq != a.seq + 1 or b.prev_hash != a.hash:
+                raise ValueError(f"links seq {a.seq} and {b.seq} are not consecutive links")
+        for link in links:
+            if link.station != self.station:
+                raise InvalidInputError(
+                    f"link of station {link.station!r} given to the store of {self.station!r}"
+                )
+        with self._engine.begin() as conn:
+            self._check_predecessor(conn, links[0])
+            statement = _INSERT_LINK[conn.dialect.name]
+            ids = []
+            for link in links:
+                new_id = conn.execute(statement, link.row()).scalar_one_or_none()
+                ids.append(new_id if new_id is not None else self._existing(conn, link))
+        return ids
+
+    def _check_predecessor(self, conn: Connection, link: Link) -> None:
+        if link.seq == 1:
+            if link.prev_hash != GENESIS:
+                raise ChainConflictError(
+                    f"station {self.station!r}: seq 1 must follow the genesis hash, "
+                    f"not {link.prev_hash[:12]}…"
+                )
+            return
+        prev = conn.execute(
+            select(M.c.hash).where(M.c.station == self.station, M.c.seq == link.seq - 1)
+        ).scalar_one_or_none()
+        if prev is None:
+            raise ChainConflictError(
+                f"station {self.station!r}: seq {link.seq - 1} is not in the database, so seq "
+                f"{link.seq} cannot follow it (a database restored from an older backup, or "
+                f"another database than the journal's?)"
+            )
+        if prev != link.prev_hash:
+            raise ChainConflictError(
+                f"station {self.station!r}: the database's seq {link.seq - 1} has hash "
+                f"{prev[:12]}…, the journal's seq {link.seq} follows {link.prev_hash[:12]}… "
+                f"(another writer extends this chain?)"
+            )
+
+    def _existing(self, conn: Connection, link: Link) -> int:
+        row = conn.execute(
+            select(M.c.id, M.c.hash).where(M.c.station == self.station, M.c.seq == link.seq)
+        ).first()
+        if row is None:  # the conflict was not on (station, seq): only a hash can collide
+            raise ChainConflictError(
+                f"station {self.station!r}: seq {link.seq} was refused although no record has "
+                f"that seq (hash {link.hash[:12]}… is stored under another seq or station)"
+            )
+        if row.hash != link.hash:
+            raise ChainConflictError(
+                f"station {self.station!r}: seq {link.seq} is stored with hash {row.hash[:12]}… "
+                f"but this writer sealed it as {link.hash[:12]}… (two writers on one chain?)"
+            )
+        return int(row.id)
+
+    def head(self) -> tuple[int, str]:
+        """(seq, hash) of the newest stored link; (0, genesis) for an empty chain."""
+        with self._engine.connect() as conn:
+            last = conn.execute(
+                select(M.c.seq, M.c.hash)
+                .where(M.c.station == self.station)
+                .order_by(M.c.seq.desc())
+                .limit(1)
+            ).first()
+        return (int(last.seq), str(last.hash)) if last else (0, GENESIS)
+
+    def hash_at(self, seq: int) -> str | None:
+        """The stored hash of link ``seq``, None when it is not stored."""
+        with self._engine.connect() as conn:
+            found = conn.execute(
+                select(M.c.hash).where(M.c.station == self.station, M.c.seq == seq)
+            ).scalar_one_or_none()
+        return None if found is None else str(found)
 
     # ------------------------------------------------------------------ reading
     def get(self, measurement_id: int) -> StoredMeasurement:
@@ -233,6 +380,8 @@ class MeasurementRepository:
             q = q.where(M.c.recipe == f.recipe)
         if f.part_id is not None:
             q = q.where(M.c.part_id == f.part_id)
+        if f.result_id is not None:
+            q = q.where(M.c.seq == f.result_id)
         return q
 
     # ------------------------------------------------------------------ audit

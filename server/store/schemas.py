@@ -7,7 +7,7 @@ from enum import IntEnum
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, computed_field, model_validator
 
 from mvpose_core.transforms import RobotConvention
 
@@ -156,6 +156,11 @@ class StoredMeasurement(_Model):
     hash: Hash
     record: MeasurementRecord
 
+    @computed_field(description="the result id the PLC read for this trigger (= seq)")  # type: ignore[prop-decorator]
+    @property
+    def result_id(self) -> int:
+        return self.seq
+
 
 class MeasurementSummary(_Model):
     """A list or CSV row: the result without detections and images (ask for one for those)."""
@@ -180,6 +185,11 @@ class MeasurementSummary(_Model):
     timings_ms: dict[str, float] = Field(default_factory=dict)
     total_ms: float | None = Field(None, description="timings_ms['total'] when the pipeline set it")
     hash: str
+
+    @computed_field(description="the result id the PLC read for this trigger (= seq)")  # type: ignore[prop-decorator]
+    @property
+    def result_id(self) -> int:
+        return self.seq
 
 
 class ImageStatus(_Model):
@@ -215,3 +225,4 @@ class MeasurementFilter(_Model):
     reason_code: int | None = None
     recipe: str | None = None
     part_id: str | None = None
+    result_id: int | None = Field(None, description="the result id the PLC read (= seq)")

@@ -1,0 +1,317 @@
+"""The station's write-ahead journal: every sealed link, fsynced, before the database sees it.
+
+A journal is a folder of segments, ``<data_dir>/journal/<station>/<after_seq>.jsonl``, one JSON
+object a line. A segment's first line is its header: the link the segment continues from,
+``{"journal": 1, "station": S, "after_seq": n, "after_hash": h}``; every further line is one link,
+``{"seq": n + 1, "prev_hash": …, "hash": …, "body": …}`` with ``body`` the exact text the hash
+seals (server/store/chain.py). A new segment starts when the current one holds
+``segment_entries`` links; a segment is deleted once the database holds each of its links and a
+newer segment exists, so the newest link (the chain's head) always stays on disk.
+
+Only the last line of the last segment can be torn (the process died in the append, which had
+therefore not returned its seq): it is cut off at open with a warning. Anything else that does
+not verify (a line that is not JSON, a seq out of order, a hash that the body does not give)
+is :class:`JournalCorruptError`, naming the file, the line and what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from server.store.chain import canonical_json
+from server.store.measurements import Link, link_from_body
+
+log = logging.getLogger(__name__)
+
+FORMAT = 1
+_STATION = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+_SEGMENT = re.compile(r"^(\d{20})\.jsonl$")
+
+
+class JournalCorruptError(Exception):
+    """The journal on disk does not verify; the message names the file, line and problem."""
+
+
+@dataclass
+class _Segment:
+    path: Path
+    after_seq: int
+    last_seq: int  # after_seq when it holds no link yet
+    entries: int
+
+
+def journal_dir(data_dir: Path, station: str) -> Path:
+    """Where the journal of ``station`` lives under the data dir."""
+    if not _STATION.match(station) or station in (".", ".."):
+        raise ValueError(f"station name {station!r} cannot name a journal folder")
+    return Path(data_dir) / "journal" / station
+
+
+class Journal:
+    """Append-only, fsynced segments of one station's chain. Not thread-safe for appends (the
+    writer serialises them); :meth:`compact` may run on another thread."""
+
+    def __init__(self, directory: Path, station: str, segment_entries: int) -> None:
+        if segment_entries < 1:
+            raise ValueError(f"segment_entries must be >= 1, got {segment_entries}")
+        self.directory = directory
+        self.station = station
+        self.segment_entries = segment_entries
+        self._segments: list[_Segment] = []
+        self._fd: int | None = None  # the last segment, open for appending
+        self._size = 0  # its size in bytes after the last good append
+        self._head: tuple[int, str] | None = None
+        self._broken: OSError | None = None
+        self._lock = threading.Lock()  # the segment list, between append and compact
+        self.links: list[Link] = []  # what open() read back, oldest first
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(cls, directory: Path, station: str, segment_entries: int = 1000) -> Journal:
+        """Read and verify every segment (cutting a torn last line); create the folder if new."""
+        journal = cls(Path(directory), station, segment_entries)
+        _make_dirs(journal.directory)
+        names = sorted(p.name for p in journal.directory.iterdir() if _SEGMENT.match(p.name))
+        for k, name in enumerate(names):
+            journal._read_segment(journal.directory / name, last=k == len(names) - 1)
+        if journal._segments:
+            journal._open_last()
+        return journal
+
+    def _read_segment(self, path: Path, last: bool) -> None:
+        data = path.read_bytes()
+        lines = data.split(b"\n")
+        good_end = 0  # byte offset after the last line that verified
+        header: dict[str, Any] | None = None
+        links: list[Link] = []
+        prev: tuple[int, str] | None = None
+        offset = 0
+        for number, raw in enumerate(lines, start=1):
+            end = offset + len(raw) + 1
+            complete = end <= len(data)  # the last chunk has no newline after it
+            if not raw and not complete:
+                break
+            try:
+                if not complete:
+                    raise ValueError("line has no end (torn write)")
+                obj = json.loads(raw)
+                if header is None:
+                    header = self._check_header(obj)
+                    prev = (header["after_seq"], header["after_hash"])
+                else:
+                    assert prev is not None
+                    links.append(self._check_link(obj, prev))
+                    prev = (links[-1].seq, links[-1].hash)
+            except (ValueError, KeyError, TypeError) as err:
+                rest = lines[number:]
+                if last and not any(_parses(r) for r in rest):
+                    log.warning(
+                        "journal %s: line %d does not verify (%s); cutting %d torn bytes at "
+                        "offset %d (an append that never returned)",
+                        path, number, err, len(data) - offset, offset,
+                    )
+                    break
+                raise JournalCorruptError(f"journal {path}: line {number}: {err}") from None
+            good_end = end
+            offset = end
+        if header is None:
+            if last:  # the segment's creation was torn: its first link never returned
+                log.warning("journal %s: no complete header; removing the torn segment", path)
+                path.unlink()
+                _fsync_dir(path.parent)
+                return
+            raise JournalCorruptError(f"journal {path}: no header line")
+        if good_end < len(data):
+            with open(path, "r+b") as f:
+                f.truncate(good_end)
+                os.fsync(f.fileno())
+        after = int(header["after_seq"])
+        if self._segments and after < self._segments[-1].last_seq:
+            raise JournalCorruptError(
+                f"journal {path}: continues from seq {after} but the segment before it reaches "
+                f"seq {self._segments[-1].last_seq}"
+            )
+        if self._head is not None and after == self._head[0] and header["after_hash"] != (
+            self._head[1]
+        ):
+            raise JournalCorruptError(
+                f"journal {path}: continues from seq {after} with hash "
+                f"{header['after_hash'][:12]}…, the segment before sealed it as "
+                f"{self._head[1][:12]}…"
+            )
+        assert prev is not None
+        self._segments.append(_Segment(path, after, prev[0], len(links)))
+        self.links += links
+        self._head = prev
+
+    def _check_header(self, obj: Any) -> dict[str, Any]:
+        if not isinstance(obj, dict) or obj.get("journal") != FORMAT:
+            raise ValueError(f"not a journal header of format {FORMAT}: {str(obj)[:80]}")
+        if obj.get("station") != self.station:
+            raise ValueError(f"header names station {obj.get('station')!r}, not {self.station!r}")
+        if not isinstance(obj.get("after_seq"), int) or obj["after_seq"] < 0:
+            raise ValueError(f"header after_seq {obj.get('after_seq')!r} is not a seq")
+        if not isinstance(obj.get("after_hash"), str) or len(obj["after_hash"]) != 64:
+            raise ValueError(f"header after_hash {obj.get('after_hash')!r} is not a hash")
+        return obj
+
+    def _check_link(self, obj: Any, prev: tuple[int, str]) -> Link:
+        if not isinstance(obj, dict):
+            raise ValueError(f"not a link: {str(obj)[:80]}")
+        if obj["seq"] != prev[0] + 1:
+            raise ValueError(f"seq {obj['seq']} follows seq {prev[0]}")
+        if obj["prev_hash"] != prev[1]:
+            raise ValueError(f"seq {obj['seq']}: prev_hash is not the hash of seq {prev[0]}")
+        link = link_from_body(obj["prev_hash"], obj["hash"], obj["body"])
+        if link.seq != obj["seq"] or link.station != self.station:
+            raise ValueError(
+                f"seq {obj['seq']}: body names station {link.station!r} seq {link.seq}"
+            )
+        return link
+
+    def _open_last(self) -> None:
+        seg = self._segments[-1]
+        self._fd = os.open(seg.path, os.O_WRONLY | os.O_APPEND)
+        self._size = os.fstat(self._fd).st_size
+
+    # ------------------------------------------------------------------ state
+    @property
+    def head(self) -> tuple[int, str] | None:
+        """(seq, hash) of the newest link (or segment header) on disk; None for a new journal."""
+        return self._head
+
+    @property
+    def segments(self) -> list[Path]:
+        with self._lock:
+            return [s.path for s in self._segments]
+
+    # ------------------------------------------------------------------ writing
+    def start(self, after_seq: int, after_hash: str) -> None:
+        """Begin a segment continuing from (after_seq, after_hash): the head the database knows,
+        when it is ahead of this journal (or the journal is new)."""
+        if self._head is not None and after_seq <= self._head[0]:
+            raise ValueError(f"journal head is seq {self._head[0]}; cannot restart at {after_seq}")
+        self._new_segment(after_seq, after_hash, b"")
+
+    def append(self, link: Link) -> None:
+        """Write the link and fsync it; on any failure nothing of it stays and OSError is raised."""
+        if self._broken is not None:
+            raise OSError(f"journal {self.directory} failed earlier and is closed: {self._broken}")
+        head = self._head
+        if head is None:
+            raise ValueError(f"journal {self.directory} has no head; start() it first")
+        if (link.seq, link.prev_hash) != (head[0] + 1, head[1]):
+            raise ValueError(
+                f"link seq {link.seq} does not follow the journal head seq {head[0]}"
+            )
+        line = _line(link)
+        seg = self._segments[-1]
+        if seg.entries >= self.segment_entries:
+            self._new_segment(head[0], head[1], line)
+        else:
+            assert self._fd is not None
+            try:
+                _write_all(self._fd, line)
+                os.fdatasync(self._fd)
+            except OSError as err:
+                self._undo(err)
+                raise
+            self._size += len(line)
+            seg.entries += 1
+        self._segments[-1].last_seq = link.seq
+        self._head = (link.seq, link.hash)
+
+    def _undo(self, err: OSError) -> None:
+        """Cut off whatever part of the failed line reached the file."""
+        assert self._fd is not None
+        try:
+            os.ftruncate(self._fd, self._size)
+            os.fdatasync(self._fd)
+        except OSError as again:
+            self._broken = again
+            log.error("journal %s: cannot cut a failed append (%s) after %s",
+                      self.directory, again, err)
+
+    def _new_segment(self, after_seq: int, after_hash: str, first: bytes) -> None:
+        header = canonical_json({"journal": FORMAT, "station": self.station,
+                                 "after_seq": after_seq, "after_hash": after_hash})
+        path = self.directory / f"{after_seq:020d}.jsonl"
+        data = header.encode() + b"\n" + first
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            _write_all(fd, data)
+            os.fsync(fd)
+            _fsync_dir(self.directory)
+        except OSError:
+            os.close(fd)
+            path.unlink(missing_ok=True)
+            raise
+        old = self._fd
+        with self._lock:
+            self._segments.append(_Segment(path, after_seq, after_seq, 1 if first else 0))
+        self._fd, self._size = fd, len(data)
+        if old is not None:
+            os.close(old)
+        if not first:
+            self._head = (after_seq, after_hash)
+
+    def compact(self, committed_seq: int) -> int:
+        """Delete the segments the database holds entirely (never the newest); how many."""
+        with self._lock:
+            done = [s for s in self._segments[:-1] if s.last_seq <= committed_seq]
+            self._segments = [s for s in self._segments if s not in done]
+        for s in done:
+            s.path.unlink(missing_ok=True)
+        if done:
+            _fsync_dir(self.directory)
+        return len(done)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def _line(link: Link) -> bytes:
+    return (canonical_json({"seq": link.seq, "prev_hash": link.prev_hash, "hash": link.hash,
+                            "body": link.body}) + "\n").encode()
+
+
+def _parses(raw: bytes) -> bool:
+    try:
+        return isinstance(json.loads(raw), dict)
+    except ValueError:
+        return False
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _make_dirs(path: Path) -> None:
+    missing = []
+    p = path
+    while not p.exists():
+        missing.append(p)
+        p = p.parent
+    path.mkdir(parents=True, exist_ok=True)
+    for p in reversed(missing):  # each new folder's name is durable in its parent
+        _fsync_dir(p.parent)
