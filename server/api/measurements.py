@@ -48,6 +48,9 @@ async def measurement_filter(
     reason_code: Annotated[int | None, Query(ge=0, le=65535)] = None,
     recipe: Annotated[str | None, Query(max_length=64)] = None,
     part_id: Annotated[str | None, Query(max_length=64)] = None,
+    result_id: Annotated[
+        int | None, Query(ge=1, le=MAX_ID, description="the result id the PLC read (= seq)")
+    ] = None,
 ) -> MeasurementFilter:
     return MeasurementFilter(
         since=since,
@@ -56,6 +59,7 @@ async def measurement_filter(
         reason_code=reason_code,
         recipe=recipe,
         part_id=part_id,
+        result_id=result_id,
     )
 
 
@@ -106,6 +110,7 @@ CSV_COLUMNS = [
     "calibration_hash",
     "timings_ms",
     "hash",
+    "result_id",  # = seq; last, so that existing columns keep their positions
 ]
 
 
@@ -135,6 +140,7 @@ def _csv_row(m: MeasurementSummary) -> list[object]:
         m.calibration_hash or "",
         canonical_json(m.timings_ms),
         m.hash,
+        m.seq,
     ]
 
 
