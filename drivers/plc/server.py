@@ -27,6 +27,7 @@ from . import registers as r
 from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
 from .registers import CONTROL_DEFINED, Command, State
 from .seam import PlcConfig, PlcHandler, TriggerOutcome, TriggerRequest
+from .transport import ModbusTcpConnection
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,12 @@ class _Listener(ModbusTcpServer):
         return _Connection(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
-class _Connection(ServerRequestHandler):
+class _Connection(ModbusTcpConnection):
+    """One PLC connection: the allowlist, and the map's function codes (docs/plc-interface.md,
+    "Conformance"); framing, request checks and answer order are ModbusTcpConnection's."""
+
+    function_codes = _WRITE_FCS | {3, 4}
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
         peer = transport.get_extra_info("peername")
@@ -70,6 +76,12 @@ class _Connection(ServerRequestHandler):
             owner.stats.rejected_connections += 1
             log.warning("PLC link: connection from %s refused (not in the allowlist)", host)
             self.close()
+
+    def rejected(self, function_code: int, code: ExcCodes) -> None:
+        self.server.owner._reject(code)
+
+    def malformed(self, why: str) -> None:
+        self.server.owner._note(f"connection from {self.peer()}: {why}; connection closed")
 
 
 class PlcServer:

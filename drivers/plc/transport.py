@@ -1,0 +1,272 @@
+"""Modbus/TCP framing for the PLC link: MBAP checks, request checks, answers in order.
+
+pymodbus 3.16's server connection (``ServerRequestHandler`` on ``FramerSocket``) keeps one decoded
+request at a time (``last_pdu``), so a second ADU in the same TCP segment waits for bytes that may
+never come, and its ``send`` empties the receive buffer; a non-zero protocol id makes the framer
+wait for more data for good (the connection hangs); a function code it cannot decode, or a read
+quantity out of range, is answered with function byte 0x80 and exception 01; every function code
+it knows (diagnostics, report server id, FIFO, device identification, ...) is served. This module
+replaces that receive path and keeps pymodbus's PDU classes and data store for the work:
+
+- every complete ADU in the buffer is taken, in order; each gets exactly one answer, in order;
+- the MBAP header is checked (protocol id 0, length 2..254); a bad header closes the connection
+  (after the answers to the ADUs before it), and so does a frame left incomplete for
+  ``FRAME_TIMEOUT_S``, so garbage can never wedge a connection;
+- function codes outside ``function_codes`` get exception 01 with function byte ``0x80 | fc``; a
+  quantity, byte count or PDU length outside the Modbus Application Protocol's limits gets 03;
+  addresses are the data store's business (02), as before; a unit id the data store has no
+  device for gets 0B (gateway target failed to respond), as pymodbus answers it.
+
+Limits (Modbus Application Protocol V1.1b3, section 6): fc 3/4 read 1..125 registers, fc 6 has
+a fixed 4-byte body, fc 16 writes 1..123 registers with byte count 2N, fc 23 reads 1..125 and
+writes 1..121 registers with byte count 2N.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import struct
+from collections.abc import Callable
+from typing import ClassVar
+
+from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.server.base import ModbusBaseServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+
+log = logging.getLogger(__name__)
+
+MBAP = struct.Struct(">HHHB")  # transaction id, protocol id, length, unit id
+MBAP_SIZE = MBAP.size  # 7
+#: The MBAP length counts the unit id and the PDU: 2 (unit id + function code) to 254 (a PDU of
+#: at most 253 bytes), so an ADU is at most 260 bytes.
+MIN_LENGTH, MAX_LENGTH = 2, 254
+#: An ADU that has started must be complete within this time, else the connection is closed. A
+#: master writes each ADU at once; a gap this long means a length field that promises more bytes
+#: than are coming (or a dead peer in the middle of a frame).
+FRAME_TIMEOUT_S = 1.0
+#: Requests taken but not yet answered on one connection before reading pauses (back-pressure
+#: against a master that pipelines without bound).
+MAX_PENDING = 32
+
+
+def _registers_read(body: bytes) -> bool:
+    return len(body) == 4 and 1 <= int.from_bytes(body[2:4], "big") <= 125
+
+
+def _register_written(body: bytes) -> bool:
+    return len(body) == 4
+
+
+def _registers_written(body: bytes) -> bool:
+    if len(body) < 5:
+        return False
+    count, byte_count = int.from_bytes(body[2:4], "big"), body[4]
+    return 1 <= count <= 123 and byte_count == 2 * count and len(body) == 5 + byte_count
+
+
+def _registers_read_written(body: bytes) -> bool:
+    if len(body) < 9:
+        return False
+    reads, writes = int.from_bytes(body[2:4], "big"), int.from_bytes(body[6:8], "big")
+    byte_count = body[8]
+    return (
+        1 <= reads <= 125
+        and 1 <= writes <= 121
+        and byte_count == 2 * writes
+        and len(body) == 9 + byte_count
+    )
+
+
+#: Function code → check of the request body (the PDU after the function code): quantities,
+#: byte count and length within the protocol's limits.
+REQUEST_SHAPES: dict[int, Callable[[bytes], bool]] = {
+    3: _registers_read,
+    4: _registers_read,
+    6: _register_written,
+    16: _registers_written,
+    23: _registers_read_written,
+}
+
+_CLOSE = None  # queue marker: close the connection once everything before it is answered
+
+
+class ModbusTcpConnection(ServerRequestHandler):
+    """One Modbus/TCP connection of a pymodbus server, with a conformant receive path.
+
+    Subclasses narrow ``function_codes`` (each must be in ``REQUEST_SHAPES``) and may override
+    ``rejected`` and ``malformed`` to count and report.
+    """
+
+    function_codes: ClassVar[frozenset[int]] = frozenset(REQUEST_SHAPES)
+    frame_timeout_s: ClassVar[float] = FRAME_TIMEOUT_S
+
+    def __init__(
+        self,
+        owner: ModbusBaseServer,
+        trace_packet: Callable[[bool, bytes], bytes] | None,
+        trace_pdu: Callable[[bool, ModbusPDU], ModbusPDU] | None,
+        trace_connect: Callable[[bool], None] | None,
+    ) -> None:
+        super().__init__(owner, trace_packet, trace_pdu, trace_connect)
+        unknown = self.function_codes - REQUEST_SHAPES.keys()
+        if unknown:
+            raise ValueError(f"{type(self).__name__}.function_codes: no request check for "
+                             f"{sorted(unknown)}")
+        self._rx = bytearray()
+        self._queue: asyncio.Queue[tuple[int, int, int, ModbusPDU | ExcCodes] | None] = (
+            asyncio.Queue())
+        self._worker: asyncio.Task[None] | None = None
+        self._frame_timer: asyncio.TimerHandle | None = None
+        self._ending = False  # no more requests are taken (bad frame, EOF, closing)
+        self._paused = False
+
+    # ------------------------------------------------------------------ hooks
+
+    def rejected(self, function_code: int, code: ExcCodes) -> None:
+        """Called for every request answered with an exception by this layer."""
+
+    def malformed(self, why: str) -> None:
+        """Called when a frame cannot be Modbus/TCP; the connection is then closed."""
+        log.warning("Modbus/TCP from %s: %s; closing the connection", self.peer(), why)
+
+    def peer(self) -> str:
+        info = self.transport.get_extra_info("peername") if self.transport else None
+        return f"{info[0]}:{info[1]}" if info else "?"
+
+    # ------------------------------------------------------------------ receive
+
+    def data_received(self, data: bytes) -> None:
+        # Replaces ModbusProtocol.data_received (one ADU per call, buffer cut at 264 bytes).
+        if self._ending:
+            return
+        self._rx += data
+        taken = False
+        while len(self._rx) >= 4:
+            tid, pid = int.from_bytes(self._rx[0:2], "big"), int.from_bytes(self._rx[2:4], "big")
+            if pid != 0:
+                self._bad_frame(f"protocol id {pid} in the MBAP header of transaction {tid}, "
+                                "expected 0")
+                return
+            if len(self._rx) < 6:
+                break
+            length = int.from_bytes(self._rx[4:6], "big")
+            if not MIN_LENGTH <= length <= MAX_LENGTH:
+                self._bad_frame(f"MBAP length {length} in transaction {tid}, expected "
+                                f"{MIN_LENGTH}..{MAX_LENGTH}")
+                return
+            end = 6 + length
+            if len(self._rx) < end:
+                break
+            uid, pdu = self._rx[6], bytes(self._rx[MBAP_SIZE:end])
+            del self._rx[:end]
+            taken = True
+            self._enqueue((tid, uid, pdu[0], self._request(tid, uid, pdu)))
+        if taken or not self._rx:
+            self._cancel_frame_timer()
+        if self._rx and self._frame_timer is None:
+            self._frame_timer = self.loop.call_later(self.frame_timeout_s, self._frame_expired)
+
+    def eof_received(self) -> bool:  # type: ignore[override]  # asyncio: True keeps it open
+        # The master closed its sending side: answer what it sent, then close.
+        if not self._ending:
+            self._ending = True
+            self._cancel_frame_timer()
+            self._enqueue(_CLOSE)
+        return True
+
+    def _request(self, tid: int, uid: int, pdu: bytes) -> ModbusPDU | ExcCodes:
+        fc = pdu[0]
+        units = self.server.context.device_ids()
+        if 0 not in units and uid not in units:  # device 0 answers every unit id
+            return self._reject(fc, ExcCodes.GATEWAY_NO_RESPONSE)
+        if fc not in self.function_codes:
+            return self._reject(fc, ExcCodes.ILLEGAL_FUNCTION)
+        if not REQUEST_SHAPES[fc](pdu[1:]):
+            return self._reject(fc, ExcCodes.ILLEGAL_VALUE)
+        request = self.server.decoder.decode(pdu)
+        if request is None:  # the shape was checked: pymodbus disagrees with the protocol
+            log.error("Modbus/TCP: pymodbus could not decode function code %d: %s", fc, pdu.hex())
+            return ExcCodes.DEVICE_FAILURE
+        request.transaction_id, request.dev_id = tid, uid
+        return request
+
+    def _reject(self, fc: int, code: ExcCodes) -> ExcCodes:
+        self.rejected(fc, code)
+        return code
+
+    def _bad_frame(self, why: str) -> None:
+        self._ending = True
+        self._rx.clear()
+        self._cancel_frame_timer()
+        self.malformed(why)
+        self._enqueue(_CLOSE)
+
+    def _frame_expired(self) -> None:
+        self._frame_timer = None
+        if self._rx and not self._ending:
+            self._bad_frame(f"incomplete frame ({len(self._rx)} bytes: "
+                            f"{bytes(self._rx[:16]).hex(' ')}) for {self.frame_timeout_s} s")
+
+    def _cancel_frame_timer(self) -> None:
+        if self._frame_timer is not None:
+            self._frame_timer.cancel()
+            self._frame_timer = None
+
+    # ------------------------------------------------------------------ answer, in order
+
+    def _enqueue(self, item: tuple[int, int, int, ModbusPDU | ExcCodes] | None) -> None:
+        self._queue.put_nowait(item)
+        if self._worker is None:
+            self._worker = self.loop.create_task(self._answer(), name=f"modbus-conn-{self.peer()}")
+        if not self._paused and self._queue.qsize() >= MAX_PENDING and self.transport:
+            self._paused = True
+            self.transport.pause_reading()  # type: ignore[attr-defined]
+
+    async def _answer(self) -> None:
+        while True:
+            item = await self._queue.get()
+            if self._paused and self._queue.qsize() < MAX_PENDING // 2 and self.transport:
+                self._paused = False
+                self.transport.resume_reading()  # type: ignore[attr-defined]
+            if item is _CLOSE:
+                self.close()
+                return
+            tid, uid, fc, work = item
+            if isinstance(work, ExcCodes):
+                response: ModbusPDU = ExceptionResponse(fc, work)
+            else:
+                try:
+                    response = await work.datastore_update(self.server.context, uid)
+                except Exception:  # noqa: BLE001 — one failed request must not end the link
+                    log.exception("Modbus/TCP: function code %d from %s failed", fc, self.peer())
+                    response = ExceptionResponse(fc, ExcCodes.DEVICE_FAILURE)
+            # Sent in the same loop pass as the data store's action ran: callbacks the action
+            # schedules with call_soon run after the master has its answer.
+            response.transaction_id, response.dev_id = tid, uid
+            self.pdu_send(response, None)
+
+    # ------------------------------------------------------------------ end
+
+    def close(self, reconnect: bool = False) -> None:
+        self._ending = True
+        self._cancel_frame_timer()
+        self._stop_worker()
+        super().close(reconnect)
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        self._ending = True
+        self._cancel_frame_timer()
+        self._stop_worker()
+        super().callback_disconnected(exc)
+
+    def _stop_worker(self) -> None:
+        worker, self._worker = self._worker, None
+        if worker is None or worker.done():
+            return
+        with contextlib.suppress(RuntimeError):  # no running loop: nothing can be current
+            if worker is asyncio.current_task():
+                return
+        worker.cancel()
