@@ -73,6 +73,17 @@ class Residuals(_Model):
     max_px: float = Field(ge=0)
 
 
+class CameraResidual(_Model):
+    """One camera's reprojection residuals in one trigger: the drift watch's input."""
+
+    view: int = Field(ge=1, le=255)
+    camera_id: Name
+    mean_px: tuple[float, float] = Field(description="mean (du, dv), observed − predicted, px")
+    rms_px: float = Field(ge=0)
+    count: int = Field(ge=1, le=65535, description="observations of this camera")
+    used: int = Field(ge=0, le=65535, description="of them in the pose fit")
+
+
 class ImageRef(_Model):
     """An archived frame, by path relative to the image archive root."""
 
@@ -115,6 +126,9 @@ class MeasurementRecord(_Model):
     residuals: Residuals | None = None
     timings_ms: dict[str, float] = Field(default_factory=dict, description="stage -> ms")
     images: list[ImageRef] = Field(default_factory=list)
+    camera_residuals: list[CameraResidual] | None = Field(
+        None, description="per camera of the pose fit; absent in records before the drift watch"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> MeasurementRecord:
