@@ -53,7 +53,7 @@ class _Commit:
         self.id: int | None = None
         self._done = threading.Event()
         self._lock = threading.Lock()
-        self._callbacks: list[Callable[[int], None]] = []
+        self._callbacks: list[Callable[[int], object]] = []
 
     def set(self, db_id: int) -> None:
         with self._lock:
@@ -67,7 +67,7 @@ class _Commit:
         self._done.wait(timeout)
         return self.id
 
-    def add(self, cb: Callable[[int], None]) -> None:
+    def add(self, cb: Callable[[int], object]) -> None:
         with self._lock:
             if self.id is None:
                 self._callbacks.append(cb)
@@ -76,7 +76,7 @@ class _Commit:
         _call(cb, db_id)
 
 
-def _call(cb: Callable[[int], None], db_id: int) -> None:
+def _call(cb: Callable[[int], object], db_id: int) -> None:
     try:
         cb(db_id)
     except Exception:
@@ -121,7 +121,7 @@ class Sealed:
         takes); None if it is not committed by then."""
         return self._commit.wait(timeout)
 
-    def on_committed(self, callback: Callable[[int], None]) -> None:
+    def on_committed(self, callback: Callable[[int], object]) -> None:
         """Call ``callback(db_id)`` once committed: at once (in this thread) if it already is,
         else on the database thread, which it must not hold up (hand work to an executor)."""
         self._commit.add(callback)

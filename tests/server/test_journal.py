@@ -156,9 +156,8 @@ def test_a_locked_database_never_holds_up_append_and_is_caught_up_after(
         locker.execute("BEGIN IMMEDIATE")
         late = _append(writer, rng, 5, first=3)
         assert [s.seq for s in late] == [3, 4, 5, 6, 7] and all(s.id is None for s in late)
-        ids: list[int] = []
         done = threading.Event()
-        late[-1].on_committed(lambda i: (ids.append(i), done.set()))
+        late[-1].on_committed(lambda _id: done.set())
         assert writer.status().pending == 5
         assert writer.close(timeout=0.3) is False  # still locked: left in the journal
         locker.execute("ROLLBACK")
