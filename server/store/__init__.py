@@ -1,4 +1,5 @@
-"""The result store: one object holding the engine and a repository per table group."""
+"""The result store: one object holding the engine and a repository per table group, and the
+station's durable writer of its audit chain (journal first, database behind it)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ from server.store.db import create_store_engine, current_revision, migrate, ping
 from server.store.measurements import MeasurementRepository
 from server.store.tokens import TokenRepository
 from server.store.versions import VersionRepository
+from server.store.writer import DurableWriter, Sealed, StoreFailedError, WriterStatus
 
-__all__ = ["Store", "open_store"]
+__all__ = ["DurableWriter", "Sealed", "Store", "StoreFailedError", "WriterStatus", "open_store"]
 
 
 class Store:

@@ -350,3 +350,29 @@ def _dead_postgres_url() -> str:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     return f"postgresql+psycopg://postgres@127.0.0.1:{port}/mvpose"
+
+
+async def test_rest_shows_result_id_and_filters_on_it(tmp_path: Path) -> None:
+    """What an MES does with the id the PLC read: find that one result over REST."""
+    from apps import ENGINEER, record_some, settings
+    from asgi import running
+
+    from server.app import create_app
+
+    reasons = [Reason.OK, Reason.MARKS_MISSING, Reason.OK]
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (client, state):
+        stored = await record_some(state["services"], reasons)
+        r = await client.get("/api/v1/measurements", params={"result_id": stored[1].seq})
+        assert r.status_code == 200, r.text
+        (item,) = r.json()["items"]
+        assert item["result_id"] == item["seq"] == 2 and item["reason"] == "MARKS_MISSING"
+        r = await client.get(f"/api/v1/measurements/{item['id']}")
+        assert r.json()["result_id"] == 2
+        r = await client.get("/api/v1/measurements/export", params={"format": "csv"})
+        header, *rows = r.text.splitlines()
+        assert header.split(",")[-1] == "result_id"
+        assert [row.split(",")[-1] for row in rows] == ["1", "2", "3"]
+        r = await client.get("/api/v1/measurements/export", params={"format": "json"})
+        assert [m["result_id"] for m in r.json()] == [1, 2, 3]
+        r = await client.get("/api/v1/measurements", params={"result_id": 0})
+        assert r.status_code == 422
