@@ -14,7 +14,8 @@ replaces that receive path and keeps pymodbus's PDU classes and data store for t
   ``FRAME_TIMEOUT_S``, so garbage can never wedge a connection;
 - function codes outside ``function_codes`` get exception 01 with function byte ``0x80 | fc``; a
   quantity, byte count or PDU length outside the Modbus Application Protocol's limits gets 03;
-  addresses are the data store's business (02), as before; a unit id the data store has no
+  addresses are the data store's business (02), as before (fc 23's read range is checked
+  before its write, so a refused request changes nothing); a unit id the data store has no
   device for gets 0B (gateway target failed to respond), as pymodbus answers it.
 
 Limits (Modbus Application Protocol V1.1b3, section 6): fc 3/4 read 1..125 registers, fc 6 has
@@ -33,6 +34,7 @@ from typing import ClassVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
 from pymodbus.server.base import ModbusBaseServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 
@@ -239,7 +241,7 @@ class ModbusTcpConnection(ServerRequestHandler):
                 response: ModbusPDU = ExceptionResponse(fc, work)
             else:
                 try:
-                    response = await work.datastore_update(self.server.context, uid)
+                    response = await self._execute(work, uid)
                 except Exception:  # noqa: BLE001 — one failed request must not end the link
                     log.exception("Modbus/TCP: function code %d from %s failed", fc, self.peer())
                     response = ExceptionResponse(fc, ExcCodes.DEVICE_FAILURE)
@@ -247,6 +249,17 @@ class ModbusTcpConnection(ServerRequestHandler):
             # schedules with call_soon run after the master has its answer.
             response.transaction_id, response.dev_id = tid, uid
             self.pdu_send(response, None)
+
+    async def _execute(self, request: ModbusPDU, uid: int) -> ModbusPDU:
+        context = self.server.context
+        if isinstance(request, ReadWriteMultipleRegistersRequest):
+            # pymodbus writes, then finds the read range illegal: check the read range first,
+            # so that a request answered with an exception has changed nothing.
+            probe = await context.async_getValues(
+                uid, request.function_code, request.read_address, request.read_count)
+            if isinstance(probe, ExcCodes):
+                return ExceptionResponse(request.function_code, probe)
+        return await request.datastore_update(context, uid)
 
     # ------------------------------------------------------------------ end
 

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import socket
 import struct
 import subprocess
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 from plc_peers import ServerFactory, plc  # noqa: F401
@@ -18,7 +20,7 @@ from pyModbusTCP.client import ModbusClient
 from system_packages import ensure_commands
 
 from drivers.plc import registers as r
-from drivers.plc.transport import FRAME_TIMEOUT_S
+from drivers.plc.transport import FRAME_TIMEOUT_S, MAX_LENGTH, MAX_PENDING, MIN_LENGTH
 
 UNIT = 0x11  # not 0, 1 or 255, so an echo of the wrong byte shows
 CLOSE_WITHIN_S = 2.0  # what the docs promise for a malformed frame
@@ -212,6 +214,8 @@ BAD_ADDRESS = {
     "fc6 after the writable block": struct.pack(">BHH", 6, r.HR_WRITABLE_COUNT, 1),
     "fc16 across the writable block's end": write_multiple(r.HR_WRITABLE_COUNT - 1, [1, 2]),
     "fc23 write after the writable block": read_write(0, 1, r.HR_WRITABLE_COUNT, [1]),
+    "fc23 read after the mirror": read_write(r.HR_MIRROR + r.IR_COUNT, 1, 7, [0x0707]),
+    "fc23 write to the mirror": read_write(0, 1, r.HR_MIRROR, [1]),
 }
 
 
@@ -225,7 +229,9 @@ async def test_bad_address_gets_exception_02(plc: ServerFactory) -> None:
             assert got == want, f"{name}: {got.hex(' ')}"
     finally:
         await conn.close()
-    assert server.machine.holding[r.HR_WRITABLE_COUNT - 1] == 0
+    # nothing was written by a refused request (fc 23 included: its write comes first)
+    assert server.machine.holding == [0] * r.HR_WRITABLE_COUNT
+    assert server.stats.writes == 0
 
 
 async def test_unit_id_not_answered_gets_exception_0b(plc: ServerFactory) -> None:
@@ -484,3 +490,19 @@ async def test_mbpoll_reads_input_and_writes_holding_registers(plc: ServerFactor
     assert out["coils"][0] != 0 and "Illegal function" in out["coils"][1]
     assert out["discrete inputs"][0] != 0 and "Illegal function" in out["discrete inputs"][1]
     assert out["past the map"][0] != 0 and "Illegal data address" in out["past the map"][1]
+
+
+def test_the_conformance_section_matches_this_module() -> None:
+    """docs/plc-interface.md, "Conformance": every test it cites exists, and its numbers are the
+    transport's."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "plc-interface.md").read_text()
+    section = doc.split("## Conformance", 1)[1].split("\n## ", 1)[0]
+    cited = set(re.findall(r"`(test_\w+)`", section))
+    here = {name for name in globals() if name.startswith("test_")}
+    assert cited - {"test_exception_codes_seen_by_pymodbustcp"} <= here, cited - here
+    assert here - {"test_the_conformance_section_matches_this_module"} <= cited, here - cited
+    assert f"complete {FRAME_TIMEOUT_S:g} s after its first byte" in section.replace("\n", " ")
+    assert f"with {MAX_PENDING} requests not yet" in section.replace("\n", " ")
+    assert f"MBAP length outside {MIN_LENGTH}..{MAX_LENGTH}" in section.replace("\n", " ")
+    assert "test_exception_codes_seen_by_pymodbustcp" in Path(
+        __file__).with_name("test_plc_independent.py").read_text()
