@@ -1,7 +1,10 @@
-"""Store benchmark: one durable, chained insert on SQLite (WAL), alone and beside REST readers."""
+"""Store benchmark: one durable, chained insert on SQLite (WAL), alone and beside REST readers;
+the durable writer's append (journal + at most db_wait_s) on SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 import tempfile
 import threading
@@ -16,7 +19,7 @@ from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention, to_robot
 from server.metrics import Metrics
-from server.store import Store, open_store
+from server.store import DurableWriter, Store, open_store
 from server.store.schemas import (
     CameraDetections,
     Detection,
@@ -97,6 +100,67 @@ def run(folder: Path, synchronous: str, readers: int, repeat: int,
         store.close()
 
 
+def run_appends(folder: Path, url: str, label: str, db_wait_s: float, repeat: int) -> Timing:
+    """DurableWriter.append: seal, fsynced journal line, then the commit waited <= db_wait_s."""
+    data_dir = folder / f"{label.replace(' ', '_')}-{db_wait_s * 1e3:.0f}ms"
+    writer = DurableWriter.open(url, "bench", data_dir, db_wait_s=db_wait_s)
+    rng = np.random.default_rng(0)
+    counter = iter(range(1, 10**9))
+    try:
+        timing = measure(f"append {label} (db_wait {db_wait_s * 1e3:.0f} ms)",
+                         lambda: writer.append(station1_record(rng, next(counter))),
+                         repeat=repeat, warmup=20)
+    finally:
+        writer.close(timeout=60.0)
+    store = open_store(url, "bench")
+    try:
+        assert store.measurements.verify_chain().checked == repeat + 20
+    finally:
+        store.close()
+    return timing
+
+
+def postgres_appends(folder: Path, repeat: int) -> list[Timing]:
+    """Appends on a throwaway PostgreSQL 15 cluster (tests/server/postgres.py: fsync off), and
+    with that cluster frozen by SIGSTOP: the append then costs the journal plus db_wait_s."""
+    sys.path.insert(0, str(Path(__file__).parents[1] / "tests" / "server"))
+    from postgres import PG_BIN, start_cluster, stop_cluster
+
+    if not (PG_BIN / "initdb").exists():
+        print(f"PostgreSQL: no binaries in {PG_BIN}, skipped")
+        return []
+    cluster, root = start_cluster()
+    try:
+        out = [run_appends(folder, cluster.create_database(), "PostgreSQL 15", 0.005, repeat)]
+        url = cluster.create_database()
+        writer = DurableWriter.open(url, "bench", folder / "pg-frozen", db_wait_s=0.005)
+        rng = np.random.default_rng(0)
+        counter = iter(range(1, 10**9))
+        pids = [int((cluster.datadir / "postmaster.pid").read_text().splitlines()[0])]
+        pids += [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+                 and _ppid(p) == pids[0]]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            out.append(measure("append PostgreSQL 15 frozen (db_wait 5 ms)",
+                               lambda: writer.append(station1_record(rng, next(counter))),
+                               repeat=repeat // 2, warmup=5))
+        finally:
+            for pid in pids:
+                os.kill(pid, signal.SIGCONT)
+        writer.close(timeout=60.0)
+        return out
+    finally:
+        stop_cluster(cluster, root)
+
+
+def _ppid(proc: Path) -> int | None:
+    try:
+        return int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def main() -> int:
     rng_record = station1_record(np.random.default_rng(1), 1)
     print(f"record: {len(rng_record.model_dump_json())} bytes of JSON")
@@ -120,8 +184,15 @@ def main() -> int:
         page = measure("page of 50 OK summaries (the REST list query)",
                        lambda: store.measurements.summary_page(f, None, 50), repeat=100)
         store.close()
+        sqlite_url = f"sqlite:///{folder / 'bench-append.db'}"
+        appends = [run_appends(folder, sqlite_url, "SQLite FULL", 0.005, 500),
+                   run_appends(folder, f"sqlite:///{folder / 'bench-append0.db'}",
+                               "SQLite FULL", 0.0, 500)]
+        appends += postgres_appends(folder, 500)
     for t in (full, normal, mes, mes_fast, hammer, page):
         print(t.line(full if t is not full and t is not page else None))
+    for t in appends:
+        print(t.line())
     # The flat-out readers hold the GIL for most of each 5 ms switch interval, so the writer
     # waits at every GIL hand-over: shown for information, the target is the MES rate.
     ok = check("insert median (FULL)", full.median, TARGET_MEDIAN_MS)
