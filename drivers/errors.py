@@ -20,6 +20,12 @@ class DriverOperationError(DriverError):
     """A device that was open failed while working (bad frame, lost link, wrong format)."""
 
 
+class FrameFormatError(DriverOperationError):
+    """A frame of the wrong size, bit depth or channel count: never cropped or converted to fit.
+    The station reports it as ``Reason.DETECTION_FAILED`` (102), like the detector's own
+    :class:`mvpose_core.detect.ImageFormatError` (docs/operations.md)."""
+
+
 class DeviceLostError(DriverOperationError):
     """The device stopped answering; it must be closed and opened again."""
 

@@ -40,6 +40,9 @@ class Observation:
     mark_id: str
     uv: np.ndarray
     sigma_px: float | None = None  # per-observation σ; None = the call's sigma_px
+    #: the mark's next candidates in this image (``[2]`` each, best first): the robust rule
+    #: (mvpose_core.robust) tries them when ``uv`` disagrees with the rest
+    alternates: tuple[np.ndarray, ...] = ()
 
     @property
     def key(self) -> tuple[int, str, str]:

@@ -1,8 +1,9 @@
 """Render realistic camera images of a station's marks with known truth, for tests, twins and demos.
 
-Each mark is drawn as the exact perspective image of a circle of ``recipe.mark_diameter_mm`` lying
-on the part surface (so a tilted mark is an ellipse whose centre is *not* the image of the circle's
-centre), through the camera's lens distortion. Only the neighbourhood of each mark is computed
+Each mark is drawn as the exact perspective image of a circle of its own diameter (the mark's
+``diameter_mm``, else the recipe's ``mark_diameter_mm``) and polarity lying on the part surface
+(so a tilted mark is an ellipse whose centre is *not* the image of the circle's centre), through
+the camera's lens distortion. Only the neighbourhood of each mark is computed
 finely: pixels near the rim are super-sampled (16 × 16) by casting their sub-pixel rays onto the
 mark's plane; the rest of the frame is a smooth illumination field filled with array arithmetic.
 Then defocus blur, shot and read noise, and saturation to 8 bits.
@@ -21,7 +22,7 @@ import numpy as np
 
 from mvpose_core.camera import CameraModel
 from mvpose_core.detect.geometry import rim_points
-from mvpose_core.render_clutter import paint_clutter, paint_occluder
+from mvpose_core.render_clutter import paint_clutter, paint_decoy, paint_occluder
 from mvpose_core.scene import ProjectedMark, ViewCamera, project_recipe_marks
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
@@ -36,6 +37,8 @@ class RenderOptions:
     gradient: float = 0.25  # illumination gradient strength (relative change across the frame)
     clutter: bool = False  # edges, holes that are not marks, specular spots
     occluded: tuple[str, ...] = ()  # mark ids partially occluded
+    occluded_fraction: tuple[float, float] = (0.4, 0.6)  # share of an occluded mark hidden
+    decoys: tuple[str, ...] = ()  # mark ids with a dot of their own size painted next to them
     shot_noise_gain: float = 0.01  # shot-noise variance per grey level of signal (gl² / gl)
     level: float = 235.0  # grey level of a white surface under the mean illumination
     light_albedo: float = 0.78  # surface (dark_on_light) or mark (light_on_dark)
@@ -71,7 +74,8 @@ def render_view(
     """Render what ``cam`` sees of the recipe's sighted marks with the part at ``T_rf_from_pf``."""
     model = cam.model
     H, W = model.height, model.width
-    radius_mm = recipe.mark_diameter_mm / 2.0
+    radii = dict(zip((m.id for m in recipe.marks), recipe.mark_diameters() / 2.0, strict=True))
+    darks = dict(zip((m.id for m in recipe.marks), recipe.mark_dark().tolist(), strict=True))
     dark_marks = recipe.polarity == "dark_on_light"
     bg_albedo = options.light_albedo if dark_marks else options.dark_albedo
     mark_albedo = options.dark_albedo if dark_marks else options.light_albedo
@@ -85,7 +89,14 @@ def render_view(
     centres: dict[str, np.ndarray] = {}
     footprints: dict[str, tuple[Array, float]] = {}  # (uv, radius px) of drawn marks
     for pm in marks:
-        r_px = _draw_mark(albedo, model, pm, radius_mm, mark_albedo, bg_albedo, options.supersample)
+        radius_mm = float(radii[pm.mark_id])
+        own, under = mark_albedo, bg_albedo
+        if darks[pm.mark_id] != dark_marks:
+            # A mark of the other polarity sits on a label of twice its diameter that contrasts
+            # with it (a white dot on a black sticker, on a light panel).
+            own, under = bg_albedo, mark_albedo
+            _draw_mark(albedo, model, pm, 2.0 * radius_mm, under, bg_albedo, options.supersample)
+        r_px = _draw_mark(albedo, model, pm, radius_mm, own, under, options.supersample)
         if r_px is None:
             continue
         centres[pm.mark_id] = pm.uv.copy()
@@ -94,7 +105,11 @@ def render_view(
     occluded = tuple(m for m in options.occluded if m in centres)
     for mid in occluded:
         uv, r = footprints[mid]
-        paint_occluder(albedo, uv, r, bg_albedo, rng)
+        paint_occluder(albedo, uv, r, bg_albedo, rng, options.occluded_fraction)
+    for mid in options.decoys:
+        if mid in footprints:
+            uv, r = footprints[mid]
+            paint_decoy(albedo, uv, r, mark_albedo if darks[mid] == dark_marks else bg_albedo, rng)
     if options.clutter:
         paint_clutter(albedo, list(footprints.values()), bg_albedo, mark_albedo, rng)
 

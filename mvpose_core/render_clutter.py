@@ -64,23 +64,45 @@ def paint_spot(albedo: np.ndarray, uv: Array, sigma: float, peak: float) -> None
     albedo[v0:v1, u0:u1] += bump.astype(np.float32)
 
 
+def _chord_offset(fraction: float) -> float:
+    """Distance (in radii) from a disc's centre of the chord that cuts off ``fraction`` of it."""
+    s = np.linspace(-1.0, 1.0, 401)
+    cut = (np.arccos(s) - s * np.sqrt(1.0 - s * s)) / np.pi  # area beyond the chord, decreasing
+    return float(np.interp(fraction, cut[::-1], s[::-1]))
+
+
 def paint_occluder(
-    albedo: np.ndarray, uv: Array, r: float, bg_albedo: float, rng: np.random.Generator
+    albedo: np.ndarray, uv: Array, r: float, bg_albedo: float, rng: np.random.Generator,
+    fraction: tuple[float, float] = (0.4, 0.6),
 ) -> None:
-    """Hide 40–60 % of the mark at ``uv`` (radius ``r`` px) under a bar (a clamp, a cable)."""
+    """Hide a share in ``fraction`` (default 40–60 %) of the mark at ``uv`` (radius ``r`` px)
+    under a bar (a clamp, a cable)."""
     box = _box(albedo, uv, 3.0 * r + 2.0)
     if box is None:
         return
     uu, vv = _grid(box)
     ang = rng.uniform(0.0, 2.0 * np.pi)
     d = np.array([np.cos(ang), np.sin(ang)])
-    start = rng.uniform(-0.15, 0.15) * r  # the bar's near edge, from the mark centre
+    # the bar's near edge, from the mark centre
+    start = _chord_offset(float(rng.uniform(*fraction))) * r
     along = (uu - uv[0]) * d[0] + (vv - uv[1]) * d[1]
     across = -(uu - uv[0]) * d[1] + (vv - uv[1]) * d[0]
     # Signed distance to the bar [start, start + 2.5 r] x [-2.5 r, 2.5 r] (max of the half-planes).
     sd = np.maximum.reduce([start - along, along - (start + 2.5 * r), np.abs(across) - 2.5 * r])
     value = bg_albedo * rng.choice([1.15, 0.75])
     _blend(albedo, box, np.clip(0.5 - sd, 0.0, 1.0), float(value))
+
+
+def paint_decoy(
+    albedo: np.ndarray, uv: Array, r: float, mark_albedo: float, rng: np.random.Generator,
+    gap: tuple[float, float] = (1.0, 2.5),
+) -> Array:
+    """A dot of the mark's own size and albedo next to the mark at ``uv`` (radius ``r`` px), its
+    rim ``gap`` radii from the mark's rim, in a random direction; returns its centre."""
+    ang = rng.uniform(0.0, 2.0 * np.pi)
+    at = uv + (2.0 * r + rng.uniform(*gap) * r) * np.array([np.cos(ang), np.sin(ang)])
+    paint_ellipse(albedo, at, r, r, 0.0, mark_albedo)
+    return at
 
 
 def _clear_of(uv: Array, extent: float, footprints: list[Footprint], gap: float) -> bool:

@@ -31,7 +31,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.errors import DeviceLostError, DriverError, DriverInitError, DriverOperationError
+from drivers.errors import (
+    DeviceLostError,
+    DriverError,
+    DriverInitError,
+    DriverOperationError,
+    FrameFormatError,
+)
+from mvpose_core.detect.types import image_format
 from mvpose_core.station import CameraConfig
 
 T = TypeVar("T")
@@ -288,10 +295,30 @@ class Camera(ABC):
         want = (s.height, s.width) if s and s.width and s.height else None
         if image.dtype != np.uint8 or image.ndim != 2 or (want is not None and image.shape != want):
             shown = f"{want[1]}x{want[0]} " if want else ""
-            raise DriverOperationError(
-                f"camera {self.camera_id!r}: expected {shown}mono8, got "
-                f"{'x'.join(map(str, image.shape[::-1]))} {image.dtype}"
+            raise FrameFormatError(
+                f"camera {self.camera_id!r}: expected {shown}mono8, got {image_format(image)}"
             )
+
+    def _full_or_region(self, image: Image, where: str = "") -> Image:
+        """A recorded or simulated frame as the configured region delivers it: a frame of the
+        sensor's size is cut to the region (what the device does), a frame already of the
+        region's size is kept; any other size is refused, never cropped to fit."""
+        s = self._settings
+        if s is None or s.width is None or s.height is None:
+            return image
+        w, h = self.config.image_size
+        region = (s.height, s.width)
+        if image.shape == region:
+            return image
+        if image.shape != (h, w):
+            shown = f"{s.width}x{s.height}" + (
+                f" (region at {s.offset_x}, {s.offset_y} of {w}x{h})" if region != (h, w) else ""
+            )
+            raise FrameFormatError(
+                f"camera {self.camera_id!r}: expected {shown} mono8, got "
+                f"{image_format(image)}{where}"
+            )
+        return image[s.offset_y : s.offset_y + s.height, s.offset_x : s.offset_x + s.width]
 
 
 def to_mono8(data: np.ndarray, pixel_format: str, width: int, height: int, camera_id: str) -> Image:

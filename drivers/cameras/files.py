@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 
 from drivers.cameras.base import Camera, CameraSettings, Image, TriggerMode, to_mono8
-from drivers.errors import DriverInitError, DriverOperationError, DriverTimeout
+from drivers.errors import DriverInitError, DriverOperationError, DriverTimeout, FrameFormatError
+from mvpose_core.detect.types import image_format
 from mvpose_core.station import CameraConfig
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".jpg", ".jpeg")
@@ -107,25 +108,14 @@ class FilesCamera(Camera):
             return raw
         fmt = {3: "bgr8", 4: "bgra8"}.get(raw.shape[2] if raw.ndim == 3 else 0, "")
         if raw.dtype != np.uint8 or not fmt:
-            bits = raw.dtype.itemsize * 8
-            raise DriverOperationError(
-                f"camera {self.camera_id!r}: expected mono8, got {w}x{h} "
-                f"{'mono' if raw.ndim == 2 else f'{raw.shape[2]}-channel '}{bits} ({raw.dtype}) "
+            raise FrameFormatError(
+                f"camera {self.camera_id!r}: expected mono8, got {image_format(raw)} ({raw.dtype}) "
                 f"in {path.name!r}"
             )
         return to_mono8(raw, fmt, w, h, self.camera_id)
 
     def _crop(self, image: Image, path: Path) -> Image:
-        s = self._roi
-        if s.width is None or s.height is None:
-            return image
-        x0, y0 = s.offset_x, s.offset_y
-        if y0 + s.height > image.shape[0] or x0 + s.width > image.shape[1]:
-            raise DriverOperationError(
-                f"camera {self.camera_id!r}: expected {s.width}x{s.height} mono8 at ({x0}, {y0}), "
-                f"got {image.shape[1]}x{image.shape[0]} in {path.name!r}"
-            )
-        return np.ascontiguousarray(image[y0 : y0 + s.height, x0 : x0 + s.width])
+        return np.ascontiguousarray(self._full_or_region(image, f" in {path.name!r}"))
 
     def _close(self) -> None:
         self._files = []

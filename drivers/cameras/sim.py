@@ -258,10 +258,7 @@ class SimCamera(Camera):
         raise DriverTimeout(f"camera {self.camera_id!r} (sim): {why} before the deadline")
 
     def _crop(self, image: Image) -> Image:
-        s = self._roi
-        if s.width is None or s.height is None or (s.width, s.height) == image.shape[::-1]:
-            return image
-        return image[s.offset_y : s.offset_y + s.height, s.offset_x : s.offset_x + s.width]
+        return self._full_or_region(image)
 
     def _close(self) -> None:
         self._pending = []

@@ -20,7 +20,13 @@ from mvpose_core.detect.geometry import (
 )
 from mvpose_core.detect.search import identify_marks, search_marks
 from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
-from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
+from mvpose_core.detect.types import (
+    DetectOptions,
+    ImageFormatError,
+    MarkDetection,
+    check_image,
+    image_format,
+)
 from mvpose_core.detect.window import detect_marks, detect_marks_many
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -30,6 +36,7 @@ __all__ = [
     "DetectOptions",
     "Ellipse",
     "EpipolarFailure",
+    "ImageFormatError",
     "MarkDetection",
     "MarkPrediction",
     "check_image",
@@ -38,6 +45,7 @@ __all__ = [
     "detect_marks_many",
     "epipolar_distance_px",
     "identify_marks",
+    "image_format",
     "perspective_correction",
     "perspective_corrections",
     "predict_marks",

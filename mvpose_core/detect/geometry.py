@@ -187,9 +187,9 @@ def rim_points(pm: ProjectedMark, radius_mm: float, n: int = _RIM_SAMPLES) -> Ar
     return rims(pm.p_cf[None], pm.n_cf[None], radius_mm, n)[0]
 
 
-def rims(p_cf: Array, n_cf: Array, radius_mm: float, n: int = _RIM_SAMPLES) -> Array:
-    """:func:`rim_points` of marks at ``p_cf`` ``["M", 3]`` with unit normals ``n_cf``:
-    ``["M", "n", 3]``."""
+def rims(p_cf: Array, n_cf: Array, radius_mm: float | Array, n: int = _RIM_SAMPLES) -> Array:
+    """:func:`rim_points` of marks at ``p_cf`` ``["M", 3]`` with unit normals ``n_cf`` and radii
+    ``radius_mm`` (one for all, or ``["M"]``): ``["M", "n", 3]``."""
     nx, ny, nz = n_cf[:, 0:1], n_cf[:, 1:2], n_cf[:, 2:3]
     zero = np.zeros_like(nx)
     # e1 = n × (x or y axis), e2 = n × e1: an orthonormal basis of the mark's plane.
@@ -205,7 +205,8 @@ def rims(p_cf: Array, n_cf: Array, radius_mm: float, n: int = _RIM_SAMPLES) -> A
         axis=1,
     )
     cs = _RIM_COS_SIN if n == _RIM_SAMPLES else _cos_sin(n)
-    return p_cf[:, None, :] + radius_mm * (
+    r = np.broadcast_to(np.asarray(radius_mm, dtype=float), (p_cf.shape[0],))[:, None, None]
+    return p_cf[:, None, :] + r * (
         cs[None, :, :1] * e1[:, None, :] + cs[None, :, 1:] * e2[:, None, :]
     )
 
@@ -221,17 +222,27 @@ class MarkPrediction:
     radius_range: tuple[float, float]  # accepted sqrt(a·b), px
     ratio_range: tuple[float, float]  # accepted minor/major axis ratio
     facing: bool  # the mark's front faces the camera
+    dark: bool = True  # the mark is darker than its surroundings (its polarity)
+    diameter_mm: float = 0.0  # the mark's own diameter
 
     @property
     def uv(self) -> Array:
         return self.mark.uv
 
 
-def _displacement_mm(recipe: RecipeConfig, mark_id: str, reach: float = 1.0) -> float:
-    """Bound on a mark's 3D motion for any part offset within ``reach`` times the recipe's
-    tolerances."""
+def displacement_mm(recipe: RecipeConfig, reach: float = 1.0) -> Array:
+    """Bound ``["M"]`` on each mark's 3D motion for any allowed part displacement.
+
+    The allowed displacement is a rigid motion bounded at the part, not at the part frame's
+    origin: a rotation of at most ``reach · max_offset_deg`` about the marks' centroid ``c``
+    followed by a translation of at most ``reach · max_offset_mm``. Mark ``i`` then stays within
+    ``reach · max_offset_mm + 2 |p_i − c| sin(reach · max_offset_deg / 2)`` of where the prior
+    pose puts it; ``p_i − c`` is the same in every part frame, so the bound (and every window
+    and size range built from it) does not depend on where the part frame is.
+    """
     tol = recipe.tolerances
-    lever = float(np.linalg.norm(recipe.marks[recipe.mark_index(mark_id)].position))
+    P = recipe.mark_positions()
+    lever = np.linalg.norm(P - P.mean(axis=0), axis=1)
     return reach * tol.max_offset_mm + 2.0 * lever * np.sin(
         np.deg2rad(reach * tol.max_offset_deg) / 2.0
     )
@@ -299,12 +310,16 @@ def predict_marks(
     uv = np.array([pm.uv for pm in pms])
     z = p_cf[:, 2]
     in_front = z > 1.0
-    rim = rims(p_cf, n_cf, recipe.mark_diameter_mm / 2.0)  # [M, n, 3]
+    index = {m.id: k for k, m in enumerate(recipe.marks)}
+    ks = [index[pm.mark_id] for pm in pms]
+    diam = recipe.mark_diameters()[ks]
+    dark = recipe.mark_dark()[ks]
+    rim = rims(p_cf, n_cf, diam / 2.0)  # [M, n, 3]
     rim[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
     ells = fit_ellipses(
         cam.model.project(rim.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rim.shape[:2])
     )
-    D = np.array([_displacement_mm(recipe, pm.mark_id, reach) for pm in pms])
+    D = displacement_mm(recipe, reach)[ks]
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
     ahead = moved[..., 2] > 0.2 * np.maximum(z, 1.0)[:, None]
     moved[..., 2] = np.where(ahead, moved[..., 2], 1.0)
@@ -340,6 +355,8 @@ def predict_marks(
                 radius_range=(float(radius_range[0]), float(radius_range[1])),
                 ratio_range=(ratio_lo, ratio_hi),
                 facing=facing,
+                dark=bool(dark[k]),
+                diameter_mm=float(diam[k]),
             )
         )
     return out
@@ -366,8 +383,9 @@ def perspective_corrections(
     """
     positions, normals = _mark_geometry(recipe)
     index = {m.id: k for k, m in enumerate(recipe.marks)}
+    radii = recipe.mark_diameters() / 2.0
     chosen: list[list[str]] = []
-    posed: list[tuple[ViewCamera, Array, Array]] = []  # (camera, p_cf, n_cf) of facing marks
+    posed: list[tuple[ViewCamera, Array, Array, Array]] = []  # (camera, p_cf, n_cf, r) facing
     for cam, ids in cameras:
         ks = [index[i] for i in ids if i in index]
         T = compose(invert(cam.T_rf_from_cf), T_rf_from_pf)
@@ -377,15 +395,16 @@ def perspective_corrections(
         facing = (p_cf[:, 2] > 1.0) & (np.einsum("mi,mi->m", n_cf, p_cf) < 0.0)
         chosen.append([recipe.marks[k].id for k, f in zip(ks, facing, strict=True) if f])
         if facing.any():
-            posed.append((cam, p_cf[facing], n_cf[facing]))
+            posed.append((cam, p_cf[facing], n_cf[facing], radii[ks][facing]))
     if not posed:
         return [{} for _ in cameras]
-    rim_all = rims(np.concatenate([p for _, p, _ in posed]),
-                   np.concatenate([n for _, _, n in posed]), recipe.mark_diameter_mm / 2.0)
+    rim_all = rims(np.concatenate([p for _, p, _, _ in posed]),
+                   np.concatenate([n for _, _, n, _ in posed]),
+                   np.concatenate([r for _, _, _, r in posed]))
     centres: list[Array] = []
     rim_images: list[Array] = []
     first = 0
-    for cam, p_cf, _ in posed:
+    for cam, p_cf, _, _ in posed:
         m = len(p_cf)
         pts = np.concatenate([p_cf[:, None, :], rim_all[first : first + m]], axis=1)
         uv = cam.model.project(pts.reshape(-1, 3)).reshape(m, -1, 2)

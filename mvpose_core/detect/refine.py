@@ -133,7 +133,7 @@ def _rays(
     ell: Ellipses,
     n_rays: int,
     half: float,
-    dark: bool,
+    dark: bool | np.ndarray,
     lo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px.
@@ -175,8 +175,12 @@ def _rays(
                     rows.size, R, S
                 )
     out = prof.astype(np.float32)
-    if not dark:
-        out = -out  # the same code then finds light marks on a dark surface
+    # Negated profiles let the same code find light marks on a dark surface (per candidate).
+    if isinstance(dark, np.ndarray):
+        if not dark.all():
+            out *= np.where(dark, 1.0, -1.0).astype(np.float32)[:, None, None]
+    elif not dark:
+        out = -out
     return out, radii, phi, inside
 
 
@@ -234,7 +238,7 @@ def _crossings(
 def measure_many(
     image: np.ndarray,
     starts: list[Ellipse],
-    dark: bool,
+    dark: bool | np.ndarray,
     min_contrast: float,
     max_fit_residual_px: float,
     min_edge_fraction: float,
@@ -251,7 +255,7 @@ def measure_in(
     images: Sequence[np.ndarray],
     owner: np.ndarray,
     starts: list[Ellipse],
-    dark: bool,
+    dark: bool | np.ndarray,
     min_contrast: float,
     max_fit_residual_px: float,
     min_edge_fraction: float,
@@ -297,7 +301,8 @@ def measure_in(
         idx: slice | np.ndarray = slice(None) if len(groups) == 1 else np.flatnonzero(n_fine == n)
         sub = Ellipses(ell.centre[idx], ell.a[idx], ell.b[idx], ell.angle[idx])
         e, failed[idx], residual[idx], npts[idx], contrast[idx] = _fine(
-            images, owner[idx], sub, failed[idx], n, dark, min_contrast, min_edge_fraction,
+            images, owner[idx], sub, failed[idx], n,
+            dark[idx] if isinstance(dark, np.ndarray) else dark, min_contrast, min_edge_fraction,
             max_fit_residual_px)
         for out, part in zip(final, (e.centre, e.a, e.b, e.angle), strict=True):
             out[idx] = part
@@ -327,7 +332,7 @@ def _fine(
     ell: Ellipses,
     failed: np.ndarray,
     n_rays: int,
-    dark: bool,
+    dark: bool | np.ndarray,
     min_contrast: float,
     min_edge_fraction: float,
     max_fit_residual_px: float,
@@ -350,7 +355,7 @@ def _pass(
     n_rays: int,
     half: float,
     span: np.ndarray | None,
-    dark: bool,
+    dark: bool | np.ndarray,
     min_contrast: float,
     min_edge_fraction: float,
 ) -> tuple[Ellipses, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -411,7 +416,7 @@ _FAILURES = ("at image border", "low contrast", "incomplete edge", "shape", "sha
 def measure(
     image: np.ndarray,
     start: Ellipse,
-    dark: bool,
+    dark: bool | np.ndarray,
     min_contrast: float,
     max_fit_residual_px: float,
     min_edge_fraction: float,

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_core.detect.geometry import predict_marks
+from mvpose_core.detect.geometry import MarkPrediction, predict_marks
 from mvpose_core.detect.refine import find_candidates, measure_many
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
@@ -47,10 +47,22 @@ def search_marks(
     ]
     if not preds:
         raise ValueError(f"camera {cam.key!r}: no mark of recipe {recipe.name!r} faces this camera")
+    found: list[MarkDetection] = []
+    for dark in sorted({p.dark for p in preds}, reverse=True):
+        # Marks of one polarity at a time: light and dark marks are different blobs.
+        same = [p for p in preds if p.dark == dark]
+        found += _search_polarity(image, same, dark, options)
+    found.sort(key=lambda d: (round(float(d.uv[1]) / 8.0), float(d.uv[0])))  # type: ignore[index]
+    return [replace(d, mark_id=f"?{k}") for k, d in enumerate(found)]
+
+
+def _search_polarity(
+    image: np.ndarray, preds: list[MarkPrediction], dark: bool, options: DetectOptions
+) -> list[MarkDetection]:
+    """The accepted blobs of one polarity, sized like any of ``preds``."""
     r_lo = min(p.radius_range[0] for p in preds)
     r_hi = max(p.radius_range[1] for p in preds)
     ratio_lo = min(p.ratio_range[0] for p in preds)
-    dark = recipe.polarity == "dark_on_light"
     H, W = image.shape
     scale = options.search_scale
     while scale > 1 and r_lo / scale < 2.5:
@@ -77,8 +89,7 @@ def search_marks(
                 e.centre, e.radius, e.axis_ratio, m.contrast, m.fit_residual_px, m.edge_points
             )
         )
-    found.sort(key=lambda d: (round(float(d.uv[1]) / 8.0), float(d.uv[0])))  # type: ignore[index]
-    return [replace(d, mark_id=f"?{k}") for k, d in enumerate(found)]
+    return found
 
 
 def identify_marks(

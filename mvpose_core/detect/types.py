@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvpose_core.camera import CameraModel
+from mvpose_core.reasons import Reason
 from mvpose_core.transforms import Array
 
 
@@ -23,6 +24,7 @@ class DetectOptions:
     search_scale: int = 4  # search mode: candidates on a 1/search_scale image
     correct_perspective: bool = True  # move the ellipse centre to the image of the circle centre
     max_candidates: int = 64  # per window or search: a busy image is not searched forever
+    max_alternates: int = 3  # next candidates kept per mark for the estimator (MarkDetection)
     # Window mode searches first in windows for a part within ±first_reach_mm and
     # ±first_reach_deg of the prior pose (where parts usually arrive), when the recipe's
     # tolerances are wider; an image where some mark was not found there is searched again
@@ -82,6 +84,16 @@ class MarkDetection:
     uv_ellipse: Array | None = None
     correction: Array | None = None
     edge_points: int = 0
+    #: ellipse centres of the mark's next candidates (other accepted blobs in its window that
+    #: no mark took), nearest to the prediction first
+    alternates: tuple[tuple[float, float], ...] = ()
+
+    def candidates(self) -> list[Array]:
+        """The mark's centre and its next candidates' centres, corrected alike (``[2]`` each)."""
+        if not self.found or self.uv is None:
+            return []
+        corr = self.correction if self.correction is not None else np.zeros(2)
+        return [self.uv] + [np.array(a, dtype=float) + corr for a in self.alternates]
 
     @classmethod
     def missing(cls, mark_id: str, reason: str, **quality: float) -> MarkDetection:
@@ -116,22 +128,40 @@ class MarkDetection:
         return replace(self, found=False, reason=reason)
 
 
+class ImageFormatError(ValueError):
+    """An image of the wrong size, bit depth or channel count; reported as
+    ``Reason.DETECTION_FAILED`` (docs/operations.md). Never cropped or converted to fit."""
+
+    reason = Reason.DETECTION_FAILED
+
+
+def image_format(image: np.ndarray) -> str:
+    """``"WxH mono8"``-style name of an array's format (``mono16``, ``3-channel 8-bit`` …)."""
+    if image.ndim < 2:
+        return f"shape {'x'.join(map(str, image.shape)) or '()'} {image.dtype}"
+    size = f"{image.shape[1]}x{image.shape[0]}"
+    integer = image.dtype.kind in "ui"
+    if image.ndim == 2:
+        return f"{size} mono{image.dtype.itemsize * 8}" if integer else f"{size} {image.dtype}"
+    channels = "x".join(map(str, image.shape[2:]))
+    bits = f"{image.dtype.itemsize * 8}-bit" if integer else str(image.dtype)
+    return f"{size} {channels}-channel {bits}"
+
+
 def check_image(image: object, model: CameraModel, what: str) -> np.ndarray:
-    """The image as a 2-D uint8 array of the camera's size, or ``ValueError`` naming the problem."""
-    if not isinstance(image, np.ndarray):
-        raise ValueError(f"{what}: expected a numpy image, got {type(image).__name__}")
-    if image.dtype == np.uint8 and image.shape == (model.height, model.width):
+    """The image as a 2-D uint8 array of the camera's size, else :class:`ImageFormatError`
+    naming ``what`` (the camera), the expected and the actual format, e.g. ``"camera 'v1/left1':
+    expected 2048x2048 mono8, got 2560x2560 mono8"``. A larger frame is refused, never cropped."""
+    if isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.shape == (
+        model.height, model.width
+    ):
         return image  # the usual case, checked once per image per trigger: no more work
-    shape = "x".join(str(s) for s in image.shape)
+    want = f"{model.width}x{model.height} mono8"
+    if not isinstance(image, np.ndarray):
+        raise ImageFormatError(f"{what}: expected {want}, got {type(image).__name__}")
     if image.size == 0:
-        raise ValueError(f"{what}: the image is empty (shape {shape or '()'})")
-    if image.dtype != np.uint8:
-        raise ValueError(
-            f"{what}: expected a mono8 (uint8) image, got dtype {image.dtype} shape {shape}"
+        raise ImageFormatError(
+            f"{what}: expected {want}, got an empty image (shape "
+            f"{'x'.join(map(str, image.shape)) or '()'})"
         )
-    if image.ndim != 2:
-        raise ValueError(f"{what}: expected a 2-D mono image, got shape {shape}")
-    raise ValueError(
-        f"{what}: expected {model.width}x{model.height} mono8, "
-        f"got {image.shape[1]}x{image.shape[0]}"
-    )
+    raise ImageFormatError(f"{what}: expected {want}, got {image_format(image)}")

@@ -105,7 +105,7 @@ def _measure(
             images,
             owner,
             [c.ellipse for s in searches for _, c in s.cands],
-            recipe.polarity == "dark_on_light",
+            np.array([s.live[k].dark for s in searches for k, _ in s.cands], dtype=bool),
             options.min_contrast,
             options.max_fit_residual_px,
             options.min_edge_fraction,
@@ -142,7 +142,6 @@ def _search(
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
     )
-    dark = recipe.polarity == "dark_on_light"
     H, W = image.shape
     results: dict[str, MarkDetection] = {}
     live: list[MarkPrediction] = []
@@ -165,9 +164,10 @@ def _search(
         boxes.append(box)
     cands: list[tuple[int, Candidate]] = []
     scales: list[int] = []
-    for members, region in _merge_windows(boxes):
+    for members, region in _merge_windows(boxes, [p.dark for p in live]):
         # Large tolerances make the windows of one camera's marks overlap almost entirely:
         # search their union once instead of the same pixels once per mark.
+        dark = live[members[0]].dark
         lo = min(live[k].radius_range[0] for k in members)
         hi = max(live[k].radius_range[1] for k in members)
         s = coarse_scale(lo)
@@ -220,17 +220,21 @@ def _holds(box: tuple[int, int, int, int], u: float, v: float) -> bool:
 
 
 def _merge_windows(
-    boxes: list[tuple[int, int, int, int]], min_overlap: float = 0.5
+    boxes: list[tuple[int, int, int, int]], dark: list[bool] | None = None,
+    min_overlap: float = 0.5,
 ) -> list[tuple[list[int], tuple[int, int, int, int]]]:
     """Groups of windows to search together, each with the bounding box of its members.
 
-    Two windows join a group when their intersection covers at least ``min_overlap`` of the
-    smaller one, so merging never searches much more area than the windows themselves.
+    Two windows join a group when their marks have the same polarity (``dark``) and their
+    intersection covers at least ``min_overlap`` of the smaller one, so merging never searches
+    much more area than the windows themselves.
     """
     groups: list[tuple[list[int], tuple[int, int, int, int]]] = []
     for k, b in enumerate(boxes):
         area_b = (b[2] - b[0]) * (b[3] - b[1])
         for members, g in groups:
+            if dark is not None and dark[members[0]] != dark[k]:
+                continue
             iw = min(b[2], g[2]) - max(b[0], g[0])
             ih = min(b[3], g[3]) - max(b[1], g[1])
             area_g = (g[2] - g[0]) * (g[3] - g[1])
@@ -286,15 +290,21 @@ def _assign(
     gate = np.array([p.max_shift_px + options.window_extra_px for p in preds])
     cost = np.where(dist <= gate[:, None], dist, 1e9)
     rows, cols = linear_sum_assignment(cost)
+    taken = {int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
     for r, c in zip(rows, cols, strict=True):
         if cost[r, c] >= 1e9:
             continue
         p = preds[r]
         det = pool[c]
         corr = p.correction if options.correct_perspective else np.zeros(2)
+        # The mark's next candidates: accepted blobs within its gate that no mark took, nearest
+        # first; the estimator tries them when this one disagrees with the rest (engine.md).
+        others = [j for j in np.argsort(dist[r]).tolist()
+                  if j not in taken and cost[r, j] < 1e9][: options.max_alternates]
         results[p.mark.mark_id] = replace(
             det,
             mark_id=p.mark.mark_id,
             uv=det.uv_ellipse + corr,
             correction=corr.copy(),
+            alternates=tuple((float(uv[j, 0]), float(uv[j, 1])) for j in others),
         )

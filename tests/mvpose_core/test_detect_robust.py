@@ -12,6 +12,7 @@ import pytest
 
 from mvpose_core.detect import (
     DetectOptions,
+    ImageFormatError,
     MarkDetection,
     detect_marks,
     detect_marks_many,
@@ -20,6 +21,7 @@ from mvpose_core.detect import (
     search_marks,
     stereo_check,
 )
+from mvpose_core.reasons import Reason
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.render_scene import plate_scene
 from mvpose_core.scene import view_cameras
@@ -76,19 +78,21 @@ def test_pure_clutter_without_marks_yields_nothing() -> None:
 @pytest.mark.parametrize(
     "image,match",
     [
-        (np.zeros((480, 640), np.float32), "dtype float32"),
-        (np.zeros((480, 640), np.uint16), "dtype uint16"),
-        (np.zeros((480, 640, 3), np.uint8), "2-D"),
-        (np.zeros((479, 640), np.uint8), "expected 640x480 mono8, got 640x479"),
+        (np.zeros((480, 640), np.float32), "expected 640x480 mono8, got 640x480 float32"),
+        (np.zeros((480, 640), np.uint16), "expected 640x480 mono8, got 640x480 mono16"),
+        (np.zeros((480, 640, 3), np.uint8), "expected 640x480 mono8, got 640x480 3-channel 8-bit"),
+        (np.zeros((479, 640), np.uint8), "expected 640x480 mono8, got 640x479 mono8"),
+        (np.zeros((960, 1280), np.uint8), "expected 640x480 mono8, got 1280x960 mono8"),
         (np.zeros((0, 640), np.uint8), "empty"),
-        ([[0, 1], [2, 3]], "numpy image"),
+        ([[0, 1], [2, 3]], "expected 640x480 mono8, got list"),
     ],
 )
 def test_bad_images_give_a_clear_error(image, match) -> None:  # type: ignore[no-untyped-def]
     cam, recipe = plate_scene()
-    with pytest.raises(ValueError, match=match) as err:
+    with pytest.raises(ImageFormatError, match=match) as err:
         detect_marks(image, cam, recipe, recipe.T_rf_from_pf0.matrix)
-    assert "v1/cam" in str(err.value)
+    assert "camera 'v1/cam'" in str(err.value)
+    assert err.value.reason == Reason.DETECTION_FAILED
     with pytest.raises(ValueError, match=match):
         search_marks(image, cam, recipe)
 

@@ -1,0 +1,292 @@
+"""The robust rule: a mark's observation that disagrees with the rest is replaced or dropped.
+
+An observation is the detector's best candidate for a mark in one image; a decoy (a dot or hole
+next to the mark) or a partly hidden mark gives one that the other observations contradict.
+:func:`estimate_pose_robust` applies the recipe's rule (``RecipeConfig.robust``, on by default;
+docs/engine.md):
+
+1. **Stereo check** (``stereo_check``): within one view, a mark seen by two or more cameras must
+   lie on its epipolar lines (within ``epipolar_px``). An observation that disagrees with every
+   other camera's (both, for a pair) takes the first of its next candidates that agrees; if none
+   does, it is *set aside* (unless more than ``max_dropped`` would be: then the images disagree
+   as a whole, and none is).
+2. The pose is estimated from the observations not set aside (all of them, if those alone do not
+   determine a pose).
+3. **Residual rule**, one change at a time, the pose re-estimated after each. Threshold τ: the
+   larger of ``outlier_px``, five times the recipe's ``detector_noise_px`` and four times the
+   median residual of the observations in use. When the largest residual of an observation in
+   use exceeds ``outlier_px`` (or five σ), the pose is estimated without it; if its residual at
+   that pose exceeds τ (of that pose), its next candidate closest to the prediction replaces it
+   when within τ, else it is dropped (at most ``max_dropped``, never below three marks or a layout
+   that no longer fixes the pose). If it is within τ, it does not stand out and nothing changes
+   (uniformly poor images are the gate's to judge). Then an observation set aside or dropped
+   whose best candidate now lies within τ is taken back.
+
+What was replaced or dropped, and why, comes back with the pose; the quality gate then judges
+what remains against the recipe's tolerances (so the result is OK when the rest suffices).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from mvpose_core.detect.stereo import epipolar_distance_px
+from mvpose_core.detect.types import MarkDetection
+from mvpose_core.estimate import EstimateOptions, PoseResult, SolveInfo, estimate_pose
+from mvpose_core.problem import Observation, PoseInputError
+from mvpose_core.scene import ViewCamera
+from mvpose_core.station import RobustConfig
+from mvpose_core.transforms import Array, apply, compose, invert
+
+Key = tuple[int, str, str]  # (view, camera_id, mark_id)
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """An observation the robust rule left out of the pose, and why."""
+
+    view: int
+    camera_id: str
+    mark_id: str
+    reason: str
+
+    def as_dict(self) -> dict[str, object]:
+        return {"view": self.view, "camera": self.camera_id, "mark": self.mark_id,
+                "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Replaced:
+    """An observation whose best candidate was replaced by its ``candidate``-th next one."""
+
+    view: int
+    camera_id: str
+    mark_id: str
+    candidate: int  # 1 = the first alternate
+    reason: str
+
+    def as_dict(self) -> dict[str, object]:
+        return {"view": self.view, "camera": self.camera_id, "mark": self.mark_id,
+                "candidate": self.candidate, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class RobustResult:
+    """The pose over the kept observations and what the rule changed.
+
+    ``observations`` are the ones given, with any replaced ``uv`` put in; ``pose.used`` says
+    which of them the pose uses and ``pose.residuals_px`` holds every one's residual.
+    """
+
+    pose: PoseResult
+    observations: tuple[Observation, ...]
+    dropped: tuple[Dropped, ...]
+    replaced: tuple[Replaced, ...]
+
+
+def observations_of(
+    view: int, detections: Mapping[str, Sequence[MarkDetection]]
+) -> list[Observation]:
+    """The found detections of one view (camera id → detections) as observations, each with
+    its mark's next candidates."""
+    return [
+        Observation(view, cid, d.mark_id, d.uv, alternates=tuple(d.candidates()[1:]))
+        for cid, dets in detections.items()
+        for d in dets
+        if d.found and d.uv is not None
+    ]
+
+
+def estimate_pose_robust(
+    observations: Sequence[Observation],
+    cameras: Sequence[ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+    config: RobustConfig = RobustConfig(),  # noqa: B008 - frozen, immutable default
+    options: EstimateOptions = EstimateOptions(),  # noqa: B008 - frozen, immutable default
+    sigma_px: float = 1.0,
+    *,
+    initial_T_rf_from_pf: np.ndarray | None = None,
+    warm_start: np.ndarray | None = None,
+) -> RobustResult:
+    """:func:`mvpose_core.estimate.estimate_pose` under the robust rule (module docstring)."""
+    obs = list(observations)
+    n = len(obs)
+    options = replace(options, loss=config.loss, huber_px=config.huber_px, outlier_px=None)
+    by_cam = {(c.view, c.camera_id): c for c in cameras}
+    cands = [[o.uv, *o.alternates] for o in obs]
+    chosen = [0] * n
+    why_out: dict[int, str] = {}  # set aside or dropped, with the reason
+    replaced: dict[int, str] = {}
+    if config.stereo_check:
+        _stereo(obs, cands, chosen, by_cam, config.epipolar_px, why_out, replaced)
+        if len(why_out) > config.max_dropped:
+            why_out.clear()  # the images disagree as a whole, not one mark: the gate judges
+    used = np.array([k not in why_out for k in range(n)])
+
+    def solve(mask: np.ndarray, start: Array | None) -> PoseResult:
+        sub = [replace(obs[k], uv=cands[k][chosen[k]]) for k in np.flatnonzero(mask).tolist()]
+        return estimate_pose(sub, cameras, marks_pf, options, sigma_px,
+                             initial_T_rf_from_pf=initial_T_rf_from_pf,
+                             warm_start=start if start is not None else warm_start)
+
+    try:
+        pose = solve(used, None)
+    except PoseInputError:
+        if used.all():
+            raise
+        used[:] = True  # the stereo check left too little: let the residuals decide
+        why_out.clear()
+        pose = solve(used, None)
+    # Five σ of the a-priori noise at least: a noisy station never loses good observations.
+    limit = None if config.outlier_px is None else max(config.outlier_px, 5.0 * sigma_px)
+    if limit is not None:
+        for _ in range(2 * n + 2):  # each pass makes one change; a few suffice in practice
+            res = _all_residuals(obs, cands, pose.T_rf_from_pf, by_cam, marks_pf)
+            cur = np.array([res[k][chosen[k]] for k in range(n)])
+            length = np.where(used, cur, -1.0)
+            worst = int(np.argmax(length))
+            if length[worst] > limit:
+                # Judge the worst observation by the pose of the others: its own pull on the
+                # pose hides part of its error, and it must stand out from theirs.
+                trial = used.copy()
+                trial[worst] = False
+                try:
+                    without = solve(trial, pose.T_rf_from_pf)
+                except PoseInputError:
+                    break  # the rest would not fix a pose: keep it, the gate judges
+                res_w = _all_residuals(obs, cands, without.T_rf_from_pf, by_cam, marks_pf)
+                tau = _threshold(limit, res_w, chosen, trial)
+                best = int(np.argmin(res_w[worst])) if config.candidates else chosen[worst]
+                if res_w[worst][chosen[worst]] <= tau:
+                    break  # it does not stand out: the gate judges the residuals
+                if res_w[worst][best] <= tau:
+                    replaced[worst] = (f"residual {res_w[worst][chosen[worst]]:.2f} px > "
+                                       f"{tau:.2f} px; candidate {best} fits "
+                                       f"({res_w[worst][best]:.2f} px)")
+                    chosen[worst] = best
+                elif len(why_out) >= config.max_dropped:
+                    break
+                else:
+                    why = f"residual {res_w[worst][chosen[worst]]:.2f} px > {tau:.2f} px"
+                    if len(res_w[worst]) > 1:
+                        why += f", no candidate within (best {min(res_w[worst]):.2f} px)"
+                    used, pose = trial, without
+                    why_out[worst] = why
+                    continue
+            else:
+                tau = _threshold(limit, res, chosen, used)
+                back = [k for k in range(n) if not used[k]
+                        and (min(res[k]) if config.candidates else res[k][0]) <= tau]
+                if not back:
+                    break
+                k = min(back, key=lambda j: min(res[j]))
+                best = int(np.argmin(res[k])) if config.candidates else 0
+                if best:
+                    replaced[k] = f"{why_out[k]}; candidate {best} fits ({res[k][best]:.2f} px)"
+                else:
+                    replaced.pop(k, None)
+                chosen[k] = best
+                used[k] = True
+                why_out.pop(k, None)
+            pose = solve(used, pose.T_rf_from_pf)
+    final = [replace(o, uv=cands[k][chosen[k]]) for k, o in enumerate(obs)]
+    res_all = _residual_vectors(final, pose.T_rf_from_pf, by_cam, marks_pf)
+    keys = [o.key for o in final]
+    info = pose.info
+    info = SolveInfo(
+        info.iterations, info.initial_cost, info.final_cost, info.rms_px, info.termination,
+        info.converged, info.initializer, tuple(keys[k] for k in sorted(why_out)),
+    )
+    in_objective = np.zeros(n, dtype=bool)  # left_only leaves right cameras out as well
+    in_objective[np.flatnonzero(used)] = pose.used
+    full = PoseResult(pose.T_rf_from_pf, pose.covariance, res_all, info, in_objective)
+    return RobustResult(
+        full,
+        tuple(final),
+        tuple(Dropped(*keys[k], why_out[k]) for k in sorted(why_out)),
+        tuple(Replaced(*keys[k], chosen[k], replaced[k]) for k in sorted(replaced)
+              if chosen[k] and used[k]),
+    )
+
+
+def _threshold(limit: float, res: list[Array], chosen: list[int], used: Array) -> float:
+    """``limit``, or four times the median residual of the used observations if larger."""
+    lengths = [res[k][chosen[k]] for k in np.flatnonzero(used).tolist()]
+    return max(limit, 4.0 * float(np.median(lengths))) if lengths else limit
+
+
+def _predict(cam: ViewCamera, T_rf_from_pf: Array, p_pf: Array) -> Array:
+    p_cf = apply(compose(invert(cam.T_rf_from_cf), T_rf_from_pf), p_pf[None])
+    if not p_cf[0, 2] > 0:
+        return np.array([np.inf, np.inf])
+    return cam.model.project(p_cf)[0]
+
+
+def _residual_vectors(
+    obs: Sequence[Observation], T: Array, by_cam: Mapping[tuple[int, str], ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+) -> Array:
+    out = np.empty((len(obs), 2))
+    for k, o in enumerate(obs):
+        out[k] = np.asarray(o.uv, dtype=float) - _predict(
+            by_cam[(o.view, o.camera_id)], T, np.asarray(marks_pf[o.mark_id], dtype=float))
+    return out
+
+
+def _all_residuals(
+    obs: Sequence[Observation], cands: list[list[Array]], T: Array,
+    by_cam: Mapping[tuple[int, str], ViewCamera], marks_pf: Mapping[str, np.ndarray],
+) -> list[Array]:
+    """Per observation, the residual length (px) of each of its candidates at pose ``T``."""
+    out = []
+    for o, cs in zip(obs, cands, strict=True):
+        pred = _predict(by_cam[(o.view, o.camera_id)], T,
+                        np.asarray(marks_pf[o.mark_id], dtype=float))
+        out.append(np.linalg.norm(np.asarray(cs, dtype=float) - pred, axis=1))
+    return out
+
+
+def _stereo(
+    obs: Sequence[Observation], cands: list[list[Array]], chosen: list[int],
+    by_cam: Mapping[tuple[int, str], ViewCamera], limit: float, why_out: dict[int, str],
+    replaced: dict[int, str],
+) -> None:
+    """Step 1 of the rule: epipolar agreement between the cameras of a view, per mark."""
+    groups: dict[tuple[int, str], list[int]] = {}
+    for k, o in enumerate(obs):
+        groups.setdefault((o.view, o.mark_id), []).append(k)
+
+    def dist(a: int, ia: int, b: int, ib: int) -> float:
+        ca, cb = by_cam[(obs[a].view, obs[a].camera_id)], by_cam[(obs[b].view, obs[b].camera_id)]
+        return epipolar_distance_px(ca, cands[a][ia][None], cb, cands[b][ib][None])
+
+    for ks in groups.values():
+        if len(ks) < 2:
+            continue
+        d = {(a, b): dist(a, 0, b, 0) for a in ks for b in ks if a < b}
+        odd = [a for a in ks
+               if all(d[(min(a, b), max(a, b))] > limit for b in ks if b != a)]
+        if not odd:
+            continue
+        # Try the next candidates of the odd ones: one that agrees with another camera's
+        # observation replaces the best candidate.
+        for a in odd:
+            others = [b for b in ks if b != a and (b not in odd or len(ks) == 2)]
+            for ia in range(1, len(cands[a])):
+                agree = [b for b in others if dist(a, ia, b, chosen[b]) <= limit]
+                if agree:
+                    chosen[a] = ia
+                    b = agree[0]
+                    replaced[a] = (f"epipolar {d[(min(a, b), max(a, b))]:.1f} px from "
+                                   f"v{obs[b].view}/{obs[b].camera_id}; candidate {ia} agrees")
+                    break
+        still = [a for a in odd if chosen[a] == 0]
+        if len(ks) == 2 and len(still) < 2:
+            continue  # one of the pair took a candidate that agrees with the other
+        for a in still:
+            b = next(b for b in ks if b != a)
+            why_out[a] = (f"epipolar {d[(min(a, b), max(a, b))]:.1f} px > {limit:g} px from "
+                          f"v{obs[b].view}/{obs[b].camera_id}")
