@@ -245,10 +245,16 @@ class ModbusTcpConnection(ServerRequestHandler):
                 except Exception:  # noqa: BLE001 — one failed request must not end the link
                     log.exception("Modbus/TCP: function code %d from %s failed", fc, self.peer())
                     response = ExceptionResponse(fc, ExcCodes.DEVICE_FAILURE)
-            # Sent in the same loop pass as the data store's action ran: callbacks the action
-            # schedules with call_soon run after the master has its answer.
+            # Sent in the same loop pass as the data store's action ran, so whatever the action
+            # schedules with call_soon runs after the master has its answer.
             response.transaction_id, response.dev_id = tid, uid
-            self.pdu_send(response, None)
+            try:
+                self.pdu_send(response, None)
+            except Exception:  # noqa: BLE001 — the stream is lost: never leave the master waiting
+                log.exception("Modbus/TCP: answer to transaction %d for %s could not be sent",
+                              tid, self.peer())
+                self.close()
+                return
 
     async def _execute(self, request: ModbusPDU, uid: int) -> ModbusPDU:
         context = self.server.context

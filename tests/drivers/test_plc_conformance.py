@@ -125,6 +125,7 @@ OUTSIDE_THE_MAP = {
     0x41: b"\x00\x00",  # user-defined
     0x64: b"",
     0x7F: b"\x00",
+    0x83: read(3, 0, 1)[1:],  # the exception range: its function byte stays 0x83
 }
 
 
