@@ -29,12 +29,14 @@ Pure numpy; no I/O, no clock: the caller passes each trigger's time stamp.
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_left
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mvpose_core.transforms import Array
 
@@ -130,15 +132,19 @@ class _Camera:
     warm: list[tuple[float, float]] = field(default_factory=list)
     mean: Array | None = None  # μ [2], px
     sigma: Array | None = None  # σ [2], px
-    cusum: Cusum | None = None
+    # The four one-sided statistics as :class:`Cusum` orders them, None while learning. Plain
+    # floats: per trigger and camera, numpy's call overhead would cost ~10x the arithmetic.
+    S: list[float] | None = None
     count: int = 0  # triggers since the baseline was set
     # station trigger index of each update since the baseline, and Σ (x − μ, in-fit fraction)
     # [3] after it; the oldest are dropped past ``DriftOptions.history`` (``floor`` keeps the
     # last dropped one)
     idx: list[int] = field(default_factory=list)
-    cum: list[Array] = field(default_factory=list)
-    floor: tuple[int, Array] = (-1, np.zeros(3))
+    cum: list[tuple[float, float, float]] = field(default_factory=list)
+    floor: tuple[int, tuple[float, float, float]] = (-1, (0.0, 0.0, 0.0))
     starts: list[int] = field(default_factory=lambda: [0] * 4)  # where each run began
+    mean_px: tuple[float, float] | None = None  # μ and σ as the state reports them
+    sigma_px: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -161,7 +167,7 @@ class CameraDrift:
     residual_shift_px: tuple[float, float] | None  # this camera's residual shift since, px
     since: float | None  # time stamp of the trigger the drift started at (the caller's clock)
     since_trigger: int | None  # that trigger's index (0 = the first trigger the watch saw)
-    triggers: int  # triggers of this camera since its baseline (0 while learning)
+    triggers: int  # triggers of this camera since its baseline (while learning: learnt from)
     mean_px: tuple[float, float] | None  # baseline μ
     sigma_px: tuple[float, float] | None  # baseline σ
 
@@ -212,7 +218,7 @@ class DriftWatch:
         """Triggers seen so far (the next one gets this index)."""
         return self._n
 
-    def set_baseline(self, key: CameraKey, mean_px: Array, sigma_px: Array) -> None:
+    def set_baseline(self, key: CameraKey, mean_px: ArrayLike, sigma_px: ArrayLike) -> None:
         """Give a camera's in-control μ and σ (px, per component) instead of learning them."""
         mu = np.asarray(mean_px, dtype=float).reshape(2)
         sd = np.asarray(sigma_px, dtype=float).reshape(2)
@@ -226,9 +232,11 @@ class DriftWatch:
     def _start(self, cam: _Camera, mu: Array, sd: Array) -> None:
         cam.mean = mu
         cam.sigma = np.maximum(sd, self.options.min_sigma_px)
-        cam.cusum = Cusum((), self.options.k)
+        cam.mean_px = (float(cam.mean[0]), float(cam.mean[1]))
+        cam.sigma_px = (float(cam.sigma[0]), float(cam.sigma[1]))
+        cam.S = [0.0] * 4
         cam.count, cam.idx, cam.cum = 0, [], []
-        cam.floor = (self._n - 1, np.zeros(3))
+        cam.floor = (self._n - 1, (0.0, 0.0, 0.0))
         cam.starts = [self._n] * 4
         cam.warm = []
 
@@ -246,14 +254,14 @@ class DriftWatch:
         """
         n = self._n
         for key, value in means_px.items():
-            x = np.asarray(value, dtype=float).reshape(2)
+            u, v = (float(a) for a in value)
             f = 1.0 if in_fit is None else float(in_fit.get(key, 1.0))
-            if not (np.all(np.isfinite(x)) and 0.0 <= f <= 1.0):
+            if not (math.isfinite(u) and math.isfinite(v) and 0.0 <= f <= 1.0):
                 raise ValueError(
                     f"camera {key}: need a finite mean residual and an in-fit fraction in "
-                    f"[0, 1], got {x.tolist()}, {f}"
+                    f"[0, 1], got {[u, v]}, {f}"
                 )
-            self._feed(self._cams.setdefault(key, _Camera()), n, x, f)
+            self._feed(self._cams.setdefault(key, _Camera()), n, u, v, f)
         self._stamps[n] = stamp
         self._n += 1
         if len(self._stamps) > 2 * self.options.history:
@@ -261,25 +269,28 @@ class DriftWatch:
             self._stamps = {i: t for i, t in self._stamps.items() if i >= keep}
         return self.states()
 
-    def _feed(self, cam: _Camera, n: int, x: Array, in_fit: float) -> None:
-        if cam.cusum is None:
-            cam.warm.append((float(x[0]), float(x[1])))
+    def _feed(self, cam: _Camera, n: int, u: float, v: float, in_fit: float) -> None:
+        if cam.S is None:
+            cam.warm.append((u, v))
             if len(cam.warm) >= self.options.warmup:
                 w = np.asarray(cam.warm)
                 self._start(cam, w.mean(axis=0), w.std(axis=0, ddof=1))
-                cam.floor = (n, np.zeros(3))
+                cam.floor = (n, (0.0, 0.0, 0.0))
                 cam.starts = [n + 1] * 4
             return
-        assert cam.mean is not None and cam.sigma is not None
-        d = x - cam.mean
-        idle = cam.cusum.S == 0.0
-        cam.cusum.step(d / cam.sigma)
-        # A statistic leaving zero starts a run at this trigger: the change point if it alarms.
-        for i in np.flatnonzero(idle & (cam.cusum.S > 0.0)):
-            cam.starts[i] = n
+        assert cam.mean_px is not None and cam.sigma_px is not None
+        du, dv = u - cam.mean_px[0], v - cam.mean_px[1]
+        zu, zv = du / cam.sigma_px[0], dv / cam.sigma_px[1]
+        k, S = self.options.k, cam.S
+        for i, z in enumerate((zu, -zu, zv, -zv)):  # as Cusum.step, on floats
+            new = max(0.0, S[i] + z - k)
+            if S[i] == 0.0 and new > 0.0:
+                cam.starts[i] = n  # a run starts here: the change point if it alarms
+            S[i] = new
         cam.count += 1
         cam.idx.append(n)
-        cam.cum.append((cam.cum[-1] if cam.cum else cam.floor[1]) + np.append(d, in_fit))
+        a, b, c = cam.cum[-1] if cam.cum else cam.floor[1]
+        cam.cum.append((a + du, b + dv, c + in_fit))
         if len(cam.idx) > 2 * self.options.history:
             cut = len(cam.idx) - self.options.history
             cam.floor = (cam.idx[cut - 1], cam.cum[cut - 1])
@@ -291,8 +302,8 @@ class DriftWatch:
         if not cam.idx or cam.idx[-1] < n0:
             return None
         j = bisect_left(cam.idx, n0)
-        before = cam.cum[j - 1] if j > 0 else cam.floor[1]
-        return np.asarray((cam.cum[-1] - before) / (len(cam.idx) - j))
+        before = np.asarray(cam.cum[j - 1] if j > 0 else cam.floor[1])
+        return (np.asarray(cam.cum[-1]) - before) / (len(cam.idx) - j)
 
     def _explain(self, key: CameraKey, n0: int, own: Array) -> tuple[CameraKey, Array]:
         """The camera whose move best explains every camera's residual shift since ``n0``.
@@ -332,13 +343,14 @@ class DriftWatch:
         """Camera ``key``'s state (``KeyError`` if it was never seen)."""
         cam = self._cams[key]
         view, cid = key
-        if cam.cusum is None or cam.mean is None or cam.sigma is None:
+        if cam.S is None or cam.mean is None or cam.sigma is None:
+            n = len(cam.warm)
             return CameraDrift(
-                view, cid, "learning", 0.0, None, None, None, None, None, 0, None, None
+                view, cid, "learning", 0.0, None, None, None, None, None, n, None, None
             )
-        S = cam.cusum.S
-        i = int(np.argmax(S))
-        peak = float(S[i])
+        S = cam.S
+        peak = max(S)
+        i = S.index(peak)
         o = self.options
         status: Status = "alarm" if peak >= o.h_alarm else "warning" if peak >= o.h_warn else "ok"
         moved = shift = residual = since = since_trigger = None
@@ -362,8 +374,8 @@ class DriftWatch:
             since=since,
             since_trigger=since_trigger,
             triggers=cam.count,
-            mean_px=(float(cam.mean[0]), float(cam.mean[1])),
-            sigma_px=(float(cam.sigma[0]), float(cam.sigma[1])),
+            mean_px=cam.mean_px,
+            sigma_px=cam.sigma_px,
         )
 
     def states(self) -> list[CameraDrift]:
@@ -385,4 +397,5 @@ def drift_message(d: CameraDrift, since_text: str | None = None) -> str:
     name = camera_name(d.moved)
     when = f" since {since_text}" if since_text else ""
     verb = "moved" if d.status == "alarm" else "may have moved"
-    return f"{name} {verb} ~{d.shift_norm_px:.1f} px{when}"
+    size = d.shift_norm_px
+    return f"{name} {verb} ~{size:.{1 if size >= 0.1 else 2}f} px{when}"

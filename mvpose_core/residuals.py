@@ -19,7 +19,7 @@ import numpy as np
 from mvpose_core.estimate import EstimateOptions, Observation, PoseResult
 from mvpose_core.measure import measure
 from mvpose_core.station import RecipeConfig, StationConfig
-from mvpose_core.synth import synthetic_observations
+from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import Array
 
 
@@ -124,4 +124,53 @@ def shift_response(
             for c in camera_residuals(obs, measure(station, recipe, obs, options=options).pose):
                 cols[c.key][:, axis] = (np.asarray(c.mean_px) - base[c.key]) / step_px
         out[moved] = cols
+    return out
+
+
+@dataclass(frozen=True)
+class TriggerResiduals:
+    """One simulated trigger: per-camera mean residuals and in-fit fractions."""
+
+    means_px: dict[tuple[int, str], tuple[float, float]]
+    in_fit: dict[tuple[int, str], float]
+
+
+def simulated_residuals(
+    station: StationConfig,
+    recipe: RecipeConfig,
+    rng: np.random.Generator,
+    n: int,
+    *,
+    shift_px: dict[tuple[int, str], tuple[float, float]] | None = None,
+    max_mm: float = 5.0,
+    max_deg: float = 0.5,
+    sigma_px: float | None = None,
+) -> list[TriggerResiduals]:
+    """``n`` triggers measured by :func:`mvpose_core.measure.measure` on synthetic observations.
+
+    Each trigger's part lies at a random displacement from the taught pose (uniform within
+    ``max_mm`` / ``max_deg`` per axis), its observations carry N(0, σ²) noise (σ = the recipe's
+    detector noise unless given), and each camera in ``shift_px`` has moved: every observation
+    of that (view, camera) shifted by its (du, dv) px.
+    """
+    sigma = recipe.detector_noise_px if sigma_px is None else sigma_px
+    T0 = recipe.T_rf_from_pf0.matrix
+    out = []
+    for _ in range(n):
+        T = T0 @ random_displacement(rng, max_mm, max_deg)
+        obs = synthetic_observations(station, recipe, T, rng, sigma)
+        if shift_px:
+            obs = [
+                replace(o, uv=o.uv + np.asarray(shift_px[o.view, o.camera_id]))
+                if (o.view, o.camera_id) in shift_px
+                else o
+                for o in obs
+            ]
+        cams = camera_residuals(obs, measure(station, recipe, obs).pose)
+        out.append(
+            TriggerResiduals(
+                means_px={c.key: c.mean_px for c in cams},
+                in_fit={c.key: c.used / c.count for c in cams},
+            )
+        )
     return out
