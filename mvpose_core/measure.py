@@ -7,14 +7,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mvpose_core.estimate import EstimateOptions, Observation, PoseResult
+from mvpose_core.estimate import EstimateOptions, Observation, PoseResult, estimate_pose
 from mvpose_core.gate import GateInputs, GateVerdict, evaluate_gate
 from mvpose_core.offset import FrameOffset, frame_offsets
-from mvpose_core.robust import Dropped, Replaced, estimate_pose_robust
 from mvpose_core.scene import ViewCamera, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array, RobotConvention
-from mvpose_core.uncertainty import covariance_in_frame, sigma_figures
+from mvpose_core.uncertainty import (
+    calibration_covariance,
+    calibration_terms,
+    covariance_in_frame,
+    detector_scale,
+    sigma_figures,
+)
 
 
 @dataclass(frozen=True)
@@ -28,7 +33,7 @@ class Measurement:
     tool_offset: Array  # D = T_grasp0_from_grasp in ``convention``
     T_grasp0_from_grasp: Array  # D as a matrix
     convention: RobotConvention
-    sigma_rot_deg: float  # 1σ at the grasp point: max(a priori, a posteriori)
+    sigma_rot_deg: float  # 1σ at the grasp point: detector and calibration parts together
     sigma_trans_mm: float
     sigma_prior: tuple[float, float]  # (deg, mm) from the recipe's detector noise
     sigma_posterior: tuple[float, float] | None  # (deg, mm) scaled by the residuals; None if 0 dof
@@ -38,10 +43,28 @@ class Measurement:
     marks_used: tuple[str, ...]
     marks_missing: tuple[str, ...]
     offsets: FrameOffset
-    #: observations the robust rule left out and why (mvpose_core.robust; docs/engine.md)
-    dropped: tuple[Dropped, ...] = ()
-    #: observations whose best candidate was replaced by a next one, and why
-    replaced: tuple[Replaced, ...] = ()
+    #: the two parts of the 1σ at the grasp point (see :class:`UncertaintyParts`)
+    uncertainty: UncertaintyParts | None = None
+
+
+@dataclass(frozen=True)
+class UncertaintyParts:
+    """The 1σ at the grasp point in its two parts (docs/engine.md, "Uncertainty model").
+
+    Covariances are 6x6 over the grasp frame's right perturbation (ω [rad], v [mm]); the
+    totals of :class:`Measurement` are the figures of their sum.
+    """
+
+    detector_noise_px: float  # σ of a mark centre estimated from this trigger (pooled, px)
+    detector_dof: int  # 2N − 6 of the residuals it comes from
+    sigma_detector_rot_deg: float
+    sigma_detector_trans_mm: float
+    sigma_calibration_rot_deg: float
+    sigma_calibration_trans_mm: float
+    covariance_detector: Array
+    covariance_calibration: Array
+    #: calibration term name → (deg, mm) of its share at the grasp point
+    calibration_terms: dict[str, tuple[float, float]]
 
 
 def measure(
@@ -70,17 +93,15 @@ def measure(
         cameras = view_cameras(station, flange_poses)
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
-    robust = estimate_pose_robust(
+    pose = estimate_pose(
         observations,
         cameras,
         marks_pf,
-        recipe.robust,
         options,
         sigma_px=recipe.detector_noise_px,
         initial_T_rf_from_pf=T_rf_from_pf0,
         warm_start=initial_T_rf_from_pf,
     )
-    pose, observations = robust.pose, robust.observations
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)
     T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
@@ -95,8 +116,8 @@ def measure(
         ]
         s2 = float(np.sum((r * w[:, None]) ** 2)) / dof
         posterior = sigma_figures(cov_grasp * s2)
-    sig_rot = max(prior[0], posterior[0]) if posterior else prior[0]
-    sig_trans = max(prior[1], posterior[1]) if posterior else prior[1]
+    parts = uncertainty_parts(station, recipe, observations, cameras, marks_pf, pose, dof)
+    sig_rot, sig_trans = sigma_figures(parts.covariance_detector + parts.covariance_calibration)
     off = frame_offsets(pose.T_rf_from_pf, T_rf_from_pf0, T_pf_from_grasp, recipe.robot_convention)
     lengths = np.linalg.norm(r, axis=1)
     verdict = evaluate_gate(
@@ -133,6 +154,47 @@ def measure(
         marks_used=tuple(used),
         marks_missing=missing,
         offsets=off,
-        dropped=robust.dropped,
-        replaced=robust.replaced,
+        uncertainty=parts,
+    )
+
+
+def uncertainty_parts(
+    station: StationConfig,
+    recipe: RecipeConfig,
+    observations: Sequence[Observation],
+    cameras: Sequence[ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
+    pose: PoseResult,
+    dof: int,
+) -> UncertaintyParts:
+    """Detector part (σ estimated from the residuals, pooled with the recipe's a-priori σ) and
+    calibration part (``station.uncertainty`` propagated through the estimate's Jacobian) of
+    the pose's covariance, at the recipe's grasp frame."""
+    used = [o for o, u in zip(observations, pose.used, strict=True) if u]
+    sigma0 = recipe.detector_noise_px
+    w = np.array([1.0 / (o.sigma_px or sigma0) for o in used])
+    r = np.asarray(pose.residuals_px, dtype=float)[pose.used]
+    k2 = detector_scale(float(np.sum((r * w[:, None]) ** 2)), max(dof, 0),
+                        station.uncertainty.detector_prior_dof)
+    T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
+    cov_det = covariance_in_frame(pose.covariance * k2, T_pf_from_grasp)
+    terms = calibration_terms(station, cameras)
+    cov_cal_pf, per = calibration_covariance(
+        cameras, marks_pf, [o.key for o in used], w, pose.T_rf_from_pf, terms
+    )
+    cov_cal = covariance_in_frame(cov_cal_pf, T_pf_from_grasp)
+    det = sigma_figures(cov_det)
+    cal = sigma_figures(cov_cal)
+    return UncertaintyParts(
+        detector_noise_px=float(np.sqrt(k2) * sigma0),
+        detector_dof=max(dof, 0),
+        sigma_detector_rot_deg=det[0],
+        sigma_detector_trans_mm=det[1],
+        sigma_calibration_rot_deg=cal[0],
+        sigma_calibration_trans_mm=cal[1],
+        covariance_detector=cov_det,
+        covariance_calibration=cov_cal,
+        calibration_terms={
+            name: sigma_figures(covariance_in_frame(c, T_pf_from_grasp)) for name, c in per.items()
+        },
     )

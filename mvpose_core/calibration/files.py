@@ -250,7 +250,34 @@ def apply_calibration(station: StationConfig, calib: CalibrationFile) -> Station
                     f"calibration {calib.id!r}: camera {cid!r} is not in rig {rid!r}"
                 )
             in_rig[cid]["T_rig_from_cf"] = p.model_dump()
+    unc = data.setdefault("uncertainty", {})
+    unc["rigs"] = {**unc.get("rigs", {}), **report_rig_sigmas(calib)}
     return StationConfig.model_validate(data)
+
+
+def report_rig_sigmas(calib: CalibrationFile) -> dict[str, dict[str, float]]:
+    """1σ of each rig's mount pose from a hand-eye report (``{rig: {mm, deg}}``), for the
+    station's uncertainty model (:class:`mvpose_core.uncertainty_settings.UncertaintyConfig`).
+
+    The report's figures are of the reference camera's pose (``T_gf_from_cf`` or
+    ``T_rf_from_cf``), RSS over the axes; of the covariance's and the jackknife's figure the
+    larger is taken (the jackknife also sees robot pose errors during calibration).
+    """
+    mounted = [rid for rid, r in calib.rigs.items()
+               if r.T_gf_from_rig is not None or r.T_rf_from_rig is not None]
+    mm: list[float] = []
+    deg: list[float] = []
+    for rep in calib.report.values():
+        sigma = rep.get("sigma", {}) if isinstance(rep, dict) else {}
+        for key, value in sigma.items():
+            if not key.startswith(("T_gf_from_cf ", "T_rf_from_cf ")) or value is None:
+                continue
+            (mm if " translation mm" in key else deg if " rotation deg" in key else []).append(
+                float(value)
+            )
+    if len(mounted) != 1 or not (mm or deg):
+        return {}
+    return {mounted[0]: {"mm": max(mm, default=0.0), "deg": max(deg, default=0.0)}}
 
 
 def calibrated_station(

@@ -94,7 +94,10 @@ def test_measure_returns_true_offsets_and_ok(name: str) -> None:
         assert m.marks_missing == () and len(m.marks_used) == len(rec.marks)
         assert m.sigma_posterior is not None
         # the grasp point is 120-150 mm from the part origin: its σ is at least the origin's
-        assert m.sigma_trans_mm >= 0.99 * np.sqrt(np.trace(m.pose.covariance[3:, 3:]))
+        # (at the detector σ the residuals give, mvpose_core.uncertainty.detector_scale)
+        assert m.uncertainty is not None
+        k2 = (m.uncertainty.detector_noise_px / rec.detector_noise_px) ** 2
+        assert m.sigma_trans_mm >= 0.99 * np.sqrt(k2 * np.trace(m.pose.covariance[3:, 3:]))
 
 
 def test_measure_nok_reasons_end_to_end() -> None:
@@ -111,9 +114,12 @@ def test_measure_nok_reasons_end_to_end() -> None:
         Reason.RESIDUAL_RMS_HIGH,
         Reason.RESIDUAL_MAX_HIGH,
     )
-    # a noise model too poor for the tolerance: uncertainty gate (a priori)
+    # a noise model too poor for the tolerance: uncertainty gate (a priori, when the station
+    # weighs it above the residuals: uncertainty.detector_prior_dof)
     coarse = rec.model_copy(update={"detector_noise_px": 5.0})
-    assert measure(st, coarse, obs).gate.reason in (
+    trusting = st.model_copy(update={"uncertainty": st.uncertainty.model_copy(
+        update={"detector_prior_dof": 1e6})})
+    assert measure(trusting, coarse, obs).gate.reason in (
         Reason.ROTATION_UNCERTAINTY_HIGH,
         Reason.TRANSLATION_UNCERTAINTY_HIGH,
     )
