@@ -7,9 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mvpose_core.estimate import EstimateOptions, Observation, PoseResult, estimate_pose
+from mvpose_core.estimate import EstimateOptions, Observation, PoseResult
 from mvpose_core.gate import GateInputs, GateVerdict, evaluate_gate
 from mvpose_core.offset import FrameOffset, frame_offsets
+from mvpose_core.robust import Dropped, Replaced, estimate_pose_robust
 from mvpose_core.scene import ViewCamera, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.transforms import Array, RobotConvention
@@ -45,6 +46,10 @@ class Measurement:
     offsets: FrameOffset
     #: the two parts of the 1σ at the grasp point (see :class:`UncertaintyParts`)
     uncertainty: UncertaintyParts | None = None
+    #: observations the robust rule left out and why (mvpose_core.robust; docs/engine.md)
+    dropped: tuple[Dropped, ...] = ()
+    #: observations whose best candidate was replaced by a next one, and why
+    replaced: tuple[Replaced, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -93,15 +98,17 @@ def measure(
         cameras = view_cameras(station, flange_poses)
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
-    pose = estimate_pose(
+    robust = estimate_pose_robust(
         observations,
         cameras,
         marks_pf,
+        recipe.robust,
         options,
         sigma_px=recipe.detector_noise_px,
         initial_T_rf_from_pf=T_rf_from_pf0,
         warm_start=initial_T_rf_from_pf,
     )
+    pose, observations = robust.pose, robust.observations
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)
     T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
@@ -155,6 +162,8 @@ def measure(
         marks_missing=missing,
         offsets=off,
         uncertainty=parts,
+        dropped=robust.dropped,
+        replaced=robust.replaced,
     )
 
 

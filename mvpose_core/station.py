@@ -319,10 +319,17 @@ class ViewConfig(_Model):
 # ------------------------------------------------------------------------------- recipes
 
 
+Polarity = Literal["dark_on_light", "light_on_dark"]
+
+
 class MarkConfig(_Model):
     id: Identifier
     position: Vec3 = Field(description="mark centre in the part frame PF, mm (from CAD)")
     normal: Vec3 = Field((0.0, 0.0, 1.0), description="outward surface normal in PF")
+    diameter_mm: float | None = Field(
+        None, gt=0, description="this mark's diameter; default the recipe's mark_diameter_mm"
+    )
+    polarity: Polarity | None = Field(None, description="this mark's; default the recipe's")
 
     @model_validator(mode="after")
     def _check(self) -> MarkConfig:
@@ -354,6 +361,21 @@ class Tolerances(_Model):
     max_offset_deg: float = Field(10.0, gt=0, description="rotation the station accepts")
 
 
+class RobustConfig(_Model):
+    """How the estimator treats observations inconsistent with the rest (docs/engine.md)."""
+
+    outlier_px: float | None = Field(
+        0.5, gt=0, description="an observation whose residual exceeds this is replaced by its "
+        "next candidate or dropped; null: every observation is kept"
+    )
+    candidates: bool = Field(True, description="try a mark's next candidates before dropping it")
+    max_dropped: int = Field(4, ge=0, description="observations the rule may drop per trigger")
+    loss: Literal["linear", "huber"] = "linear"
+    huber_px: float = Field(2.0, gt=0, description="Huber loss threshold, px")
+    stereo_check: bool = Field(True, description="epipolar check between cameras of one view")
+    epipolar_px: float = Field(2.0, gt=0, description="stereo check: largest epipolar distance")
+
+
 class RecipeConfig(_Model):
     """A part type and how the station measures it."""
 
@@ -362,7 +384,7 @@ class RecipeConfig(_Model):
     description: str = ""
     marks: list[MarkConfig] = Field(min_length=3)
     mark_diameter_mm: float = Field(gt=0)
-    polarity: Literal["dark_on_light", "light_on_dark"] = "dark_on_light"
+    polarity: Polarity = "dark_on_light"
     sightings: list[Sighting] = Field(min_length=1)
     T_rf_from_pf0: Pose = Field(description="part pose at the taught reference (zero offset)")
     T_pf_from_grasp: Pose = Field(
@@ -371,6 +393,7 @@ class RecipeConfig(_Model):
     robot_convention: RobotConvention = RobotConvention.FANUC
     detector_noise_px: float = Field(0.1, gt=0, description="a-priori σ of a mark centre")
     tolerances: Tolerances = Tolerances()
+    robust: RobustConfig = RobustConfig()
 
     @model_validator(mode="after")
     def _check(self) -> RecipeConfig:
@@ -396,6 +419,23 @@ class RecipeConfig(_Model):
     def mark_positions(self) -> Array:
         """Mark centres ``["M", 3]`` in PF, in the order of :attr:`marks`."""
         return np.array([m.position for m in self.marks], dtype=float)
+
+    def mark_diameters(self) -> Array:
+        """Each mark's diameter ``["M"]`` (mm; the recipe's unless the mark has its own)."""
+        return np.array(
+            [self.mark_diameter_mm if m.diameter_mm is None else m.diameter_mm
+             for m in self.marks], dtype=float,
+        )
+
+    def mark_dark(self) -> Array:
+        """``["M"]`` bool: which marks are dark on a light surface."""
+        return np.array(
+            [(m.polarity or self.polarity) == "dark_on_light" for m in self.marks], dtype=bool
+        )
+
+    def mark_centroid(self) -> Array:
+        """The marks' centroid in PF (mm): the centre of the part's allowed rotation."""
+        return self.mark_positions().mean(axis=0)
 
     def mark_index(self, mark_id: str) -> int:
         for i, m in enumerate(self.marks):
