@@ -22,9 +22,9 @@ code  name                            NOK when
 12    MARK_BEHIND_CAMERA              the pose puts an observed mark behind its camera
 ====  ==============================  ====================================================
 
-The uncertainty checks use the larger of the a-priori figure (recipe's detector noise) and
-the a-posteriori one (scaled by the residuals), so a bad detection cannot hide behind a good
-noise model.
+The uncertainty checks judge the 1σ of :mod:`mvpose_core.measure`: the detector part at the
+noise the residuals show (so a bad detection cannot hide behind a good noise model) plus the
+calibration part (docs/engine.md, "Uncertainty model").
 """
 
 from __future__ import annotations
