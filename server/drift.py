@@ -1,0 +1,362 @@
+"""Calibration health: the drift watch over the station's records, and the reference-part check.
+
+:class:`DriftService` reads the station's records through the store's repository, newest first
+down to the last id it has seen, feeds each record's per-camera residual means
+(``MeasurementRecord.camera_residuals``) to a :class:`mvpose_core.drift.DriftWatch` oldest
+first, and keeps the watch between calls: a report costs one small query when nothing is new.
+One watch runs per (recipe, calibration): a new calibration starts a new learning window.
+
+:func:`verify_reference` judges a measurement of the taught reference part: the offset it
+implies against the active recipe's taught pose should be ~zero, within the recipe's grasp
+tolerances (``tolerances.translation_mm`` and ``tolerances.rotation_deg``).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from mvpose_core.drift import CameraDrift, DriftOptions, DriftWatch, drift_message, siegmund_arl
+from mvpose_core.estimate import Observation
+from mvpose_core.measure import Measurement
+from mvpose_core.offset import frame_offsets
+from mvpose_core.residuals import camera_residuals, shift_response
+from mvpose_core.station import RecipeConfig, StationConfig
+from server.errors import ConflictError
+from server.store import Store
+from server.store.schemas import CameraResidual, MeasurementFilter, Offset, StoredMeasurement
+
+Status = Literal["learning", "ok", "warning", "alarm"]
+Response = dict[tuple[int, str], dict[tuple[int, str], np.ndarray]]
+_RANK = {"learning": 0, "ok": 1, "warning": 2, "alarm": 3}
+
+
+def record_camera_residuals(
+    observations: Sequence[Observation], measurement: Measurement
+) -> list[CameraResidual]:
+    """The record's ``camera_residuals`` from a trigger's observations and its measurement.
+
+    ``observations`` are the ones given to :func:`mvpose_core.measure.measure` (the last call,
+    when the pipeline measures twice).
+    """
+    return [
+        CameraResidual(
+            view=c.view,
+            camera_id=c.camera_id,
+            mean_px=(round(c.mean_px[0], 6), round(c.mean_px[1], 6)),
+            rms_px=round(c.rms_px, 6),
+            count=c.count,
+            used=c.used,
+        )
+        for c in camera_residuals(observations, measurement.pose)
+    ]
+
+
+# ----------------------------------------------------------------------------- response models
+
+
+class DriftRule(BaseModel):
+    """The rule's constants and what they mean (docs/calibration.md, "Drift watch")."""
+
+    k: float = Field(description="CUSUM reference value, σ")
+    h_warn: float = Field(description="warning threshold, σ")
+    h_alarm: float = Field(description="alarm threshold, σ")
+    warmup: int = Field(description="triggers per camera that learn its noise level")
+    arl0_warn: float = Field(description="in-control run length of one one-sided statistic to "
+                             "a warning, triggers (known noise level; a camera has 4)")
+    arl0_alarm: float = Field(description="the same to an alarm, triggers")
+
+
+class DriftPoint(BaseModel):
+    """One trigger of one camera in the trend."""
+
+    id: int
+    triggered_at: datetime
+    du_px: float = Field(description="mean residual along u, px")
+    dv_px: float = Field(description="mean residual along v, px")
+    statistic: float = Field(description="largest CUSUM statistic after it, σ")
+
+
+class CameraDriftReport(BaseModel):
+    """One camera's drift state and its recent trend."""
+
+    view: int
+    camera_id: str
+    status: Status
+    message: str = Field(description='e.g. "camera cam2 moved ~0.4 px since 08:12"')
+    statistic: float = Field(description="largest one-sided CUSUM statistic, σ")
+    moved_camera: str | None = Field(None, description="the camera whose move explains it best")
+    moved_view: int | None = None
+    shift_px: float | None = Field(None, description="estimated image move of moved_camera, px")
+    shift_uv_px: tuple[float, float] | None = Field(None, description="the move as (du, dv), px")
+    residual_shift_px: tuple[float, float] | None = Field(
+        None, description="this camera's mean residual change since the start, px"
+    )
+    since: datetime | None = Field(None, description="when the drift started (change point)")
+    since_id: int | None = Field(None, description="the measurement it started at")
+    triggers: int = Field(description="triggers watched since the noise level was learned")
+    learning_left: int = Field(description="triggers still needed to learn the noise level")
+    baseline_mean_px: tuple[float, float] | None = None
+    baseline_sigma_px: tuple[float, float] | None = None
+    trend: list[DriftPoint] = Field(description="the last triggers, oldest first")
+
+
+class DriftReport(BaseModel):
+    """Calibration health of the station: the drift watch per camera."""
+
+    station: str
+    status: Status = Field(description="the worst camera's status (learning without records)")
+    recipe: str | None = Field(None, description="recipe of the newest record with residuals")
+    calibration_id: str | None = None
+    calibration_hash: str | None = None
+    calibration_since: datetime | None = Field(
+        None, description="first record of this recipe and calibration the watch has seen"
+    )
+    last_id: int | None = Field(None, description="newest record read")
+    records: int = Field(description="records with residuals watched for this recipe and "
+                         "calibration")
+    messages: list[str] = Field(description="one line per camera in warning or alarm")
+    rule: DriftRule
+    cameras: list[CameraDriftReport]
+
+
+class VerifyRequest(BaseModel):
+    measurement_id: int = Field(ge=1, le=2**63 - 1, strict=True,
+                                description="a measurement of the taught reference part")
+
+
+class VerifyReport(BaseModel):
+    """A measurement of the reference part against its taught pose."""
+
+    measurement_id: int
+    recipe: str
+    recipe_version: int = Field(description="the active version, whose taught pose is checked")
+    measured_with_version: int = Field(description="the recipe version of the measurement")
+    measurement_result: Literal["OK", "NOK"]
+    measurement_reason: str
+    passed: bool
+    offset: Offset = Field(description="implied offset in the recipe's robot convention")
+    grasp_displacement_mm: float
+    rotation_deg: float
+    limit_mm: float = Field(description="tolerances.translation_mm of the recipe")
+    limit_deg: float = Field(description="tolerances.rotation_deg of the recipe")
+    margin_mm: float = Field(description="limit − displacement (negative: by how much it fails)")
+    margin_deg: float
+    message: str
+
+
+# ----------------------------------------------------------------------------- the service
+
+
+@dataclass
+class _Segment:
+    """The watch of one (recipe, calibration) and what the report needs besides it."""
+
+    recipe: str
+    calibration_id: str | None
+    calibration_hash: str | None
+    watch: DriftWatch
+    first_at: datetime
+    records: int = 0
+    ids: dict[int, tuple[int, datetime]] = field(default_factory=dict)  # trigger → id, time
+    trend: dict[tuple[int, str], deque[DriftPoint]] = field(default_factory=dict)
+
+
+class DriftService:
+    """The drift watch over one station's records (thread-safe; blocking: call off the loop)."""
+
+    def __init__(
+        self,
+        store: Store,
+        station: StationConfig | None,
+        options: DriftOptions = DriftOptions(),  # noqa: B008 - frozen, immutable default
+        *,
+        window: int = 20_000,
+        trend: int = 500,
+    ) -> None:
+        self.store = store
+        self.station = station
+        self.options = options
+        self.window = window  # records read at most on the first report
+        self.trend = trend
+        self._lock = threading.Lock()
+        self._last_id = 0
+        self._segments: dict[tuple[str, str | None, str | None], _Segment] = {}
+        self._current: _Segment | None = None
+
+    def report(self) -> DriftReport:
+        """Read the records stored since the last call, run the watch, and report."""
+        with self._lock:
+            for stored in self._new_records():
+                self._feed(stored)
+            return self._report()
+
+    def _new_records(self) -> list[StoredMeasurement]:
+        repo = self.store.measurements
+        out: list[StoredMeasurement] = []
+        cursor = None
+        while len(out) < self.window:
+            page, cursor = repo.page(MeasurementFilter(), cursor, min(500, self.window))
+            fresh = [m for m in page if m.id > self._last_id]
+            out += fresh
+            if len(fresh) < len(page) or cursor is None:
+                break
+        out.sort(key=lambda m: m.id)
+        return out[-self.window :]
+
+    def _feed(self, stored: StoredMeasurement) -> None:
+        self._last_id = max(self._last_id, stored.id)
+        rec = stored.record
+        if not rec.camera_residuals:
+            return
+        key = (rec.recipe, rec.calibration_id, rec.calibration_hash)
+        seg = self._segments.get(key)
+        if seg is None:
+            seg = _Segment(rec.recipe, rec.calibration_id, rec.calibration_hash,
+                           DriftWatch(self.options, self._response(rec.recipe)), rec.triggered_at)
+            self._segments[key] = seg
+        self._current = seg
+        n = seg.watch.triggers
+        seg.ids[n] = (stored.id, rec.triggered_at)
+        if len(seg.ids) > 2 * self.options.history:
+            seg.ids = {i: v for i, v in seg.ids.items() if i > n - self.options.history}
+        means = {(c.view, c.camera_id): c.mean_px for c in rec.camera_residuals}
+        in_fit = {(c.view, c.camera_id): c.used / c.count for c in rec.camera_residuals}
+        states = {d.key: d for d in seg.watch.update(means, rec.triggered_at.timestamp(), in_fit)}
+        seg.records += 1
+        for k, (du, dv) in means.items():
+            points = seg.trend.setdefault(k, deque(maxlen=self.trend))
+            points.append(DriftPoint(id=stored.id, triggered_at=rec.triggered_at, du_px=du,
+                                     dv_px=dv, statistic=round(states[k].statistic, 4)))
+
+    def _response(self, recipe_name: str) -> Response:
+        """How each camera's move shows in every camera's residuals (none without the station)."""
+        if self.station is None:
+            return {}
+        recipe = next((r for r in self.station.recipes if r.name == recipe_name), None)
+        if recipe is None:
+            try:
+                _, content = self.store.versions.content("recipe", recipe_name)
+                recipe = RecipeConfig.model_validate(content)
+            except Exception:  # a recipe the station file does not know: no attribution
+                return {}
+        try:
+            return shift_response(self.station, recipe)
+        except ValueError:  # e.g. a layout whose taught pose does not fix the pose
+            return {}
+
+    def _report(self) -> DriftReport:
+        o = self.options
+        rule = DriftRule(k=o.k, h_warn=o.h_warn, h_alarm=o.h_alarm, warmup=o.warmup,
+                         arl0_warn=siegmund_arl(0.0, o.k, o.h_warn),
+                         arl0_alarm=siegmund_arl(0.0, o.k, o.h_alarm))
+        seg = self._current
+        station = self.store.station
+        if seg is None:
+            return DriftReport(station=station, status="learning", records=0, messages=[],
+                               rule=rule, cameras=[], last_id=self._last_id or None)
+        cams = [self._camera(seg, d) for d in seg.watch.states()]
+        status: Status = max((c.status for c in cams), key=_RANK.__getitem__, default="learning")
+        return DriftReport(
+            station=station,
+            status=status,
+            recipe=seg.recipe,
+            calibration_id=seg.calibration_id,
+            calibration_hash=seg.calibration_hash,
+            calibration_since=seg.first_at,
+            last_id=self._last_id or None,
+            records=seg.records,
+            messages=[c.message for c in cams if c.status in ("warning", "alarm")],
+            rule=rule,
+            cameras=cams,
+        )
+
+    def _camera(self, seg: _Segment, d: CameraDrift) -> CameraDriftReport:
+        since_id = since = None
+        if d.since_trigger is not None and d.since_trigger in seg.ids:
+            since_id, since = seg.ids[d.since_trigger]
+        return CameraDriftReport(
+            view=d.view,
+            camera_id=d.camera_id,
+            status=d.status,
+            message=drift_message(d, _clock(since) if since else None),
+            statistic=round(d.statistic, 4),
+            moved_camera=d.moved[1] if d.moved else None,
+            moved_view=d.moved[0] if d.moved else None,
+            shift_px=d.shift_norm_px,
+            shift_uv_px=d.shift_px,
+            residual_shift_px=d.residual_shift_px,
+            since=since,
+            since_id=since_id,
+            triggers=0 if d.status == "learning" else d.triggers,
+            learning_left=self.options.warmup - d.triggers if d.status == "learning" else 0,
+            baseline_mean_px=d.mean_px,
+            baseline_sigma_px=d.sigma_px,
+            trend=list(seg.trend.get(d.key, ())),
+        )
+
+
+def _clock(t: datetime) -> str:
+    """08:12 for today in the server's zone, with the date when it is older than a day."""
+    local = t.astimezone()
+    recent = datetime.now(UTC) - t < timedelta(hours=20)
+    return local.strftime("%H:%M" if recent else "%Y-%m-%d %H:%M")
+
+
+# ----------------------------------------------------------------------------- verify
+
+
+def verify_reference(store: Store, measurement_id: int) -> VerifyReport:
+    """Judge a measurement of the taught reference part against the active recipe's taught pose.
+
+    Passes when the implied offset at the grasp point is within the recipe's grasp tolerances
+    (``translation_mm``, ``rotation_deg``): a re-measured reference part should be at ~zero.
+    """
+    stored = store.measurements.get(measurement_id)
+    rec = stored.record
+    if rec.T_rf_from_pf is None:
+        raise ConflictError(
+            f"measurement {measurement_id} has no pose ({rec.reason}: {rec.message or 'no pose'});"
+            " measure the reference part again"
+        )
+    info, content = store.versions.content("recipe", rec.recipe)
+    recipe = RecipeConfig.model_validate(content)
+    off = frame_offsets(np.asarray(rec.T_rf_from_pf), recipe.T_rf_from_pf0.matrix,
+                        recipe.T_pf_from_grasp.matrix, recipe.robot_convention)
+    tol = recipe.tolerances
+    mm, deg = off.grasp_displacement_mm, off.rotation_deg
+    passed = mm <= tol.translation_mm and deg <= tol.rotation_deg
+    verdict = "pass" if passed else "FAIL"
+    message = (
+        f"reference part of {rec.recipe} (measurement {measurement_id}) lies {mm:.3f} mm and "
+        f"{deg:.3f}° from its taught place (limits {tol.translation_mm:g} mm, "
+        f"{tol.rotation_deg:g}°): {verdict}"
+    )
+    if not passed:
+        over = [f"{mm - tol.translation_mm:.3f} mm" if mm > tol.translation_mm else "",
+                f"{deg - tol.rotation_deg:.3f}°" if deg > tol.rotation_deg else ""]
+        message += f" by {' and '.join(x for x in over if x)}"
+    return VerifyReport(
+        measurement_id=measurement_id,
+        recipe=rec.recipe,
+        recipe_version=info.version,
+        measured_with_version=rec.recipe_version,
+        measurement_result=rec.result,
+        measurement_reason=rec.reason,
+        passed=passed,
+        offset=Offset(convention=off.convention, values=[float(v) for v in off.base]),
+        grasp_displacement_mm=mm,
+        rotation_deg=deg,
+        limit_mm=tol.translation_mm,
+        limit_deg=tol.rotation_deg,
+        margin_mm=tol.translation_mm - mm,
+        margin_deg=tol.rotation_deg - deg,
+        message=message,
+    )
