@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from server.api import health, measurements, metrics, tokens, versions
+from server.api import drift, health, measurements, metrics, tokens, versions
 
 PREFIX = "/api/v1"
 
@@ -20,4 +20,5 @@ def api_router() -> APIRouter:
         metrics.router,
     ):
         router.include_router(sub)
+    router.include_router(drift.router)
     return router
