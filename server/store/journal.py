@@ -16,6 +16,7 @@ is :class:`JournalCorruptError`, naming the file, the line and what is wrong.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -37,6 +38,10 @@ _SEGMENT = re.compile(r"^(\d{20})\.jsonl$")
 
 class JournalCorruptError(Exception):
     """The journal on disk does not verify; the message names the file, line and problem."""
+
+
+class JournalBusyError(Exception):
+    """Another writer (process or object) has this journal open."""
 
 
 @dataclass
@@ -70,6 +75,7 @@ class Journal:
         self._head: tuple[int, str] | None = None
         self._broken: OSError | None = None
         self._lock = threading.Lock()  # the segment list, between append and compact
+        self._lock_fd: int | None = None  # holds the folder's flock while open
         self.links: list[Link] = []  # what open() read back, oldest first
 
     # ------------------------------------------------------------------ opening
@@ -78,12 +84,35 @@ class Journal:
         """Read and verify every segment (cutting a torn last line); create the folder if new."""
         journal = cls(Path(directory), station, segment_entries)
         _make_dirs(journal.directory)
-        names = sorted(p.name for p in journal.directory.iterdir() if _SEGMENT.match(p.name))
-        for k, name in enumerate(names):
-            journal._read_segment(journal.directory / name, last=k == len(names) - 1)
-        if journal._segments:
-            journal._open_last()
+        journal._lock_folder()
+        try:
+            names = sorted(p.name for p in journal.directory.iterdir() if _SEGMENT.match(p.name))
+            for k, name in enumerate(names):
+                journal._read_segment(journal.directory / name, last=k == len(names) - 1)
+            if journal._segments:
+                journal._open_last()
+        except BaseException:
+            journal.close()
+            raise
         return journal
+
+    def _lock_folder(self) -> None:
+        """One writer per journal: a second one (a station started twice) would fork the chain.
+        The lock is the kernel's (flock), so it ends with the process however that ends."""
+        path = self.directory / "lock"
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise JournalBusyError(
+                f"journal {self.directory} is in use by another writer (pid {holder}); "
+                f"one station runs one writer"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
 
     def _read_segment(self, path: Path, last: bool) -> None:
         data = path.read_bytes()
@@ -203,7 +232,7 @@ class Journal:
     def append(self, link: Link) -> None:
         """Write the link and fsync it; on any failure nothing of it stays and OSError is raised."""
         if self._broken is not None:
-            raise OSError(f"journal {self.directory} failed earlier and is closed: {self._broken}")
+            raise OSError(f"journal {self.directory} takes no more links: {self._broken}")
         head = self._head
         if head is None:
             raise ValueError(f"journal {self.directory} has no head; start() it first")
@@ -235,7 +264,7 @@ class Journal:
             os.ftruncate(self._fd, self._size)
             os.fdatasync(self._fd)
         except OSError as again:
-            self._broken = again
+            self._broken = OSError(f"a failed append could not be cut off ({again})")
             log.error("journal %s: cannot cut a failed append (%s) after %s",
                       self.directory, again, err)
 
@@ -277,6 +306,10 @@ class Journal:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the flock
+            self._lock_fd = None
+        self._broken = self._broken or OSError("it was closed")
 
 
 def _line(link: Link) -> bytes:

@@ -167,7 +167,8 @@ class DurableWriter:
 
     ``open`` raises StoreUnavailableError when neither the journal nor the database knows the
     chain's head (a new data dir while the database is down), ChainConflictError when the
-    database and the journal disagree, JournalCorruptError when the journal does not verify.
+    database and the journal disagree, JournalCorruptError when the journal does not verify,
+    JournalBusyError when another writer has the journal open.
     """
 
     def __init__(self, journal: Journal, repo: MeasurementRepository, engine: Engine,

@@ -116,7 +116,7 @@ def test_compaction_keeps_the_head_and_a_restart_continues_from_it(
         assert writer.flush(10.0)
     finally:
         writer.close()
-    segments = sorted(journal_dir(data, STATION).iterdir())
+    segments = sorted(journal_dir(data, STATION).glob("*.jsonl"))
     assert len(segments) == 1  # every older segment was committed and deleted
     lines = segments[0].read_text().splitlines()
     assert json.loads(lines[-1])["seq"] == 15 and json.loads(lines[-1])["hash"] == sealed[-1].hash
@@ -246,7 +246,7 @@ def test_a_torn_last_line_is_cut_and_a_bad_line_inside_is_refused(
     finally:
         writer.close()
     folder = journal_dir(data, STATION)
-    last = sorted(folder.iterdir())[-1]
+    last = sorted(folder.glob("*.jsonl"))[-1]
     good = last.read_bytes()
     last.write_bytes(good + b'{"seq": 6, "prev_hash": "' + b"\0" * 40)  # the kill hit a write
     with caplog.at_level(logging.WARNING):
@@ -271,7 +271,7 @@ def test_the_journal_format_is_what_the_docs_say(url: str, tmp_path: Path) -> No
         sealed = _append(writer, np.random.default_rng(9), 2)
     finally:
         writer.close()
-    (segment,) = journal_dir(data, STATION).iterdir()
+    (segment,) = journal_dir(data, STATION).glob("*.jsonl")
     assert segment.name == f"{0:020d}.jsonl"
     header, *links = (json.loads(line) for line in segment.read_text().splitlines())
     assert header == {"journal": 1, "station": STATION, "after_seq": 0, "after_hash": GENESIS}
@@ -297,7 +297,7 @@ def test_a_journal_that_cannot_be_written_consumes_nothing(url: str, tmp_path: P
         rng = np.random.default_rng(10)
         a = w.append(make_record(rng, "station1", trigger_id=1))
         assert w.flush(10.0)
-        segment = sorted(w.journal_dir.iterdir())[-1]
+        segment = sorted(w.journal_dir.glob("*.jsonl"))[-1]
         soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
         resource.setrlimit(resource.RLIMIT_FSIZE, (segment.stat().st_size + 500, hard))
         size = segment.stat().st_size
@@ -376,3 +376,24 @@ async def test_rest_shows_result_id_and_filters_on_it(tmp_path: Path) -> None:
         assert [m["result_id"] for m in r.json()] == [1, 2, 3]
         r = await client.get("/api/v1/measurements", params={"result_id": 0})
         assert r.status_code == 422
+
+
+def test_one_writer_per_journal_and_none_after_close(url: str, tmp_path: Path) -> None:
+    from server.store.journal import JournalBusyError
+    from server.store.writer import StoreFailedError
+
+    data = tmp_path / "var"
+    writer = _open(url, data)
+    try:
+        with pytest.raises(JournalBusyError, match=r"in use by another writer \(pid \d+\)"):
+            _open(url, data)  # the station started twice
+        writer.append(make_record(np.random.default_rng(12), STATION))
+    finally:
+        writer.close()
+    with pytest.raises(StoreFailedError, match="could not take seq 2: .* it was closed"):
+        writer.append(make_record(np.random.default_rng(13), STATION))
+    again = _open(url, data)  # the lock went with the close
+    try:
+        assert again.head_seq == 1
+    finally:
+        again.close()
