@@ -137,6 +137,10 @@ def test_a_frozen_database_never_holds_up_an_append(
             frozen, took = _timed_appends(writer, rng, 11, 25)
             status = writer.status()
             on_disk = _journalled(data)
+            t0 = time.perf_counter()  # a start-up facing the frozen server gives up in time
+            with pytest.raises(StoreUnavailableError, match="cannot be reached"):
+                DurableWriter.open(url, "station2", tmp_path / "other", connect_timeout_s=1)
+            assert time.perf_counter() - t0 < 10
         finally:
             _signal_all(c, signal.SIGCONT)
         assert max(took) < APPEND_BOUND_S, sorted(took)[-3:]
