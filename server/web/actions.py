@@ -1,0 +1,149 @@
+"""Operator page: log in and out, and the actions (trigger, teach, activate) through the station.
+
+Actions go to the station handle (``app.state.runtime``: the station process's control channel)
+with the session's name as the author; activating a recipe version with the station down is
+recorded in the store, which the station reads at its next start (as the REST API does).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+from urllib.parse import urlsplit
+
+from fastapi import APIRouter, Body, Query, Request
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
+
+from server.auth import Role, authenticate
+from server.errors import ForbiddenError, NotReadyError
+from server.web import html
+from server.web.context import in_thread, need, page_user, runtime_of, services_of
+from server.web.session import COOKIE, MAX_AGE_S, Sessions, same_origin, sessions_of
+
+router = APIRouter(include_in_schema=False)
+
+
+class Login(BaseModel):
+    token: str = Field(min_length=1, max_length=200)
+
+
+class TriggerBody(BaseModel):
+    part_id: str | None = Field(None, max_length=40, pattern=r"^[\x20-\x7e]*$")
+
+
+class TeachBody(BaseModel):
+    measurement_id: int = Field(ge=1, le=2**63 - 1, strict=True)
+
+
+class ActivateBody(BaseModel):
+    name: str = Field(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)
+    version: int = Field(ge=1, le=2**31 - 1, strict=True)
+
+
+def _safe_next(target: str) -> str:
+    # Only a path on this site: never an absolute URL (an open redirect after login).
+    parts = urlsplit(target)
+    return target if target.startswith("/") and not parts.netloc and not parts.scheme \
+        and not target.startswith("//") else "/"
+
+
+@router.get("/login")
+async def login_page(request: Request,
+                     next: Annotated[str, Query(max_length=200)] = "/") -> Response:  # noqa: A002
+    if await page_user(request) is not None:
+        return RedirectResponse(_safe_next(next), status_code=303)
+    body = f"""<section class="panel login"><h2>Log in</h2>
+<p>Paste your API token (ask an engineer for one: <code>POST /api/v1/tokens</code>). It is
+ kept in this server's memory for {MAX_AGE_S // 3600} h; the browser only holds a session
+ cookie.</p><form id="login-form" data-next="{html.esc(_safe_next(next))}">
+<label>token <input name="token" type="password" autocomplete="current-password" required
+ maxlength="200"></label><button type="submit">Log in</button></form>
+<p class="msg" role="alert"></p></section>"""
+    return HTMLResponse(html.layout("Log in", None, body))
+
+
+@router.post("/web/login")
+async def login(request: Request, body: Annotated[Login, Body()]) -> Response:
+    """Check the token like a bearer token; on success set the session cookie."""
+    if not same_origin(request):
+        raise ForbiddenError("log in from the operator page itself (Origin is not this host)")
+    sessions = sessions_of(request)
+    if sessions is None:
+        raise NotReadyError("sessions are not set up in this app")
+    services = services_of(request)
+    principal = await run_in_threadpool(authenticate, services.store.tokens,
+                                        f"Bearer {body.token.strip()}")
+    sid = sessions.open(body.token.strip())
+    resp = JSONResponse({"name": principal.name, "role": principal.role.value})
+    resp.set_cookie(COOKIE, sid, max_age=MAX_AGE_S, httponly=True, samesite="strict",
+                    secure=request.url.scheme == "https", path="/")
+    return resp
+
+
+@router.post("/web/logout")
+async def logout(request: Request) -> Response:
+    if not same_origin(request):
+        raise ForbiddenError("log out from the operator page itself (Origin is not this host)")
+    sessions, sid = sessions_of(request), request.cookies.get(COOKIE)
+    if sessions is not None and sid:
+        sessions.close(sid)
+    resp = JSONResponse({"logged_out": True})
+    resp.delete_cookie(COOKIE, path="/", httponly=True, samesite="strict")
+    return resp
+
+
+def _station(request: Request) -> Any:
+    runtime = runtime_of(request.app)
+    if runtime is None:
+        raise NotReadyError("station down: no station process is connected")
+    return runtime
+
+
+@router.post("/web/actions/trigger")
+async def trigger(request: Request,
+                  body: Annotated[TriggerBody | None, Body()] = None) -> dict[str, Any]:
+    await need(request, Role.OPERATOR)
+    runtime = _station(request)
+    out = await in_thread(lambda: runtime.trigger((body.part_id if body else None) or None, 0))
+    return {"message": f"{out.get('reason', '?')}: {out.get('message', '')}",
+            "measurement_id": out.get("measurement_id")}
+
+
+@router.post("/web/actions/arm-teach")
+async def arm_teach(request: Request) -> dict[str, Any]:
+    user = await need(request, Role.OPERATOR)
+    runtime = _station(request)
+    await in_thread(runtime.arm_teach, user.name)
+    return {"message": "teach armed: the next OK result becomes the reference"}
+
+
+@router.post("/web/actions/teach")
+async def teach(request: Request, body: Annotated[TeachBody, Body()]) -> dict[str, Any]:
+    user = await need(request, Role.OPERATOR)
+    runtime = _station(request)
+    rec = await in_thread(runtime.teach_from_measurement, body.measurement_id, user.name)
+    version = rec.get("version")
+    return {"message": f"taught from measurement {body.measurement_id}: new version "
+                       f"{version}", "version": version}
+
+
+@router.post("/web/actions/activate")
+async def activate(request: Request, body: Annotated[ActivateBody, Body()]) -> dict[str, Any]:
+    user = await need(request, Role.ENGINEER)
+    runtime = runtime_of(request.app)
+    if runtime is not None:
+        rec = await in_thread(runtime.activate_recipe, body.name, body.version, user.name)
+        return {"message": f"{body.name} v{rec.get('version', body.version)} active",
+                "via": "station"}
+    services = services_of(request)
+    info = await in_thread(services.store.versions.activate, "recipe", body.name, body.version,
+                           user.name)
+    return {"message": f"{info.name} v{info.version} active (station down: it takes this "
+                       "version when it starts)", "via": "store"}
+
+
+def install_sessions(app: Any) -> Sessions:
+    sessions = Sessions()
+    app.state.web_sessions = sessions
+    return sessions

@@ -1,0 +1,145 @@
+"""Per-request context of the operator page: who is logged in, the reader, the station handle."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import anyio.to_thread
+from fastapi import Request
+from starlette.concurrency import run_in_threadpool
+
+from mvpose_core.station import RecipeConfig
+from server.auth import Principal, Role, authenticate, authenticate_recent
+from server.errors import ForbiddenError, UnauthenticatedError
+from server.state import Services
+from server.web import html
+from server.web.live import LiveFeed
+from server.web.reader import Reader, age_words
+from server.web.session import cookie_authorization
+
+#: where the drift engineer's detector answers (server/api/drift.py); the page shows it if mounted
+DRIFT_ENDPOINT = "/api/v1/drift"
+
+
+async def page_user(request: Request) -> Principal | None:
+    """The logged-in principal of the page's session cookie, or None (log in first)."""
+    header = cookie_authorization(request)
+    if header is None:
+        return None
+    tokens = request.state.services.store.tokens
+    try:
+        return authenticate_recent(tokens, header) or await run_in_threadpool(
+            authenticate, tokens, header)
+    except UnauthenticatedError:
+        return None
+
+
+async def need(request: Request, role: Role) -> Principal:
+    """The session's principal if it may do what needs ``role`` (401/403 otherwise)."""
+    user = await page_user(request)
+    if user is None:
+        raise UnauthenticatedError("log in on the operator page first (session expired?)")
+    if not user.role.allows(role):
+        raise ForbiddenError(f"{user.name!r} has role {user.role.value!r}; "
+                             f"this needs {role.value!r}")
+    return user
+
+
+def services_of(request: Request) -> Services:
+    services: Services = request.state.services
+    return services
+
+
+def reader_of(request: Request) -> Reader:
+    """One Reader (and its caches) per open Services of this process."""
+    services = services_of(request)
+    reader: Reader | None = getattr(request.app.state, "web_reader", None)
+    if reader is None or reader.services is not services:
+        reader = Reader(services)
+        request.app.state.web_reader = reader
+        request.app.state.web_live = LiveFeed(
+            reader, render_live_result, lambda: render_status(request.app, reader))
+    return reader
+
+
+def live_feed(request: Request) -> LiveFeed:
+    reader_of(request)
+    feed: LiveFeed = request.app.state.web_live
+    return feed
+
+
+def runtime_of(app: Any) -> Any:
+    """The station handle (server.station.client.StationClient on ``app.state.station``)."""
+    return getattr(app.state, "station", None)
+
+
+def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
+    """``runtime.status()``, or (None, why) when the station is down. Blocking."""
+    runtime = runtime_of(app)
+    if runtime is None:
+        return None, None
+    try:
+        return dict(runtime.status()), None
+    except Exception as err:  # a station handle that cannot answer is a station that is down
+        return None, f"the station does not answer: {type(err).__name__}: {err}"
+
+
+def calibration_words(reader: Reader) -> str:
+    """The active calibration(s) from the store, with age; the station file's otherwise."""
+    from datetime import UTC, datetime
+
+    store, now = reader.store, datetime.now(UTC)
+    out = []
+    for n in store.versions.names("calibration"):
+        if n.active_version is None:
+            continue
+        info, _ = store.versions.content("calibration", n.name, n.active_version)
+        out.append(f"{html.esc(n.name)} v{n.active_version} ({age_words(info.created_at, now)}"
+                   " old)")
+    if out:
+        return ", ".join(out)
+    station = reader.services.settings.station
+    return f"station file {html.esc(station.name) if station else '(none)'}"
+
+
+def render_status(app: Any, reader: Reader) -> str:
+    status, error = station_status(app)
+    return html.status_panel(status, error, calibration_words(reader))
+
+
+def deadline_ms(reader: Reader) -> float | None:
+    station = reader.services.station
+    return station.deadline_ms if station is not None else None
+
+
+def render_live_result(reader: Reader, newest: int | None,
+                       frames_id: int | None) -> tuple[str, str, int | None]:
+    """The Live page's result and frames panels; the frames are the newest record's when it
+    kept them, else the record that last did (the archive keeps NOK always, OK 1 in N)."""
+    if newest is None:
+        empty = '<section id="result" class="panel"><h2>Last result</h2><p>none yet</p></section>'
+        return empty, html.frames_panel(None, None), None
+    view = reader.get(newest)
+    framed = view if view.has_frames else None
+    if framed is None and frames_id is not None:
+        framed = reader.get(frames_id)
+        framed = framed if framed.has_frames else None
+    if framed is None:
+        framed = reader.latest_with_frames()
+    return (html.result_panel(newest, view.stored.record, deadline_ms(reader)),
+            html.frames_panel(framed, newest), framed.stored.id if framed else None)
+
+
+async def in_thread(fn: Any, *args: Any) -> Any:
+    return await anyio.to_thread.run_sync(fn, *args)
+
+
+@dataclass(frozen=True)
+class TeachPreview:
+    """What teaching a measurement as the new reference implies for the robot."""
+
+    recipe: RecipeConfig
+    values: list[float]
+    grasp_displacement_mm: float
+    rotation_deg: float

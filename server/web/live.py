@@ -1,0 +1,125 @@
+"""The Live page's server-sent events: one watcher per process, fanned out to every browser.
+
+The watcher asks the store for its newest record (one cheap query every
+:data:`POLL_S`) and the station for its status; when either changes it renders the HTML once and
+puts it in every subscriber's queue. Browsers never poll: each holds one EventSource. The
+watcher runs only while someone listens, and a stream ends after :data:`STREAM_S` (the browser
+reconnects on its own), so nothing outlives a shutdown by long.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import anyio.to_thread
+
+from server.web.reader import Reader
+
+POLL_S = 0.25
+STATUS_EVERY_S = 1.0
+KEEPALIVE_S = 15.0
+STREAM_S = 600.0
+#: a browser that cannot keep up loses the oldest message, never the watcher's time
+QUEUE = 8
+
+
+def sse(event: str, data: str) -> str:
+    lines = "".join(f"data: {line}\n" for line in data.splitlines() or [""])
+    return f"event: {event}\n{lines}\n"
+
+
+@dataclass
+class Snapshot:
+    newest_id: int | None = None
+    result_html: str = ""
+    frames_html: str = ""
+    status_html: str = ""
+
+
+@dataclass
+class LiveFeed:
+    """Fan-out of rendered Live fragments; ``render_result`` / ``render_status`` are blocking
+    (they read the store and the station) and run in worker threads."""
+
+    reader: Reader
+    render_result: Callable[[Reader, int | None, int | None], tuple[str, str, int | None]]
+    render_status: Callable[[], str]
+    snapshot: Snapshot = field(default_factory=Snapshot)
+    _queues: set[asyncio.Queue[str]] = field(default_factory=set)
+    _task: asyncio.Task[None] | None = None
+    _frames_id: int | None = None
+    polls: int = 0
+
+    @property
+    def listeners(self) -> int:
+        return len(self._queues)
+
+    async def stream(self) -> AsyncIterator[str]:
+        """Every event for one browser: the current state first, then each change."""
+        queue: asyncio.Queue[str] = asyncio.Queue(QUEUE)
+        self._queues.add(queue)
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self._watch(), name="web-live-watcher")
+        try:
+            yield "retry: 2000\n\n"
+            snap = self.snapshot
+            if snap.status_html:
+                yield sse("status", snap.status_html)
+            if snap.result_html:
+                yield sse("result", snap.result_html)
+                yield sse("frames", snap.frames_html)
+            loop = asyncio.get_running_loop()
+            end = loop.time() + STREAM_S
+            while (left := end - loop.time()) > 0:
+                try:
+                    yield await asyncio.wait_for(queue.get(), min(KEEPALIVE_S, left))
+                except TimeoutError:
+                    yield ": keep-alive\n\n"
+        finally:
+            self._queues.discard(queue)
+            if not self._queues and self._task is not None:
+                self._task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await self._task
+                self._task = None
+
+    def _publish(self, message: str) -> None:
+        for q in list(self._queues):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(message)
+
+    async def _watch(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_status = 0.0
+        while True:
+            self.polls += 1
+            newest = await anyio.to_thread.run_sync(self.reader.newest_id)
+            if newest != self.snapshot.newest_id:
+                result, frames, frames_id = await anyio.to_thread.run_sync(
+                    self.render_result, self.reader, newest, self._frames_id)
+                self._frames_id = frames_id
+                self.snapshot.newest_id = newest
+                if result != self.snapshot.result_html:
+                    self.snapshot.result_html = result
+                    self._publish(sse("result", result))
+                if frames != self.snapshot.frames_html:
+                    self.snapshot.frames_html = frames
+                    self._publish(sse("frames", frames))
+            if loop.time() >= next_status:
+                next_status = loop.time() + STATUS_EVERY_S
+                status = await anyio.to_thread.run_sync(self.render_status)
+                if status != self.snapshot.status_html:
+                    self.snapshot.status_html = status
+                    self._publish(sse("status", status))
+            await asyncio.sleep(POLL_S)
+
+
+def live_of(app: Any) -> LiveFeed:
+    feed: LiveFeed = app.state.web_live
+    return feed

@@ -1,0 +1,226 @@
+"""Operator page: Trends, Calibration health (with the drift detector's warnings) and Recipes."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.responses import HTMLResponse
+
+from server.auth import Role
+from server.errors import DomainError
+from server.store.schemas import MeasurementFilter
+from server.web import html
+from server.web.context import (
+    DRIFT_ENDPOINT,
+    deadline_ms,
+    in_thread,
+    need,
+    page_user,
+    reader_of,
+    runtime_of,
+)
+from server.web.pages import Html, to_login
+from server.web.reader import age_words
+
+router = APIRouter(include_in_schema=False)
+NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
+#: newest records on the trend charts unless the page asks for another number
+TREND_POINTS = 2000
+
+
+@router.get("/web/trends.json")
+async def trends_json(
+    request: Request,
+    since: datetime | None = None,
+    until: datetime | None = None,
+    result: Literal["OK", "NOK"] | None = None,
+    recipe: Annotated[str | None, Query(max_length=64)] = None,
+    limit: Annotated[int, Query(ge=1, le=20000)] = TREND_POINTS,
+) -> dict[str, Any]:
+    """Trend columns (oldest first) and the tolerances of the active recipe."""
+    await need(request, Role.READ)
+    reader = reader_of(request)
+    filters = MeasurementFilter(since=since, until=until, result=result, recipe=recipe)
+    cols = await in_thread(reader.trends, filters, limit)
+    active = await in_thread(reader.active_recipe)
+    tol = html.recipe_tolerances(active[2] if active else None, deadline_ms(reader))
+    return {"columns": cols, "tolerances": tol}
+
+
+def _charts_page(title: str, active: str, intro: str, kind: str, user: Any,
+                 extra: str = "") -> HTMLResponse:
+    body = f"""<section class="panel"><h2>{html.esc(title)}</h2>{intro}
+<form id="trend-filters" class="filters"><label>points <input name="limit" type="number"
+ min="10" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
+<button type="submit">Show</button></form>
+<div id="charts" data-kind="{kind}" data-src="/web/trends.json"></div></section>{extra}"""
+    return HTMLResponse(html.layout(title, user, body, active))
+
+
+@router.get("/trends")
+async def trends_page(request: Request) -> Html:
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    intro = ("<p>The newest results, oldest on the left: offsets per axis, 1σ at the grasp "
+             "point, RMS residual per camera, cycle time and the NOK rate by reason (per 50 "
+             "results). Dashed lines are the active recipe's tolerances.</p>")
+    return _charts_page("Trends", "/trends", intro, "trends", user)
+
+
+@router.get("/calibration")
+async def calibration_page(request: Request) -> Html:
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    ages = await in_thread(calibration_ages, reader)
+    drift_mounted = any(getattr(r, "path", None) == DRIFT_ENDPOINT for r in request.app.routes)
+    drift = (f'<div id="drift" data-src="{DRIFT_ENDPOINT}"><p class="muted">loading the drift '
+             "detector's warnings…</p></div>" if drift_mounted else
+             f'<div id="drift" data-src=""><p class="hook">The drift detector is not installed in '
+             f"this server (no GET {DRIFT_ENDPOINT}): the charts above show what the records "
+             "hold. A steady mean residual that walks away from zero is a camera that moved."
+             "</p></div>")
+    extra = f"""<section class="panel"><h2>Drift warnings</h2>{drift}</section>
+<section class="panel"><h2>Calibration age</h2>{ages}</section>"""
+    intro = ("<p>Per camera, the mean reprojection residual of each result (du, dv in px: the "
+             "marks' detected minus reprojected centres) and its RMS. A calibration that has "
+             "stopped fitting shows as a mean that leaves zero and stays away.</p>")
+    return _charts_page("Calibration health", "/calibration", intro, "calibration", user, extra)
+
+
+def calibration_ages(reader: Any) -> str:
+    store, now = reader.store, datetime.now(UTC)
+    rows = []
+    for n in store.versions.names("calibration"):
+        for v in store.versions.versions("calibration", n.name):
+            rows.append(f"<tr><td>{html.esc(n.name)}</td><td>v{v.version}</td>"
+                        f"<td>{html.when(v.created_at)}</td><td>{age_words(v.created_at, now)}"
+                        f"</td><td>{'active' if v.active else ''}</td>"
+                        f"<td>{html.esc(v.created_by)}</td></tr>")
+    station = reader.services.settings.station
+    file_age = ""
+    if station is not None and station.exists():
+        mtime = datetime.fromtimestamp(station.stat().st_mtime, UTC)
+        file_age = (f"<p>The cameras' intrinsics and poses come from the station file "
+                    f"<code>{html.esc(station)}</code>, changed {html.when(mtime)} "
+                    f"(<b class='age'>{age_words(mtime, now)}</b> ago).</p>")
+    table = ("<table><tr><th>calibration</th><th>version</th><th>uploaded</th><th>age</th>"
+             f"<th></th><th>by</th></tr>{''.join(rows)}</table>" if rows else
+             "<p class='muted'>No calibration uploaded to the store.</p>")
+    return file_age + table
+
+
+# ---------------------------------------------------------------------------- Recipes
+@router.get("/recipes")
+async def recipes_page(request: Request) -> Html:
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    names = await in_thread(reader.store.versions.names, "recipe")
+    rows = "".join(f'<tr><td><a href="/recipes/{html.esc(n.name)}">{html.esc(n.name)}</a></td>'
+                   f"<td>v{n.active_version or '—'}</td><td>v{n.latest_version}</td></tr>"
+                   for n in names)
+    body = (f'<section class="panel"><h2>Recipes</h2><table><tr><th>recipe</th><th>active</th>'
+            f"<th>latest</th></tr>{rows}</table></section>")
+    return HTMLResponse(html.layout("Recipes", user, body, "/recipes"))
+
+
+@router.get("/recipes/{name}")
+async def recipe_page(
+    request: Request, name: NamePath,
+    a: Annotated[int | None, Query(ge=1, le=2**31 - 1)] = None,
+    b: Annotated[int | None, Query(ge=1, le=2**31 - 1)] = None,
+) -> Html:
+    """Versions of one recipe, two side by side (what changed), activate, arm teach."""
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    versions = await in_thread(reader.store.versions.versions, "recipe", name)
+    numbers = [v.version for v in versions]
+    active = next((v.version for v in versions if v.active), numbers[-1])
+    b = b or (numbers[-1] if numbers[-1] != active else active)
+    a = a or (active if active != b else (numbers[-2] if len(numbers) > 1 else b))
+    try:
+        (ia, ca), (ib, cb) = await in_thread(_two, reader, name, a, b)
+    except DomainError as err:
+        ia = ib = None
+        ca = cb = {}
+        diff = f"<p class='bad'>{html.esc(err.detail)}</p>"
+    else:
+        diff = diff_table(ca, cb, ia.version, ib.version)
+    engineer = html.can(user, Role.ENGINEER)
+    station_up = runtime_of(request.app) is not None
+    rows = []
+    for v in versions:
+        act = ""
+        if engineer and not v.active:
+            act = (f'<button type="button" class="post" data-action="/web/actions/activate" '
+                   f"data-body='{{\"name\": \"{html.esc(name)}\", \"version\": {v.version}}}' "
+                   f'data-confirm="Activate {html.esc(name)} v{v.version}: the station measures '
+                   f'with it from the next trigger on?">Activate</button>')
+        rows.append(f"<tr class='{'active' if v.active else ''}'><td>v{v.version}</td>"
+                    f"<td>{html.when(v.created_at)}</td><td>{html.esc(v.created_by)}</td>"
+                    f"<td>{html.esc(v.comment)}</td><td class='hash'>{html.esc(v.sha256[:12])}</td>"
+                    f"<td>{'active' if v.active else ''}</td><td>{act}</td></tr>")
+    options = {k: "".join(f"<option{' selected' if n == sel else ''}>{n}</option>"
+                          for n in numbers) for k, sel in (("a", a), ("b", b))}
+    arm = ""
+    if html.can(user, Role.OPERATOR):
+        down = "" if station_up else " disabled title='station down'"
+        arm = (f'<p><button type="button" class="post" data-action="/web/actions/arm-teach" '
+               f'data-confirm="The next OK result becomes the reference of the active recipe. '
+               f'Arm?"{down}>Arm teach (next OK result)</button> or teach from a stored OK '
+               f'measurement: open it in <a href="/history?result=OK">History</a>.</p>')
+    body = f"""<section class="panel"><h2>Recipe {html.esc(name)}</h2>
+<table class="versions"><tr><th>version</th><th>created</th><th>by</th><th>comment</th>
+<th>sha256</th><th></th><th></th></tr>{''.join(rows)}</table>{arm}
+<p class="msg" role="status"></p></section>
+<section class="panel"><h2>Side by side</h2><form class="filters" method="get">
+<label>left <select name="a">{options['a']}</select></label>
+<label>right <select name="b">{options['b']}</select></label><button>Compare</button></form>
+{diff}</section>"""
+    return HTMLResponse(html.layout(f"Recipe {name}", user, body, "/recipes"))
+
+
+def _two(reader: Any, name: str, a: int, b: int) -> tuple[Any, Any]:
+    return (reader.store.versions.content("recipe", name, a),
+            reader.store.versions.content("recipe", name, b))
+
+
+def flatten(obj: Any, prefix: str = "") -> dict[str, str]:
+    """``{"tolerances.max_rms_px": "1.0", "marks[0].id": "T1", ...}``: one row per leaf."""
+    out: dict[str, str] = {}
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            out |= flatten(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(obj, list) and obj and any(isinstance(x, dict | list) for x in obj):
+        for i, v in enumerate(obj):
+            out |= flatten(v, f"{prefix}[{i}]")
+    else:
+        out[prefix] = str(obj) if not isinstance(obj, list) else ", ".join(map(str, obj))
+    return out
+
+
+def diff_table(a: dict[str, Any], b: dict[str, Any], va: int, vb: int) -> str:
+    fa, fb = flatten(a), flatten(b)
+    keys = sorted(set(fa) | set(fb))
+    changed = [k for k in keys if fa.get(k) != fb.get(k)]
+    same = [k for k in keys if fa.get(k) == fb.get(k)]
+    head = f"<tr><th>field</th><th>v{va}</th><th>v{vb}</th></tr>"
+
+    def rows(ks: list[str], cls: str) -> str:
+        return "".join(f"<tr class='{cls}'><td>{html.esc(k)}</td><td>{html.esc(fa.get(k, '—'))}"
+                       f"</td><td>{html.esc(fb.get(k, '—'))}</td></tr>" for k in ks)
+
+    return (f"<p class='diffsum'>{len(changed)} of {len(keys)} fields differ between v{va} and "
+            f"v{vb}.</p><table class='diff'>{head}{rows(changed, 'changed')}</table>"
+            f"<details class='same'><summary>{len(same)} fields the same</summary>"
+            f"<table class='diff'>{head}{rows(same, 'same')}</table></details>")
+
+

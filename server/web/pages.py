@@ -1,0 +1,238 @@
+"""Operator page: Live, History (list, drill-down, export links) and the downscaled frames."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
+
+from mvpose_core.offset import frame_offsets
+from mvpose_core.station import RecipeConfig
+from server.auth import Role
+from server.errors import NotFoundError
+from server.store.schemas import MAX_ID, MeasurementFilter
+from server.web import html
+from server.web.context import (
+    TeachPreview,
+    deadline_ms,
+    in_thread,
+    live_feed,
+    need,
+    page_user,
+    reader_of,
+    render_live_result,
+    render_status,
+    runtime_of,
+)
+from server.web.reader import Reader, RecordView
+
+router = APIRouter(include_in_schema=False)
+Html = Response  # HTMLResponse or a RedirectResponse to the login
+
+
+def to_login(request: Request) -> RedirectResponse:
+    return RedirectResponse(f"/login?next={request.url.path}", status_code=303)
+
+
+# ---------------------------------------------------------------------------- Live
+@router.get("/")
+async def live_page(request: Request) -> Html:
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    newest = await in_thread(reader.newest_id)
+    result, frames, _ = await in_thread(render_live_result, reader, newest, None)
+    status = await in_thread(render_status, request.app, reader)
+    actions = ""
+    if html.can(user, Role.OPERATOR):
+        down = "" if runtime_of(request.app) is not None else " disabled title='station down'"
+        actions = f"""<section class="panel actions"><h2>Commissioning</h2>
+<form id="trigger-form" data-action="/web/actions/trigger"><label>part id
+<input name="part_id" maxlength="40"></label><button type="submit"{down}>Trigger now</button>
+</form><button type="button" class="post" data-action="/web/actions/arm-teach"
+ data-confirm="The next OK result becomes the active recipe's reference (zero offset). Arm?"
+ {down}>Arm teach</button><p class="msg" role="status"></p></section>"""
+    body = f"""<div id="live" data-events="/web/live/events" class="grid">
+<div class="col">{status}{result}{actions}</div><div class="col wide">{frames}</div></div>"""
+    return HTMLResponse(html.layout("Live", user, body, "/"))
+
+
+@router.get("/web/live/events")
+async def live_events(request: Request) -> StreamingResponse:
+    await need(request, Role.READ)
+    return StreamingResponse(live_feed(request).stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+
+# ---------------------------------------------------------------------------- frames
+@router.get("/web/frames/{measurement_id}/{view}/{camera_id}")
+async def frame(
+    request: Request,
+    measurement_id: Annotated[int, Path(ge=1, le=MAX_ID)],
+    view: Annotated[int, Path(ge=1, le=255)],
+    camera_id: Annotated[str, Path(max_length=64)],
+    w: Annotated[int, Query(ge=64, le=4096)] = html.FRAME_WIDTH,
+) -> Response:
+    """An archived frame downscaled to ``w`` px wide, as JPEG (frames never change)."""
+    await need(request, Role.READ)
+    services = request.state.services
+
+    def load() -> bytes:
+        for i in services.store.images.for_measurement(measurement_id):
+            if i.view == view and i.camera_id == camera_id and i.evicted_at is None:
+                img = cv2.imread(str(services.images.resolve(i.path)), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    break
+                if img.shape[1] > w:
+                    h = round(img.shape[0] * w / img.shape[1])
+                    img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+                good, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+                if good:
+                    return bytes(np.asarray(buf).tobytes())
+        raise NotFoundError(f"measurement {measurement_id} has no archived frame of view {view} "
+                            f"camera {camera_id!r}")
+
+    body = await in_thread(load)
+    return Response(body, media_type="image/jpeg",
+                    headers={"Cache-Control": "private, max-age=86400"})
+
+
+# ---------------------------------------------------------------------------- History
+FILTERS = ("since", "until", "result", "reason_code", "recipe", "part_id")
+
+
+@router.get("/history")
+async def history_page(
+    request: Request,
+    since: datetime | None = None,
+    until: datetime | None = None,
+    result: Literal["OK", "NOK", ""] = "",
+    reason_code: Annotated[int | None, Query(ge=0, le=65535)] = None,
+    recipe: Annotated[str, Query(max_length=64)] = "",
+    part_id: Annotated[str, Query(max_length=64)] = "",
+    cursor: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+    fragment: bool = False,
+) -> Html:
+    """The list with the REST API's filters and cursor paging; export links for the same."""
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    filters = MeasurementFilter(since=since, until=until, result=result or None,
+                                reason_code=reason_code, recipe=recipe or None,
+                                part_id=part_id or None)
+    params = {"since": since.isoformat() if since else None,
+              "until": until.isoformat() if until else None, "result": result,
+              "reason_code": reason_code, "recipe": recipe, "part_id": part_id}
+    items, next_cursor = await in_thread(reader.store.measurements.summary_page, filters,
+                                         cursor, limit)
+    next_url = (f"/history?{html.query(params | {'cursor': next_cursor, 'limit': limit})}"
+                if next_cursor else None)
+    rows = html.history_rows(items, next_url)
+    if fragment:
+        return HTMLResponse(rows)
+    q = html.query(params)
+    e = html.esc
+
+    def export(fmt: str) -> str:
+        return f"/api/v1/measurements/export?format={fmt}" + (f"&{q}" if q else "")
+
+    sel = {v: " selected" if result == v else "" for v in ("", "OK", "NOK")}
+    body = f"""<section class="panel"><h2>History</h2>
+<form id="filters" class="filters" action="/history" method="get" hx-get="/history"
+ hx-target="#rows" hx-select="#rows" hx-swap="outerHTML" hx-push-url="true">
+<label>since <input name="since" value="{e(params['since'])}"
+ placeholder="2026-11-02T06:00Z"></label>
+<label>until <input name="until" value="{e(params['until'])}"></label>
+<label>result <select name="result"><option value=""{sel[""]}>any</option>
+<option{sel["OK"]}>OK</option><option{sel["NOK"]}>NOK</option></select></label>
+<label>reason code <input name="reason_code" type="number" min="0" max="65535"
+ value="{e(reason_code)}"></label>
+<label>recipe <input name="recipe" value="{e(recipe)}"></label>
+<label>part id <input name="part_id" value="{e(part_id)}"></label>
+<label>per page <input name="limit" type="number" min="1" max="1000" value="{limit}"></label>
+<button type="submit">Filter</button></form>
+<p class="export">Export these: <a href="{e(export('csv'))}" download>CSV</a>
+ · <a href="{e(export('json'))}" download>JSON</a></p>{rows}</section>"""
+    return HTMLResponse(html.layout("History", user, body, "/history"))
+
+
+@router.get("/history/{measurement_id}")
+async def record_page(
+    request: Request, measurement_id: Annotated[int, Path(ge=1, le=MAX_ID)]
+) -> Html:
+    """One record: result, images with overlays, residuals, timings, versions; teach from it."""
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    reader = reader_of(request)
+    view: RecordView = await in_thread(reader.get, measurement_id)
+    s, rec = view.stored, view.stored.record
+    teach = ""
+    if html.can(user, Role.OPERATOR) and rec.result == "OK":
+        preview = await in_thread(teach_preview, reader, view)
+        teach = teach_block(s.id, preview, runtime_of(request.app) is not None)
+    images = "".join(f"<li>view {i.view} {html.esc(i.camera_id)}: "
+                     f"{'archived' if (i.view, i.camera_id) in view.frames else 'evicted'}</li>"
+                     for i in rec.images) or "<li>none kept (OK frames are kept 1 in N)</li>"
+    body = f"""<div class="grid"><div class="col">
+{html.result_panel(s.id, rec, deadline_ms(reader)).replace('Last result', 'Measurement', 1)}
+<section class="panel"><h2>Audit</h2><dl><dt>seq</dt><dd>{s.seq}</dd>
+<dt>stored</dt><dd>{html.when(s.stored_at)}</dd>
+<dt>hash</dt><dd class="hash">{html.esc(s.hash)}</dd>
+<dt>recipe</dt><dd><a href="/recipes/{html.esc(rec.recipe)}">{html.esc(rec.recipe)}</a>
+ v{rec.recipe_version}</dd>
+<dt>calibration</dt><dd>{html.esc(rec.calibration_id or 'station file')}
+ {html.esc((rec.calibration_hash or '')[:12])}</dd>
+<dt>software</dt><dd>{html.esc(rec.software_version)}</dd></dl>
+<h3>Timings</h3>{html.timings_table(rec)}<h3>Frames</h3><ul>{images}</ul></section>{teach}
+</div><div class="col wide"><section class="panel" id="frames" data-id="{s.id}">
+<h2>Images and overlays</h2>{html.legend()}<div class="cams">{html.camera_figures(view)}</div>
+<h3>Detections and residuals</h3>{html.detections_table(view)}</section></div></div>"""
+    return HTMLResponse(html.layout(f"Measurement {s.id}", user, body, "/history"))
+
+
+def teach_preview(reader: Reader, view: RecordView) -> TeachPreview | None:
+    """The offset between the active reference and this measurement's pose: what the taught
+    path moves by when this measurement becomes the reference."""
+    rec = view.stored.record
+    active = reader.active_recipe_of(rec.recipe)
+    if active is None or rec.T_rf_from_pf is None:
+        return None
+    recipe: RecipeConfig = active
+    off = frame_offsets(np.array(rec.T_rf_from_pf), recipe.T_rf_from_pf0.matrix,
+                        recipe.T_pf_from_grasp.matrix, recipe.robot_convention)
+    return TeachPreview(recipe, [float(v) for v in off.base], off.grasp_displacement_mm,
+                        off.rotation_deg)
+
+
+def teach_block(rec_id: int, p: TeachPreview | None, station_up: bool) -> str:
+    if p is None:
+        return ""
+    conv = p.recipe.robot_convention
+    cells = "".join(f"<td>{html.num(v)} {html.esc(u)}</td>"
+                    for v, u in zip(p.values, html.units(conv), strict=True))
+    heads = "".join(f"<th>{html.esc(x)}</th>" for x in conv.labels)
+    down = "" if station_up else " disabled title='station down'"
+    note = "" if station_up else "<p class='muted'>station down: teaching needs the station</p>"
+    return f"""<section class="panel"><h2>Teach</h2>
+<button type="button" id="teach-open"{down}>Teach this as the reference…</button>{note}
+<dialog id="teach-dialog"><h3>Make measurement #{rec_id} the reference of
+ {html.esc(p.recipe.name)}?</h3>
+<p>Against the active reference (v{p.recipe.version}) this part sits at the offset below. After
+ teaching, a part lying like this one reads zero offset; the robot's taught path must be
+ re-touched for the new reference.</p>
+<table class="offset" id="teach-offset"><caption>implied offset, {html.esc(conv.value)}
+ convention</caption><tr>{heads}</tr><tr>{cells}</tr></table>
+<p>grasp point moves {html.num(p.grasp_displacement_mm)} mm, part turns
+ {html.num(p.rotation_deg)}°</p>
+<form method="dialog"><button value="cancel">Cancel</button>
+<button type="button" class="post" data-action="/web/actions/teach"
+ data-body='{{"measurement_id": {rec_id}}}'>Teach</button></form>
+<p class="msg" role="status"></p></dialog></section>"""

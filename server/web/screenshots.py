@@ -1,0 +1,130 @@
+"""Screenshots of every page of the operator page, for docs/operations.md (and the browser tests'
+helpers: the app on a real socket, Debian's Chromium through Playwright).
+
+    python -m server.web.screenshots --out docs/figures
+
+starts the API app on a temporary SQLite store, fills it with records the pose engine measured
+on simulated station 1 (server.web.sample), logs in and saves ``operator-<page>.png`` for each
+page. Needs the ``test`` extra (playwright) and /usr/bin/chromium (Debian's ``chromium``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+from fastapi import FastAPI
+
+from server.settings import Settings
+from server.state import Services, open_services
+from server.store.schemas import MeasurementFilter
+from server.web.sample import SampleLine
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--no-first-run"]
+STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
+VIEWPORT = {"width": 1600, "height": 1000}
+
+
+@contextmanager
+def serve(app: FastAPI) -> Iterator[str]:
+    """The app under uvicorn on 127.0.0.1, a free port, its own thread; yields the base URL."""
+    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning",
+                            timeout_graceful_shutdown=2)
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, name="web-uvicorn", daemon=True)
+    thread.start()
+    started = threading.Event()
+    while not started.wait(0.02):  # uvicorn has no start callback: watch its flag
+        if server.started:
+            started.set()
+        elif not thread.is_alive():
+            raise RuntimeError("uvicorn did not start the operator page's app")
+    port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(15)
+
+
+def launch(playwright: Any) -> Any:
+    """Debian's Chromium (never a downloaded browser), headless."""
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+
+
+def login(page: Any, base: str, token: str) -> None:
+    page.goto(f"{base}/login")
+    page.fill("input[name=token]", token)
+    page.click("#login-form button[type=submit]")
+    page.wait_for_url(f"{base}/")
+
+
+def populate(services: Services, plain: int = 60) -> SampleLine:
+    """A morning of production: ``plain`` results (some NOK), then camera back_right moves by
+    0.4 px (its mean residual leaves zero), two results with frames kept, and a taught recipe
+    version that is not active yet."""
+    line = SampleLine(services)
+    line.run(plain, missing_every=13)
+    line.run(plain // 2, shift_px=(0.4, -0.2), shift_camera="back_right")
+    line.store(*line.record(missing="B2", frames=True))
+    line.run(5)
+    taught = line.store(*line.record(frames=True))
+    line.run(2)
+    line.taught_version(taught)
+    return line
+
+
+def main(argv: list[str] | None = None) -> int:
+    from playwright.sync_api import sync_playwright
+
+    from server.app import create_app
+
+    parser = argparse.ArgumentParser(prog="python -m server.web.screenshots",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("docs/figures"))
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    token = "mvp_screenshots-engineer-0123456789"
+    with tempfile.TemporaryDirectory() as tmp:
+        settings = Settings(data_dir=Path(tmp), station=STATION1, bootstrap_token=token,
+                            sqlite_synchronous="NORMAL")
+        writer = open_services(settings)  # the station process's side: it writes the records
+        try:
+            populate(writer)
+            newest = writer.store.measurements.summary_page(MeasurementFilter(), None, 1)[0]
+            with serve(create_app(settings)) as base, sync_playwright() as pw:
+                browser = launch(pw)
+                page = browser.new_page(viewport=VIEWPORT)
+                page.on("pageerror", lambda err: print(f"page error: {err}"))
+                login(page, base, token)
+                shots = {
+                    "live": ("/", "#frames figure.cam"),
+                    "history": ("/history", "table.history"),
+                    "record": (f"/history/{newest[0].id - 2}", "figure.cam"),
+                    "trends": ("/trends", "#charts[data-points]"),
+                    "calibration": ("/calibration", "#charts[data-points]"),
+                    "recipes": ("/recipes/floor_panel", "table.diff"),
+                    "docs": ("/docs", ".swagger-ui .info"),
+                }
+                for name, (path, ready) in shots.items():
+                    page.goto(base + path)
+                    page.wait_for_selector(ready, state="attached")
+                    target = args.out / f"operator-{name}.png"
+                    page.screenshot(path=str(target), full_page=name != "docs")
+                    print(target)
+                browser.close()
+        finally:
+            writer.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,227 @@
+// The operator page's behaviour: log in/out, the Live page's server-sent events, actions with
+// confirmation, and the trend charts (uPlot). No framework; htmx handles the History filters.
+"use strict";
+
+function postJSON(url, body) {
+  return fetch(url, {method: "POST", credentials: "same-origin",
+    headers: {"Content-Type": "application/json", "Accept": "application/json"},
+    body: JSON.stringify(body || {})}).then(async (r) => {
+    const data = await r.json().catch(() => ({}));
+    if (!r.ok) throw new Error(data.detail || data.title || ("HTTP " + r.status));
+    return data;
+  });
+}
+
+function say(el, text, ok) {
+  const msg = el && (el.closest("section, dialog")?.querySelector(".msg") || document.querySelector(".msg"));
+  if (!msg) return;
+  msg.textContent = text;
+  msg.className = "msg " + (ok ? "done" : "error");
+}
+
+function setupLogin() {
+  const form = document.getElementById("login-form");
+  if (!form) return;
+  form.addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    postJSON("/web/login", {token: form.token.value})
+      .then(() => { window.location.assign(form.dataset.next || "/"); })
+      .catch((err) => say(form, err.message, false));
+  });
+}
+
+function setupLogout() {
+  const btn = document.getElementById("logout");
+  if (btn) btn.addEventListener("click", () =>
+    postJSON("/web/logout").finally(() => window.location.assign("/login")));
+}
+
+function setupActions() {
+  document.querySelectorAll("button.post").forEach((btn) => btn.addEventListener("click", () => {
+    if (btn.dataset.confirm && !window.confirm(btn.dataset.confirm)) return;
+    btn.disabled = true;
+    postJSON(btn.dataset.action, btn.dataset.body ? JSON.parse(btn.dataset.body) : {})
+      .then((data) => {
+        say(btn, data.message || "done", true);
+        if (btn.dataset.action.endsWith("/activate")) setTimeout(() => window.location.reload(), 800);
+      })
+      .catch((err) => say(btn, err.message, false))
+      .finally(() => { btn.disabled = false; });
+  }));
+  const trig = document.getElementById("trigger-form");
+  if (trig) trig.addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    postJSON(trig.dataset.action, {part_id: trig.part_id.value || null})
+      .then((d) => say(trig, "measured: record #" + d.measurement_id, true))
+      .catch((err) => say(trig, err.message, false));
+  });
+  const open = document.getElementById("teach-open");
+  const dialog = document.getElementById("teach-dialog");
+  if (open && dialog) open.addEventListener("click", () => dialog.showModal());
+}
+
+function setupLive() {
+  const live = document.getElementById("live");
+  if (!live || !window.EventSource) return;
+  const events = new EventSource(live.dataset.events);
+  const swap = (ev) => {
+    const tpl = document.createElement("template");
+    tpl.innerHTML = ev.data.trim();
+    const fresh = tpl.content.firstElementChild;
+    const old = fresh && document.getElementById(fresh.id);
+    if (old) old.replaceWith(fresh);
+    live.dataset.updates = String(Number(live.dataset.updates || 0) + 1);
+  };
+  ["result", "frames", "status"].forEach((name) => events.addEventListener(name, swap));
+  events.addEventListener("open", () => { live.dataset.connected = "1"; });
+}
+
+// ------------------------------------------------------------------------------------ charts
+const COLORS = ["#1d4ed8", "#b91c1c", "#15803d", "#a16207", "#7c3aed", "#0e7490", "#be185d", "#4b5563"];
+
+function chart(host, title, x, series, opts) {
+  opts = opts || {};
+  const box = document.createElement("div");
+  box.className = "chart";
+  box.innerHTML = "<h3></h3>";
+  host.appendChild(box);
+  const data = [x];
+  const spec = [{}];
+  const values = [];
+  series.forEach((s, i) => {
+    data.push(s.values);
+    spec.push({label: s.label, stroke: s.band ? "#6b7280" : COLORS[i % COLORS.length],
+      dash: s.band ? [6, 4] : undefined, width: s.band ? 1.5 : 1.5,
+      points: {show: !s.band && x.length < 200}, spanGaps: false});
+    if (!s.band) s.values.forEach((v) => { if (v !== null && v !== undefined) values.push(v); });
+  });
+  let lo = Math.min(...values), hi = Math.max(...values);
+  if (!isFinite(lo)) { lo = opts.log ? 0.01 : -1; hi = 1; }
+  // Tolerances: on a log scale every band fits next to the data; on a linear one a band far
+  // outside the data would flatten it, so it is named in the title instead.
+  const off = [];
+  series.filter((s) => s.band).forEach((s) => {
+    const v = s.values.find((y) => y !== null && y !== undefined);
+    if (v === undefined) return;
+    if (opts.log || Math.abs(v) <= 20 * Math.max(Math.abs(lo), Math.abs(hi), 1e-9)) {
+      lo = Math.min(lo, v); hi = Math.max(hi, v);
+    } else off.push(s.label + " " + v);
+  });
+  box.querySelector("h3").textContent = title + (off.length ? " — off the scale: " + off.join(", ") : "");
+  let range;
+  if (opts.log) {
+    lo = Math.max(lo, 1e-6);
+    const r = uPlot.rangeLog(lo, hi, 10, true);  // whole decades: uPlot's log axis needs them
+    range = () => r;
+  } else {
+    const pad = 0.08 * Math.max(hi - lo, 1e-6);
+    range = () => [lo - pad, hi + pad];
+  }
+  const width = Math.max(Math.min(host.clientWidth - 10, 1400), 320);
+  return new uPlot({width: width, height: opts.height || 220, series: spec,
+    scales: {x: {time: true}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
+    axes: [{}, {label: opts.unit || ""}], cursor: {drag: {x: true, y: false}}}, data, box);
+}
+
+function band(n, value) { return new Array(n).fill(value === undefined ? null : value); }
+
+function nokRate(cols, per) {
+  const reasons = [...new Set(cols.reason.filter((r, i) => cols.result[i] !== "OK"))];
+  const x = [], ys = reasons.map(() => []);
+  for (let start = 0; start < cols.t.length; start += per) {
+    const end = Math.min(start + per, cols.t.length);
+    x.push(cols.t[end - 1]);
+    reasons.forEach((r, k) => {
+      let n = 0;
+      for (let i = start; i < end; i++) if (cols.reason[i] === r) n++;
+      ys[k].push(100 * n / (end - start));
+    });
+  }
+  return {x, series: reasons.map((r, k) => ({label: r + " %", values: ys[k]}))};
+}
+
+function drawTrends(host, d) {
+  const c = d.columns, tol = d.tolerances || {}, n = c.t.length;
+  const labels = tol.labels || ["X", "Y", "Z", "W", "P", "R"];
+  const units = tol.units || ["mm", "mm", "mm", "°", "°", "°"];
+  const lin = [0, 1, 2].map((k) => ({label: labels[k], values: c.offset[k] || band(n)}));
+  lin.push({label: "+tol", band: true, values: band(n, tol.max_offset_mm)},
+           {label: "−tol", band: true, values: band(n, tol.max_offset_mm && -tol.max_offset_mm)});
+  chart(host, "Offset " + labels.slice(0, 3).join(", ") + " (" + units[0] + ")", c.t, lin, {unit: units[0]});
+  if (labels.length === 6) {
+    const rot = [3, 4, 5].map((k) => ({label: labels[k], values: c.offset[k] || band(n)}));
+    rot.push({label: "+tol", band: true, values: band(n, tol.max_offset_deg)},
+             {label: "−tol", band: true, values: band(n, tol.max_offset_deg && -tol.max_offset_deg)});
+    chart(host, "Offset " + labels.slice(3).join(", ") + " (" + units[3] + ")", c.t, rot, {unit: units[3]});
+  }
+  chart(host, "1σ at the grasp point, translation (mm, log scale)", c.t,
+    [{label: "1σ mm", values: c.sigma_mm}, {label: "tolerance", band: true, values: band(n, tol.sigma_mm)}], {unit: "mm", log: true});
+  chart(host, "1σ at the grasp point, rotation (°, log scale)", c.t,
+    [{label: "1σ °", values: c.sigma_deg}, {label: "tolerance", band: true, values: band(n, tol.sigma_deg)}], {unit: "°", log: true});
+  const rms = c.cameras.map((cam) => ({label: cam, values: c.camera_rms[cam]}));
+  rms.push({label: "max RMS", band: true, values: band(n, tol.max_rms_px)});
+  chart(host, "RMS residual per camera (px, log scale)", c.t, rms, {unit: "px", log: true});
+  chart(host, "Cycle time (ms)", c.t,
+    [{label: "total ms", values: c.total_ms}, {label: "deadline", band: true, values: band(n, tol.deadline_ms)}], {unit: "ms"});
+  const rate = nokRate(c, 50);
+  if (rate.series.length) chart(host, "NOK rate by reason (% of each 50 results)", rate.x, rate.series, {unit: "%"});
+  else { const p = document.createElement("p"); p.textContent = "No NOK results in these points."; host.appendChild(p); }
+}
+
+function drawCalibration(host, d) {
+  const c = d.columns, n = c.t.length;
+  c.cameras.forEach((cam) => chart(host, "Camera " + cam + ": mean residual (px)", c.t, [
+    {label: "du", values: c.camera_du[cam]}, {label: "dv", values: c.camera_dv[cam]},
+    {label: "RMS", values: c.camera_rms[cam]}, {label: "0", band: true, values: band(n, 0)}], {unit: "px", height: 180}));
+}
+
+function setupCharts() {
+  const host = document.getElementById("charts");
+  if (!host) return;
+  const form = document.getElementById("trend-filters");
+  const load = () => {
+    const q = new URLSearchParams();
+    new FormData(form).forEach((v, k) => { if (v) q.set(k, v); });
+    host.textContent = "loading…";
+    const t0 = performance.now();
+    fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
+      .then((r) => r.json()).then((d) => {
+        host.textContent = "";
+        (host.dataset.kind === "calibration" ? drawCalibration : drawTrends)(host, d);
+        host.dataset.points = String(d.columns.t.length);
+        host.dataset.drawMs = String(Math.round(performance.now() - t0));
+      }).catch((err) => { host.textContent = "could not load: " + err.message; });
+  };
+  form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });
+  load();
+}
+
+function setupDrift() {
+  const box = document.getElementById("drift");
+  if (!box || !box.dataset.src) return;
+  fetch(box.dataset.src, {credentials: "same-origin"}).then(async (r) => {
+    const d = await r.json();
+    if (!r.ok) throw new Error(d.detail || ("HTTP " + r.status));
+    box.textContent = "";
+    const list = Array.isArray(d) ? d : (d.warnings || d.cameras || d.items || null);
+    if (list && list.length === 0) { box.textContent = "No drift warnings."; return; }
+    if (list) {
+      const ul = document.createElement("ul");
+      list.forEach((w) => {
+        const li = document.createElement("li");
+        li.className = w.warning || w.alarm || w.drifting ? "drift-warning" : "";
+        li.textContent = w.message || w.text || JSON.stringify(w);
+        ul.appendChild(li);
+      });
+      box.appendChild(ul);
+    } else {
+      const pre = document.createElement("pre");
+      pre.textContent = JSON.stringify(d, null, 2);
+      box.appendChild(pre);
+    }
+  }).catch((err) => { box.textContent = "drift detector: " + err.message; });
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  setupLogin(); setupLogout(); setupActions(); setupLive(); setupCharts(); setupDrift();
+});
