@@ -155,8 +155,8 @@ async def _main() -> int:
     from mvpose_core.synth import random_displacement
     from server.loopback import running_server
     from server.pipeline import PipelineOptions, auto_detect_processes
-    from server.runtime import RuntimeOptions
     from server.settings import Settings
+    from server.station.core import StationOptions
 
     station = load_station(ROOT / "deploy" / "stations" / "station1.yaml")
     recipe = station.recipe()
@@ -178,7 +178,7 @@ async def _main() -> int:
         procs = int(os.environ.get("MVPOSE_DETECT_PROCESSES", auto_detect_processes()))
         print(f"  detection: {procs or 'threads, no'} worker processes", flush=True)
         threads = int(os.environ.get("MVPOSE_DETECT_THREADS", PipelineOptions.detect_workers))
-        opts = RuntimeOptions(sim_seed=7, sim_render=RenderOptions(),
+        opts = StationOptions(sim_seed=7, sim_render=RenderOptions(),
                               pipeline=PipelineOptions(detect_processes=procs,
                                                        detect_workers=threads))
         async with running_server(settings, opts) as lb:

@@ -1,41 +1,37 @@
-"""The FastAPI application: create_app(settings, runtime) and the lifespan that opens the services.
+"""The FastAPI application of the API process: create_app(settings, station) and its lifespan.
 
 The store, image archive and metrics open in the lifespan (in a worker thread: migrations block)
 and are yielded as typed state; endpoints reach them through the Annotated dependencies of
-server/api/deps.py. Parts that need the station's hardware (cameras, PLC, the per-trigger
-pipeline) come in as a :class:`Runtime`: its routers are mounted under /api/v1 next to ours, and
-its lifespan runs inside ours, after the services are open and before they close.
+server/api/deps.py. The station itself (cameras, links, pipeline) runs in the station process;
+this app reaches it through ``station``, the control channel's client
+(server.station.client.StationClient), kept on ``app.state.station``. Without one, the station
+routes answer 503 and the read side works as ever.
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Mapping, Sequence
-from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import Protocol, TypedDict
+from collections.abc import AsyncIterator, Mapping
+from contextlib import asynccontextmanager
+from typing import Any, Protocol, TypedDict
 
 import anyio.to_thread
-from fastapi import APIRouter, FastAPI
+from fastapi import FastAPI
 
 from server.api import PREFIX, api_router
 from server.api.problems import BodyLimitMiddleware, install_problem_handlers
-from server.priority import TriggerFirst, TriggerFirstMiddleware
 from server.settings import Settings
 from server.state import Services, open_services
+from server.web import install as install_web
 
 
-class Runtime(Protocol):
-    """What the station runtime (cameras, PLC, pipeline) provides to the app."""
-
-    def routers(self) -> Sequence[APIRouter]:
-        """Routers mounted under /api/v1 (station status, REST trigger, teach reference)."""
-        ...
-
-    def lifespan(self, services: Services) -> AbstractAsyncContextManager[None]:
-        """Open the hardware with the open services; close it on exit (runs inside the app's)."""
-        ...
+class StationHandle(Protocol):
+    """What the API needs of the station process (server.station.client.StationClient)."""
 
     def readiness(self) -> Mapping[str, bool]:
-        """Named checks for /health/ready, e.g. {"cameras": True, "plc": False}."""
+        """Named checks for /health/ready, e.g. {"station": True, "cameras": True}."""
+        ...
+
+    def status(self) -> dict[str, Any]:
         ...
 
 
@@ -43,18 +39,16 @@ class AppState(TypedDict):
     services: Services
 
 
-def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
-    """The station's app; nothing is opened until the lifespan starts."""
+def create_app(settings: Settings, station: StationHandle | None = None) -> FastAPI:
+    """The station's API app; nothing is opened until the lifespan starts."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[AppState]:
-        services = await anyio.to_thread.run_sync(open_services, settings)
+        # The station process seeds the recipes; this process only reads them.
+        services = await anyio.to_thread.run_sync(
+            lambda: open_services(settings, seed=station is None))
         try:
-            if runtime is None:
-                yield {"services": services}
-            else:
-                async with runtime.lifespan(services):
-                    yield {"services": services}
+            yield {"services": services}
         finally:
             await anyio.to_thread.run_sync(services.close)
 
@@ -63,16 +57,12 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         version=settings.resolved_software_version,
         summary="Multi-view 6-DoF pose of car-body parts: results, audit trail, recipes.",
         lifespan=lifespan,
+        docs_url=None,  # served by server.web from the swagger-ui-dist package (offline)
+        redoc_url=None,
     )
-    app.state.runtime = runtime
+    app.state.station = station
     install_problem_handlers(app)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
-    gate = getattr(runtime, "gate", None)
-    if isinstance(gate, TriggerFirst):  # outermost: a held request has cost nothing yet
-        app.add_middleware(TriggerFirstMiddleware, gate=gate,
-                           exempt=frozenset({f"{PREFIX}/health/live"}))
     app.include_router(api_router(), prefix=PREFIX)
-    if runtime is not None:
-        for router in runtime.routers():
-            app.include_router(router, prefix=PREFIX)
+    install_web(app)  # the operator page and /docs
     return app

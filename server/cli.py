@@ -16,7 +16,9 @@ if TYPE_CHECKING:
 # ``run(args) -> int``; importing lazily keeps ``mvpose --help`` fast and free of heavy imports.
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("server.commands.demo", "run the station demo on simulated hardware"),
-    "serve": ("server.commands.serve", "run the station server for a station file"),
+    "serve": ("server.commands.serve", "run the station server (station + API processes)"),
+    "station": ("server.commands.station", "run the station process alone (no HTTP)"),
+    "api": ("server.commands.api", "run the API process alone (REST, operator page)"),
     "simulate": ("server.commands.simulate", "accuracy studies and station planning"),
     "calibrate": ("server.commands.calibrate", "camera, stereo, hand-eye and station calibration"),
     "validate": (

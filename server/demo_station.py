@@ -16,8 +16,8 @@ from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
 from server.loopback import Loopback, TriggerRow, move_part, running_station, trigger
 from server.pipeline import PipelineOptions, auto_detect_processes
-from server.runtime import RuntimeOptions
 from server.settings import Settings
+from server.station.core import StationOptions
 
 
 def _free(port: int) -> int:
@@ -60,7 +60,7 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
                 port: int, token: str, max_mm: float, max_deg: float) -> int:
     rng = np.random.default_rng(seed)
     # The pipeline as `mvpose serve` runs it on this machine.
-    options = RuntimeOptions(
+    options = StationOptions(
         sim_seed=seed, pipeline=PipelineOptions(detect_processes=auto_detect_processes()))
     async with running_station(settings, options, http_port=port) as lb:
         rt = lb.runtime
@@ -97,7 +97,7 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
                       f"   {row.server_ms:5.1f} ms  OK{'  BEYOND TOLERANCE' if wrong else ''}")
             else:
                 nok += 1
-                msg = rt.last.message if rt.last else ""
+                msg = rt.last["message"] if rt.last else ""
                 print(f"      NOK {reason_name(row.result_code)} ({row.result_code}) after "
                       f"{row.server_ms:.1f} ms: {msg}")
         _summary(rows, nok)

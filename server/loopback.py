@@ -1,4 +1,4 @@
-"""The whole station on loopback: app + runtime on simulated cameras, and a PLC twin driving it.
+"""The whole station on loopback: station + API on simulated cameras, and a PLC twin driving it.
 
 Used by ``mvpose demo``, the end-to-end tests and the station benchmark, so all three run the same
 production code paths: the FastAPI app with its lifespan (store, migrations, tokens), the
@@ -22,8 +22,10 @@ from drivers.plc.twin import PlcStatus, PlcTwin
 from mvpose_core.station import RecipeConfig, load_station
 from mvpose_core.transforms import Array, compose, from_robot, invert, to_robot, transform_error
 from server.app import create_app
-from server.runtime import RuntimeOptions, StationRuntime
 from server.settings import Settings
+from server.station.client import StationClient
+from server.station.core import Station, StationOptions
+from server.station.process import StationProcess
 
 
 @dataclass(frozen=True)
@@ -56,7 +58,7 @@ def offset_error(recipe: RecipeConfig, true: Array, measured: Array) -> tuple[fl
                            compose(from_robot(true, conv), G))
 
 
-async def move_part(runtime: StationRuntime, twin: PlcTwin, T_rf_from_pf: Array) -> None:
+async def move_part(runtime: Station, twin: PlcTwin, T_rf_from_pf: Array) -> None:
     """Render every simulated camera at the new part pose (in a thread; the PLC keeps beating)."""
     await asyncio.to_thread(runtime.scene.set_part_pose, T_rf_from_pf)
 
@@ -87,7 +89,7 @@ async def trigger(
 
 @dataclass
 class Loopback:
-    runtime: StationRuntime
+    runtime: Station
     twin: PlcTwin
     server: uvicorn.Server | None
     base_url: str | None
@@ -95,57 +97,63 @@ class Loopback:
 
 @dataclass
 class RunningServer:
-    runtime: StationRuntime
+    runtime: Station
     server: uvicorn.Server | None
     base_url: str | None
 
 
 @contextlib.asynccontextmanager
 async def running_server(
-    settings: Settings, options: RuntimeOptions | None = None, *,
+    settings: Settings, options: StationOptions | None = None, *,
     http_host: str = "127.0.0.1", http_port: int | None = 0,
 ) -> AsyncIterator[RunningServer]:
-    """App (served by uvicorn unless ``http_port`` is None) + runtime, with no PLC attached.
+    """The station (with its control channel) + the API app served by uvicorn (unless
+    ``http_port`` is None), in this process, with no PLC attached.
 
-    The station is ``settings.station``, read here as ``mvpose serve`` reads it. The PLC side is
-    up to the caller: :func:`running_station` adds an in-process twin; the station benchmark
-    runs the twin in a process of its own, as a real PLC is another device.
+    `mvpose serve` runs the two as processes of their own; here they are threads of this one, so
+    tests can reach into the station (its simulated scene, its store) while the API reaches it
+    through the control channel exactly as in production. The station file is
+    ``settings.station``; the Modbus link listens on a free loopback port. The PLC side is up to
+    the caller: :func:`running_station` adds an in-process twin; the station benchmark runs
+    `mvpose serve` and the twin as processes.
     """
     if settings.station is None:
         raise ValueError("settings.station must name the station file")
     station = load_station(settings.station)
-    runtime = StationRuntime(station, options or RuntimeOptions())
-    app = create_app(settings, runtime)
-    if http_port is None:
-        # No HTTP server: the gate would bind to (and hold) the caller's loop, the PLC twin's.
-        runtime.gate.hold_loop = False
-        async with _lifespan(app):
-            yield RunningServer(runtime=runtime, server=None, base_url=None)
-        return
-    config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
-                            lifespan="on")
-    server = uvicorn.Server(config)
-    failed: list[str] = []
-    # uvicorn on a thread and event loop of its own, as `mvpose serve` runs it apart from the
-    # station loop and the PLC: the gate holds that loop during triggers (server/priority.py),
-    # never the caller's, where an in-process PLC twin may run.
-    thread = threading.Thread(target=_serve, args=(server, failed), name="http", daemon=True)
-    thread.start()
+    modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
+    station = station.model_copy(update={"links": station.links.model_copy(
+        update={"modbus": modbus})})
+    proc = StationProcess(settings, station, options or StationOptions())
+    await asyncio.to_thread(proc.start)
     try:
-        deadline = time.monotonic() + 60
-        while not server.started:
-            if not thread.is_alive():
-                why = "".join(failed) or "see the log"
-                raise RuntimeError(f"the station server failed to start ({why})")
-            if time.monotonic() > deadline:
-                raise TimeoutError("the station server did not start within 60 s")
-            await asyncio.sleep(0.02)
-        sock = server.servers[0].sockets[0].getsockname()
-        yield RunningServer(runtime=runtime, server=server,
-                            base_url=f"http://{sock[0]}:{sock[1]}")
+        if http_port is None:
+            yield RunningServer(runtime=proc.station, server=None, base_url=None)
+            return
+        app = create_app(settings, StationClient(settings.resolved_control_socket))
+        config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
+                                lifespan="on")
+        server = uvicorn.Server(config)
+        failed: list[str] = []
+        thread = threading.Thread(target=_serve, args=(server, failed), name="http",
+                                  daemon=True)
+        thread.start()
+        try:
+            deadline = time.monotonic() + 60
+            while not server.started:
+                if not thread.is_alive():
+                    why = "".join(failed) or "see the log"
+                    raise RuntimeError(f"the API server failed to start ({why})")
+                if time.monotonic() > deadline:
+                    raise TimeoutError("the API server did not start within 60 s")
+                await asyncio.sleep(0.02)
+            sock = server.servers[0].sockets[0].getsockname()
+            yield RunningServer(runtime=proc.station, server=server,
+                                base_url=f"http://{sock[0]}:{sock[1]}")
+        finally:
+            server.should_exit = True
+            await asyncio.to_thread(thread.join, 60)
     finally:
-        server.should_exit = True
-        await asyncio.to_thread(thread.join, 60)
+        await asyncio.to_thread(proc.stop)
 
 
 async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asyncio.Task[None]]:
@@ -188,7 +196,7 @@ async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
 
 @contextlib.asynccontextmanager
 async def running_station(
-    settings: Settings, options: RuntimeOptions | None = None, *,
+    settings: Settings, options: StationOptions | None = None, *,
     http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
 ) -> AsyncIterator[Loopback]:
     """:func:`running_server` plus a connected, enabled PLC twin in this process."""
@@ -209,10 +217,3 @@ def _serve(server: uvicorn.Server, failed: list[str]) -> None:
         server.run()
     except SystemExit as err:
         failed.append(f"exit {err.code}; see the log")
-
-
-@contextlib.asynccontextmanager
-async def _lifespan(app: object) -> AsyncIterator[None]:
-    """The app's lifespan without a socket (the benchmark's baseline runs no HTTP server)."""
-    async with app.router.lifespan_context(app):  # type: ignore[attr-defined]
-        yield

@@ -1,4 +1,4 @@
-"""The per-trigger pipeline: parallel capture, window detection, measure + gate, record, outcome.
+"""The per-trigger pipeline: parallel capture, window detection, measure + gate → a verdict.
 
 One trigger, in order (every stage timed, the times go into the record)::
 
@@ -11,13 +11,14 @@ One trigger, in order (every stage timed, the times go into the record)::
     correct   the perspective correction of each centre recomputed at the estimated pose (detect
               applied it at the prior pose), and the pose measured again if any correction moved
               by more than PipelineOptions.recorrect_px (see docs/detection.md)
-    store     the MeasurementRecord appended durably (before the PLC can see RESULT_VALID)
 
-The station's deadline (``station.deadline_ms``) runs from the moment the trigger was taken. The
-verdict is decided before the record is written, with the store's recent slow (p90) write time
-kept in reserve: a result that cannot reach the PLC in time becomes DEADLINE_EXCEEDED in the
-record *and* on the PLC, never a late offset. Everything here is blocking and runs on the
-runtime's trigger thread, never on an event loop.
+The result is a :class:`StationResult` in the station's terms (full-precision pose, one reason
+code); the audit record is built from it by server.station.records and appended by the station
+(server.station.core) before any link sees the answer. The deadline (``station.deadline_ms``)
+runs from the moment the trigger was taken; the verdict keeps the recent append time in reserve,
+so a result that cannot reach the link in time becomes DEADLINE_EXCEEDED in the record *and* on
+the link, never a late offset. Everything here is blocking and runs on the station's trigger
+thread, never on an event loop.
 """
 
 from __future__ import annotations
@@ -27,16 +28,13 @@ import os
 import statistics
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from datetime import datetime
 
 import numpy as np
 
 from drivers.cameras import CaptureGroup, DriverError, Frame
-from drivers.plc.codecs import pose_to_plc
-from drivers.plc.seam import TriggerOutcome
 from mvpose_core.detect import (
     DetectOptions,
     MarkDetection,
@@ -47,23 +45,13 @@ from mvpose_core.detect import (
 )
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
-from mvpose_core.reasons import Reason, reason_name
+from mvpose_core.reasons import Reason
 from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import synthetic_observations
 from mvpose_core.transforms import Array
 from server.detect_pool import DetectPool
 from server.recipes import ActiveRecipe
-from server.store.schemas import (
-    CameraDetections,
-    Detection,
-    ImageRef,
-    MeasurementRecord,
-    Offset,
-    Residuals,
-    StoredMeasurement,
-    Uncertainty,
-)
 
 log = logging.getLogger(__name__)
 
@@ -120,15 +108,19 @@ class ViewCapture:
 
 
 @dataclass(frozen=True)
-class TriggerResult:
-    """The PLC's answer and, for a final view, the stored record."""
+class StationResult:
+    """The station's verdict on one trigger (every view gathered), before it is recorded."""
 
-    outcome: TriggerOutcome
-    record: MeasurementRecord | None
-    stored: StoredMeasurement | None
-    measurement: Measurement | None
-    frames: dict[tuple[int, str], np.ndarray]
+    code: int  # mvpose_core.reasons.Reason
     message: str
+    measurement: Measurement | None
+    views: tuple[ViewCapture, ...]
+    timings_ms: dict[str, float]
+    frames: dict[tuple[int, str], np.ndarray]
+
+    @property
+    def ok(self) -> bool:
+        return self.code == 0
 
 
 class Pipeline:
@@ -138,20 +130,10 @@ class Pipeline:
         self,
         station: StationConfig,
         capture: CaptureGroup,
-        record_sink: Callable[[MeasurementRecord], StoredMeasurement],
-        *,
-        software_version: str,
-        calibration: tuple[str, str] | None = None,
-        plan_images: Callable[[int, datetime, bool, Sequence[tuple[int, str]]], list[ImageRef]]
-        | None = None,
         options: PipelineOptions = PipelineOptions(),  # noqa: B008 - frozen
     ) -> None:
         self.station = station
         self.capture = capture
-        self.record_sink = record_sink
-        self.software_version = software_version
-        self.calibration = calibration
-        self.plan_images = plan_images
         self.options = options
         self.deadline_s = station.deadline_ms / 1000.0
         self._pool = (ThreadPoolExecutor(options.detect_workers, thread_name_prefix="detect")
@@ -269,18 +251,14 @@ class Pipeline:
             for m in sighted_marks(recipe, vcap.view, cid)
         ]
 
-    # ------------------------------------------------------------------ measure + record
-    def conclude(
-        self,
-        *,
-        trigger_id: int,
-        part_id: str | None,
-        triggered_at: datetime,
-        t0: float,
-        recipe: ActiveRecipe,
-        views: Sequence[ViewCapture],
-    ) -> TriggerResult:
-        """Measure from every view, gate, write the record, and build the PLC's outcome."""
+    # ------------------------------------------------------------------ measure + verdict
+    def conclude(self, *, t0: float, recipe: ActiveRecipe,
+                 views: Sequence[ViewCapture]) -> StationResult:
+        """Measure from every view and gate: the station's verdict, ready to be recorded.
+
+        The verdict is final here. What remains before a link has the answer (the record built
+        and appended) is kept in reserve against the deadline: the recent slow (p90) append
+        time, reported back by :meth:`note_append_ms`."""
         timings: dict[str, float] = {}
         for v in views:
             for stage, ms in v.timings_ms.items():
@@ -314,93 +292,35 @@ class Pipeline:
         except PoseInputError as err:  # too few marks, a layout that fixes no pose, ...
             code, message = int(err.reason), str(err)
         except Exception as err:  # the record must still be written, with the reason
-            log.exception("trigger %d: measurement failed", trigger_id)
+            log.exception("measurement failed")
             code, message = int(Reason.INTERNAL_ERROR), f"{type(err).__name__}: {err}"
         failed_cams = {cid for v in views for cid in v.camera_errors}
         if code in (Reason.MARKS_MISSING, Reason.TOO_FEW_MARKS) and failed_cams:
             errs = "; ".join(e for v in views for e in v.camera_errors.values())
-            code = int(Reason.CAMERA_FAILED)
+            detect_only = all(e.startswith("detection:") for v in views
+                              for e in v.camera_errors.values())
+            code = int(Reason.DETECTION_FAILED if detect_only else Reason.CAMERA_FAILED)
             message = f"{message}; {errs}"
+        if code == 0 and meas is not None and not _finite_measurement(meas):
+            code, message = int(Reason.INTERNAL_ERROR), "the estimate is not finite"
 
-        # The verdict is final here: keep the store's usual slow write (p90 of the last 50) in
-        # reserve. Not the maximum: one fsync stall would otherwise fail the next 50 triggers.
+        # Keep the usual slow append (p90 of the last 50) in reserve. Not the maximum: one fsync
+        # stall would otherwise fail the next 50 triggers.
         reserve = max(self.options.store_reserve_ms, _p90(self._store_ms))
         elapsed = (time.monotonic() - t0) * 1e3
         if code == 0 and elapsed + reserve > self.station.deadline_ms:
             code = int(Reason.DEADLINE_EXCEEDED)
-            message = (f"result ready after {elapsed:.1f} ms, {reserve:.1f} ms kept for the store: "
-                       f"past the {self.station.deadline_ms:g} ms deadline")
-        ok = code == 0
-
+            message = (f"the result was ready {elapsed:.1f} ms after the trigger and needs about "
+                       f"{reserve:.1f} ms more to be stored: past the {self.station.deadline_ms:g}"
+                       f" ms cycle deadline, so no offset is sent")
         frames = {(v.view, cid): img for v in views for cid, img in v.frames.items()}
-        images: list[ImageRef] = []
-        if self.plan_images is not None:
-            images = self.plan_images(trigger_id, triggered_at, ok, sorted(frames))
         timings["total"] = (time.monotonic() - t0) * 1e3
-        record = self._record(trigger_id, part_id, triggered_at, recipe, views, meas, code, images,
-                              timings, message)
-        t = time.monotonic()
-        stored = self.record_sink(record)
-        store_ms = (time.monotonic() - t) * 1e3
-        self._store_ms.append(store_ms)
-        processing_ms = (time.monotonic() - t0) * 1e3
-        plc_offset: tuple[float, ...] = (0.0,) * 6
-        if ok and meas is not None:  # never an offset with a NOK code
-            plc_offset = pose_to_plc(meas.offset.tolist(), rc.robot_convention)
-        outcome = TriggerOutcome(
-            result_code=code,
-            offset=plc_offset,
-            sigma_trans_mm=float(meas.sigma_trans_mm) if meas else 0.0,
-            sigma_rot_deg=float(meas.sigma_rot_deg) if meas else 0.0,
-            processing_ms=processing_ms,
-            views_done=len(views),
-            final=True,
-        )
-        return TriggerResult(outcome=outcome, record=record, stored=stored, measurement=meas,
-                             frames=frames, message=message)
+        return StationResult(code=code, message=message, measurement=meas, views=tuple(views),
+                             timings_ms=timings, frames=frames)
 
-    def _record(
-        self, trigger_id: int, part_id: str | None, triggered_at: datetime, recipe: ActiveRecipe,
-        views: Sequence[ViewCapture], meas: Measurement | None, code: int,
-        images: list[ImageRef], timings: dict[str, float], message: str,
-    ) -> MeasurementRecord:
-        rc = recipe.config
-        dets = [
-            CameraDetections(view=v.view, camera_id=cid, detections=[_detection(d) for d in ds])
-            for v in views for cid, ds in v.detections.items()
-        ]
-        pose = offset = unc = res = None
-        if meas is not None:
-            pose = MeasurementRecord.matrix(meas.T_rf_from_pf)
-            offset = Offset(convention=rc.robot_convention,
-                            values=[float(x) for x in meas.offset])
-            unc = Uncertainty(sigma_mm=float(meas.sigma_trans_mm),
-                              sigma_deg=float(meas.sigma_rot_deg))
-            r = np.asarray(meas.pose.residuals_px, dtype=float).reshape(-1, 2)
-            norms = np.linalg.norm(r, axis=1) if len(r) else np.zeros(1)
-            res = Residuals(rms_px=float(np.sqrt(np.mean(norms**2))), max_px=float(norms.max()))
-        return MeasurementRecord(
-            station=self.station.name,
-            trigger_id=trigger_id,
-            part_id=part_id or None,
-            triggered_at=triggered_at,
-            recipe=rc.name,
-            recipe_version=recipe.version,
-            calibration_id=self.calibration[0] if self.calibration else None,
-            calibration_hash=self.calibration[1] if self.calibration else None,
-            software_version=self.software_version,
-            result="OK" if code == 0 else "NOK",
-            reason_code=code,
-            reason=reason_name(code),
-            message=message[:500] or None,
-            detections=dets,
-            T_rf_from_pf=pose,
-            offset=offset,
-            uncertainty=unc,
-            residuals=res,
-            timings_ms={k: round(v, 4) for k, v in timings.items()},
-            images=images,
-        )
+    def note_append_ms(self, ms: float) -> None:
+        """How long the last record's append took (the deadline reserve learns from it)."""
+        self._store_ms.append(ms)
 
 
 def _p90(values: Sequence[float]) -> float:
@@ -412,15 +332,7 @@ def _p90(values: Sequence[float]) -> float:
     return statistics.quantiles(values, n=10, method="inclusive")[-1]
 
 
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
-
-
-def _detection(d: MarkDetection) -> Detection:
-    quality = {k: float(v) for k, v in (("contrast", d.contrast), ("fit_residual_px",
-               d.fit_residual_px), ("axis_ratio", d.axis_ratio), ("radius_px", d.radius_px))
-               if _finite(v) is not None}
-    uv = (float(d.uv[0]), float(d.uv[1])) if d.found and d.uv is not None else None
-    return Detection(mark_id=d.mark_id, found=d.found and uv is not None, uv=uv,
-                     reason=(d.reason or None) and d.reason[:200], quality=quality)
-
+def _finite_measurement(meas: Measurement) -> bool:
+    values = [*np.asarray(meas.offset, dtype=float).ravel(), float(meas.sigma_trans_mm),
+              float(meas.sigma_rot_deg)]
+    return bool(np.all(np.isfinite(values)))

@@ -38,6 +38,8 @@ class Settings(BaseSettings):
     images_quota_mb: float = Field(2048.0, gt=0, description="disk quota of the image archive")
     max_body_bytes: int = Field(1_048_576, ge=1024, description="largest accepted request body")
     software_version: str | None = Field(None, description="default: the installed mvpose version")
+    control_socket: Path | None = Field(
+        None, description="the station process's control channel; default <data_dir>/station.sock")
 
     @field_validator("database_url")
     @classmethod
@@ -51,6 +53,10 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'mvpose.db').as_posix()}"
+
+    @property
+    def resolved_control_socket(self) -> Path:
+        return self.control_socket or self.data_dir / "station.sock"
 
     @property
     def resolved_images_dir(self) -> Path:

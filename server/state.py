@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mvpose_core.station import RecipeConfig, StationConfig, load_station
-from server.auth import ensure_bootstrap
+from server.auth import ensure_access
 from server.images import ImageArchive
 from server.metrics import Metrics
 from server.settings import Settings
@@ -44,8 +44,11 @@ class Services:
         self.store.close()
 
 
-def open_services(settings: Settings) -> Services:
+def open_services(settings: Settings, *, seed: bool = True, bootstrap: bool = True) -> Services:
     """Read the station file, open and migrate the store, seed recipes, ensure the bootstrap token.
+
+    The station process seeds the recipes (``seed``); the API process ensures the bootstrap
+    token (``bootstrap``); a process that is both does both.
 
     A malformed station file raises StationFileError naming file, field and value, which stops
     start-up. Blocking: the lifespan runs it in a worker thread.
@@ -54,10 +57,11 @@ def open_services(settings: Settings) -> Services:
     name = station.name if station else settings.station_name
     store = open_store(settings.resolved_database_url, name, settings.sqlite_synchronous)
     try:
-        if station is not None:
+        if station is not None and seed:
             seed_recipes(store, station, str(settings.station))
-        if settings.bootstrap_token is not None:
-            ensure_bootstrap(store.tokens, settings.bootstrap_token.get_secret_value())
+        if bootstrap:  # the bootstrap token, or a warning when nobody could log in
+            secret = settings.bootstrap_token
+            ensure_access(store.tokens, secret.get_secret_value() if secret else None)
         images = ImageArchive(
             settings.resolved_images_dir,
             store.images,

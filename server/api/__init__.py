@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from server.api import drift, health, measurements, metrics, tokens, versions
+from server.api import drift, health, measurements, metrics, station, tokens, versions
+from server.api.openapi import problem_responses
 
 PREFIX = "/api/v1"
 
@@ -20,5 +21,9 @@ def api_router() -> APIRouter:
         metrics.router,
     ):
         router.include_router(sub)
-    router.include_router(drift.router)
+    # What the station process can refuse (server.station.client): an unknown measurement or
+    # recipe, a busy station (server/api/openapi.py adds 401/403/422/503 and the rest).
+    router.include_router(station.router, responses=problem_responses(404, 409))
+    # Verify names a measurement that may not exist or have no pose.
+    router.include_router(drift.router, responses=problem_responses(404, 409))
     return router

@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Awaitable, Callable
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import Depends, Request, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel
+from pydantic import BaseModel, BeforeValidator, Field
 from starlette.concurrency import run_in_threadpool
 
 from server.auth import Principal, Role, authenticate, authenticate_recent, authorize
-from server.priority import TriggerFirst
 from server.state import Services
 from server.store import Store
+from server.store.schemas import MAX_ID
+from server.web.session import cookie_authorization
 
 _bearer = HTTPBearer(auto_error=False, description="API token: Authorization: Bearer mvp_…")
 
@@ -43,32 +46,22 @@ async def current_principal(
     _scheme: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> Principal:
     # _scheme only documents the bearer scheme in OpenAPI; the raw header is checked here so a
-    # wrong scheme gets its own message. A trigger that started since the request came in goes
-    # first (server.priority). A token verified within the last seconds is known without a
-    # query (TokenRepository.recent); otherwise the look-up, a database query, runs in the
-    # threadpool, off the event loop.
-    if (gate := _gate(request)) is not None:
-        await gate.wait()
+    # wrong scheme gets its own message. A token verified within the last seconds is known
+    # without a query (TokenRepository.recent); otherwise the look-up, a database query, runs in
+    # the threadpool, off the event loop.
     tokens, header = services.store.tokens, request.headers.get("authorization")
+    if header is None:  # the operator page's session cookie (CSRF-checked there)
+        header = cookie_authorization(request)
     principal = authenticate_recent(tokens, header)
     if principal is None:
         principal = await run_in_threadpool(authenticate, tokens, header)
     return principal
 
 
-def _gate(request: Request) -> TriggerFirst | None:
-    gate = getattr(getattr(request.app.state, "runtime", None), "gate", None)
-    return gate if isinstance(gate, TriggerFirst) else None
-
-
 def require(role: Role) -> Callable[..., Awaitable[Principal]]:
     async def dependency(
         request: Request, principal: Annotated[Principal, Depends(current_principal)]
     ) -> Principal:
-        # Triggers first, again: one that started during the token look-up goes before the
-        # endpoint's work (server.priority).
-        if (gate := _gate(request)) is not None:
-            await gate.wait()
         return authorize(principal, role)
 
     dependency.__name__ = f"require_{role.value}"
@@ -80,19 +73,37 @@ OperatorUser = Annotated[Principal, Depends(require(Role.OPERATOR))]
 EngineerUser = Annotated[Principal, Depends(require(Role.ENGINEER))]
 
 
-def _no_pause() -> None:
-    return None
+def _json_integer(value: object) -> object:
+    # JSON Schema's "integer" (what OpenAPI tells clients) is a number without a fractional
+    # part, 5.0 included; true/false and "5" are not numbers (pydantic's lax int takes them).
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError("expected an integer (a JSON number, not a string or true/false)")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
 
 
-async def get_pause(request: Request) -> Callable[[], None]:
-    """A checkpoint for an endpoint's own long work in the threadpool: it returns at once, or
-    when the trigger that started meanwhile has ended; all its calls in one request wait at
-    most the gate's bound together (server.priority)."""
-    gate = _gate(request)
-    return gate.budget() if gate is not None else _no_pause
+# Integers of request bodies, bounded (a number beyond the database's BIGINT is the client's
+# 422, not an overflow in the driver) and as JSON Schema reads "integer". Field must come
+# before the validator, or the bounds drop out of the OpenAPI document.
+IdInt = Annotated[int, Field(ge=1, le=MAX_ID), BeforeValidator(_json_integer)]
+VersionInt = Annotated[int, Field(ge=1, le=2**31 - 1), BeforeValidator(_json_integer)]
+ViewInt = Annotated[int, Field(ge=0, le=255), BeforeValidator(_json_integer)]
+Uint32 = Annotated[int, Field(ge=0, le=2**32 - 1), BeforeValidator(_json_integer)]
+
+_ISO_DATE = re.compile(r"\d{4}-\d{2}-\d{2}")
 
 
-PauseDep = Annotated[Callable[[], None], Depends(get_pause)]
+def _iso_only(value: object) -> object:
+    # pydantic reads a bare number as Unix time ("0.5" = 1970-01-01T00:00:00.5Z), which would
+    # pass a typo silently and skip the time-zone check: only ISO 8601 text is a date here.
+    if isinstance(value, str) and not _ISO_DATE.match(value):
+        raise ValueError("expected an ISO 8601 date and time with zone, e.g. 2026-11-02T06:00:00Z")
+    return value
+
+
+#: a query parameter's date and time: ISO 8601 text only (format date-time in OpenAPI)
+IsoDateTime = Annotated[datetime, BeforeValidator(_iso_only)]
 
 
 def json_response(model: BaseModel) -> Response:

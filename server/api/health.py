@@ -8,6 +8,7 @@ from fastapi import APIRouter, Request
 from sqlalchemy.exc import SQLAlchemyError
 
 from server.api.deps import ServicesDep
+from server.api.openapi import problem_responses
 from server.errors import NotReadyError, StoreUnavailableError
 from server.store.db import head_revision
 
@@ -20,9 +21,9 @@ async def live() -> dict[str, str]:
     return {"status": "alive"}
 
 
-@router.get("/ready")
+@router.get("/ready", responses=problem_responses(503))
 def ready(request: Request, services: ServicesDep) -> dict[str, Any]:
-    """The store answers at the newest schema and the runtime (if any) reports ready."""
+    """The store answers at the newest schema and the station process (if any) reports ready."""
     checks: dict[str, Any] = {}
     try:
         revision = services.store.revision()
@@ -34,9 +35,9 @@ def ready(request: Request, services: ServicesDep) -> dict[str, Any]:
             f"schema at revision {revision!r}, expected {head_revision()!r}"
         )
     checks["schema"] = revision
-    runtime = getattr(request.app.state, "runtime", None)
-    if runtime is not None:
-        parts = dict(runtime.readiness())
+    station = getattr(request.app.state, "station", None)
+    if station is not None:
+        parts = dict(station.readiness())
         checks.update(parts)
         missing = sorted(k for k, ok in parts.items() if not ok)
         if missing:

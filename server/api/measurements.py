@@ -5,14 +5,13 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Iterator
-from datetime import datetime
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
-from server.api.deps import PauseDep, ReadUser, ServicesDep, StoreDep, json_response
+from server.api.deps import IsoDateTime, ReadUser, ServicesDep, StoreDep, json_response
 from server.errors import NotFoundError
 from server.store.chain import canonical_json
 from server.store.schemas import (
@@ -39,10 +38,10 @@ class MeasurementPage(BaseModel):
 
 async def measurement_filter(
     since: Annotated[
-        datetime | None, Query(description="triggered at or after (ISO 8601, with zone)")
+        IsoDateTime | None, Query(description="triggered at or after (ISO 8601, with zone)")
     ] = None,
     until: Annotated[
-        datetime | None, Query(description="triggered before (ISO 8601, with zone)")
+        IsoDateTime | None, Query(description="triggered before (ISO 8601, with zone)")
     ] = None,
     result: Literal["OK", "NOK"] | None = None,
     reason_code: Annotated[int | None, Query(ge=0, le=65535)] = None,
@@ -71,13 +70,11 @@ def list_measurements(
     _: ReadUser,
     store: StoreDep,
     filters: FilterDep,
-    pause: PauseDep,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> Response:
     """Measurements, newest first; pass next_cursor back as cursor for the next page."""
-    items, next_cursor = store.measurements.summary_page(filters, cursor, limit, pause=pause)
-    pause()
+    items, next_cursor = store.measurements.summary_page(filters, cursor, limit)
     return json_response(MeasurementPage(items=items, next_cursor=next_cursor))
 
 

@@ -9,7 +9,7 @@ from typing import Any
 import yaml
 
 from drivers.cameras import RenderOptions
-from server.runtime import RuntimeOptions
+from server.station.core import StationOptions
 from server.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -44,5 +44,5 @@ def settings_for(station: Path, data_dir: Path, database_url: str | None = None)
                     bootstrap_token=ENGINEER, images_ok_every=1000)
 
 
-def runtime_options(seed: int = 0) -> RuntimeOptions:
-    return RuntimeOptions(sim_seed=seed, sim_render=FAST_RENDER)
+def runtime_options(seed: int = 0) -> StationOptions:
+    return StationOptions(sim_seed=seed, sim_render=FAST_RENDER)

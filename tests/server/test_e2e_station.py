@@ -170,7 +170,7 @@ async def test_lab_robot_mounted_two_views_through_the_plc(tmp_path: Path) -> No
                     assert row.rot_err_deg <= recipe.tolerances.rotation_deg
                     assert row.trans_err_mm <= recipe.tolerances.translation_mm
         rt.wait_idle()
-        rec = rt.services.store.measurements.get(rt.last.measurement_id).record
+        rec = rt.services.store.measurements.get(rt.last["measurement_id"]).record
         assert {c.view for c in rec.detections} == {1, 2}
         assert rt.services.store.measurements.count() == 4
 
@@ -201,21 +201,25 @@ def test_malformed_station_file_stops_startup_naming_file_field_value(
     assert not (tmp_path / "var").exists(), "nothing opened before the station file was valid"
 
 
-def test_bad_triggers_first_options_stop_startup_naming_them(
+def test_bad_link_options_stop_startup_naming_them(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path = station_file(tmp_path, "station1")
     base = ["serve", "--station", str(path), "--port", "0", "--plc-port", "0",
             "--data-dir", str(tmp_path / "var")]
-    assert cli_main([*base, "--rest-yield-ms", "-5"]) == 2
-    assert "--rest-yield-ms must be within 0 ... 1000, got -5.0" in capsys.readouterr().err
-    monkeypatch.setenv("MVPOSE_REST_YIELD_MS", "soon")
+    assert cli_main([*base, "--plc-word-order", "BADC"]) == 2
+    err = capsys.readouterr().err
+    assert "--plc-word-order" in err and "'BADC'" in err
+    monkeypatch.setenv("MVPOSE_PLC_ALLOWLIST", "10.1.2.0/24, plc-7")
     assert cli_main(base) == 2
-    assert "MVPOSE_REST_YIELD_MS: expected a number, got 'soon'" in capsys.readouterr().err
-    monkeypatch.delenv("MVPOSE_REST_YIELD_MS")
-    assert cli_main([*base, "--answer-read-wait-ms", "2000"]) == 2
-    assert "--answer-read-wait-ms must be within 0 ... 1000, got 2000.0" in capsys.readouterr().err
-    monkeypatch.setenv("MVPOSE_ANSWER_READ_WAIT_MS", "later")
-    assert cli_main(base) == 2
-    assert "MVPOSE_ANSWER_READ_WAIT_MS: expected a number, got 'later'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "MVPOSE_PLC_ALLOWLIST" in err and "'plc-7' is not an address" in err
+    monkeypatch.delenv("MVPOSE_PLC_ALLOWLIST")
+    assert cli_main([*base, "--plc-watchdog-s", "-1"]) == 2
+    assert "--plc-watchdog-s" in capsys.readouterr().err
+    for cmd in ("station", "api"):  # each process alone checks the same way
+        args = [cmd, "--station", str(path), "--data-dir", str(tmp_path / "var")]
+        monkeypatch.setenv("MVPOSE_PLC_UNIT_ID", "300")
+        assert cli_main(args) == 2
+        assert "MVPOSE_PLC_UNIT_ID" in capsys.readouterr().err
     assert not (tmp_path / "var").exists(), "nothing opened before the options were valid"

@@ -43,7 +43,7 @@ async def test_past_the_deadline_the_plc_gets_an_error_code_never_an_offset(tmp_
         assert status.result_code == Reason.DEADLINE_EXCEEDED
         assert status.offset_float == (0.0,) * 6
         lb.runtime.wait_idle()
-        stored = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id)
+        stored = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"])
         rec = stored.record
         # What the PLC got is what the audit trail says, with the pose kept for diagnosis.
         assert (rec.trigger_id, rec.result, rec.reason) == (41, "NOK", "DEADLINE_EXCEEDED")
@@ -67,7 +67,7 @@ async def test_a_camera_that_times_out_gives_camera_failed_and_the_others_still_
         status, _ = await trigger(lb.twin, recipe, 7, T)
         assert status.result_code == Reason.CAMERA_FAILED
         lb.runtime.wait_idle()
-        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
         by_cam = {c.camera_id: c.detections for c in rec.detections}
         assert all(not d.found and "camera" in (d.reason or "") for d in by_cam["back_left"])
         assert all(d.found for cid in ("top_left", "top_right", "back_right")
@@ -88,7 +88,7 @@ async def test_unknown_view_and_recipe_are_refused_and_recorded(tmp_path: Path) 
         done = await lb.twin.command(Command.SELECT_RECIPE, 2)
         assert done.has(Status.COMMAND_FAILED)
         assert done.command_result == Reason.UNKNOWN_RECIPE
-        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
         assert (rec.trigger_id, rec.part_id, rec.reason) == (9, "VIN-9", "UNKNOWN_VIEW")
         status, row = await trigger(lb.twin, recipe, 10, T)  # the station still measures
         assert status.result_code == 0 and row is not None
@@ -184,7 +184,7 @@ async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -
         await move_part(lb.runtime, lb.twin, T)
         status, row = await trigger(lb.twin, recipe, 3, T)
         assert status.result_code == 0 and row is not None
-        rec = lb.runtime.services.store.measurements.get(lb.runtime.last.measurement_id).record
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
         assert (rec.calibration_id, rec.calibration_hash) == (calib.id, calib.sha256)
 
     (tmp_path / "calib.json").write_text((tmp_path / "calib.json").read_text().replace(
@@ -204,12 +204,12 @@ async def test_detection_in_workers_matches_detection_in_process(
 
     from mvpose_core.detect import detect_marks
     from server.pipeline import PipelineOptions
-    from server.runtime import RuntimeOptions
+    from server.station.core import StationOptions
 
     opts = (PipelineOptions(detect_processes=2) if where == "processes"
             else PipelineOptions(detect_workers=2))
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
-    rt_opts = RuntimeOptions(sim_seed=0, sim_render=runtime_options().sim_render, pipeline=opts)
+    rt_opts = StationOptions(sim_seed=0, sim_render=runtime_options().sim_render, pipeline=opts)
     async with running_station(settings, rt_opts, http_port=None) as lb:
         rt = lb.runtime
         recipe = rt.active.config
@@ -218,7 +218,7 @@ async def test_detection_in_workers_matches_detection_in_process(
         status, row = await trigger(lb.twin, recipe, 5, T)
         assert status.result_code == 0 and row is not None
         assert row.trans_err_mm < recipe.tolerances.translation_mm
-        rec = rt.services.store.measurements.get(rt.last.measurement_id).record
+        rec = rt.services.store.measurements.get(rt.last["measurement_id"]).record
         blocks: list[str] = []
         if where == "processes":
             assert rt.pipeline._pool is None

@@ -1,0 +1,144 @@
+"""The options `mvpose serve`, `mvpose station` and `mvpose api` share, and how they resolve.
+
+Each value comes from the command line, else from its ``MVPOSE_*`` environment variable, else
+from the station file (link settings), else from the default; docs/operations.md lists them in
+one table. A bad value stops start-up with one line naming the option or the variable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+from typing import Any, TypeVar
+
+from server.cli import CliError, load_station_file
+
+_N = TypeVar("_N", int, float)
+
+# option → (environment variable, station-file field of links.modbus, what it is)
+LINK_OPTIONS: dict[str, tuple[str, str, str]] = {
+    "plc_host": ("MVPOSE_PLC_HOST", "host", "Modbus/TCP address to listen on"),
+    "plc_port": ("MVPOSE_PLC_PORT", "port", "Modbus/TCP port"),
+    "plc_unit_id": ("MVPOSE_PLC_UNIT_ID", "unit_id", "Modbus unit id answered (0 = any)"),
+    "plc_word_order": ("MVPOSE_PLC_WORD_ORDER", "word_order", "ABCD or CDAB"),
+    "plc_allowlist": ("MVPOSE_PLC_ALLOWLIST", "allowlist",
+                      "comma-separated PLC addresses or networks allowed to connect"),
+    "plc_watchdog_s": ("MVPOSE_PLC_WATCHDOG_S", "watchdog_s", "PLC heartbeat timeout, s"),
+    "plc_trigger_hold_s": ("MVPOSE_PLC_TRIGGER_HOLD_S", "trigger_hold_s",
+                           "TRIGGER held this long after the answer is an error, s"),
+}
+
+
+def add_common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--station", type=Path,
+                        help="station YAML file (default: $MVPOSE_STATION)")
+    parser.add_argument("--data-dir", type=Path,
+                        help="SQLite database, image archive, journal and control socket "
+                        "(default: $MVPOSE_DATA_DIR or ./var)")
+    parser.add_argument("--log-level", default="info",
+                        choices=["debug", "info", "warning", "error"])
+
+
+def add_station_options(parser: argparse.ArgumentParser) -> None:
+    for name, (env, field, what) in LINK_OPTIONS.items():
+        parser.add_argument("--" + name.replace("_", "-"), dest=name, default=None,
+                            help=f"{what} (default: ${env}, else the station file's "
+                            f"links.modbus.{field})")
+    parser.add_argument("--detect-processes", type=int, default=None,
+                        help="worker processes for mark detection (0 = in the station process; "
+                        "default: none below 4 cores, else half the cores, at most 4)")
+
+
+def add_api_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", help="REST address (default: $MVPOSE_HOST or 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="REST port (default: $MVPOSE_PORT or 8000)")
+    # Kept so that existing start scripts still run: the API has its own process now, so there
+    # is nothing left to hold back for a trigger.
+    for old in ("--rest-yield-ms", "--answer-read-wait-ms"):
+        parser.add_argument(old, type=float, default=None, help=argparse.SUPPRESS)
+
+
+def number(given: Any, name: str, default: _N, kind: type[_N], what: str) -> _N:
+    """The command-line value if given, else ``$name`` as ``kind``, else ``default``."""
+    raw = given if given is not None else os.environ.get(name)
+    if raw is None or raw == "":
+        return default
+    try:
+        return kind(raw)
+    except ValueError:
+        src = "option" if given is not None else "environment variable"
+        raise CliError(f"{src} {name}: expected {what}, got {raw!r}") from None
+
+
+def settings_from(args: argparse.Namespace) -> Any:
+    """Settings from the environment, with --station and --data-dir on top."""
+    from pydantic import ValidationError
+
+    from server.settings import Settings
+
+    overrides: dict[str, object] = {}
+    if args.station is not None:
+        overrides["station"] = args.station
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    try:
+        settings = Settings(**overrides)  # type: ignore[arg-type]
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise CliError(f"settings: MVPOSE_{str(first['loc'][0]).upper()}: {first['msg']} "
+                       f"(value: {first.get('input')!r})") from None
+    if settings.station is None:
+        raise CliError("no station file: pass --station FILE or set MVPOSE_STATION")
+    return settings
+
+
+def station_with_links(args: argparse.Namespace, path: Path) -> Any:
+    """The station file, its links.modbus block overridden from the command line and env."""
+    from pydantic import ValidationError
+
+    from mvpose_core.linkconfig import ModbusLinkConfig
+
+    station = load_station_file(path)
+    data = station.links.modbus.model_dump()
+    for name, (env, field, _what) in LINK_OPTIONS.items():
+        given = getattr(args, name, None)
+        raw = given if given is not None else os.environ.get(env)
+        if raw is None or raw == "":
+            continue
+        if field == "allowlist":
+            data[field] = tuple(x.strip() for x in str(raw).split(",") if x.strip())
+        else:
+            data[field] = raw
+        try:
+            ModbusLinkConfig.model_validate(data)
+        except ValidationError as err:
+            src = "--" + name.replace("_", "-") if given is not None else env
+            raise CliError(f"{src}: {err.errors()[0]['msg']} (value: {raw!r})") from None
+    modbus = ModbusLinkConfig.model_validate(data)
+    return station.model_copy(update={"links": station.links.model_copy(
+        update={"modbus": modbus})})
+
+
+def setup_logging(level: str) -> None:
+    logging.basicConfig(level=level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def api_address(args: argparse.Namespace) -> tuple[str, int]:
+    host = args.host or os.environ.get("MVPOSE_HOST") or "127.0.0.1"
+    port = number(args.port, "MVPOSE_PORT", 8000, int, "a port number")
+    if not 0 <= port <= 65535:
+        raise CliError(f"REST port must be 0 ... 65535, got {port}")
+    return host, port
+
+
+def forward(args: argparse.Namespace, names: list[str]) -> list[str]:
+    """The given options again, as command-line arguments for a child process."""
+    out: list[str] = []
+    for name in names:
+        value = getattr(args, name, None)
+        if value is not None:
+            out += ["--" + name.replace("_", "-"), str(value)]
+    return out

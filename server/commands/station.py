@@ -1,0 +1,32 @@
+"""``mvpose station --station FILE``: the station process alone (cameras, links, pipeline, store
+writes, control channel; no HTTP). `mvpose serve` runs it next to `mvpose api`; a deployment with
+two containers runs each command in its own."""
+
+from __future__ import annotations
+
+import argparse
+
+from server.cli import CliError
+from server.commands import options
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    options.add_common(parser)
+    options.add_station_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.pipeline import PipelineOptions, auto_detect_processes
+    from server.station.core import StationOptions
+    from server.station.process import run_station
+
+    options.setup_logging(args.log_level)
+    settings = options.settings_from(args)
+    station = options.station_with_links(args, settings.station)
+    procs = args.detect_processes
+    if procs is None:
+        procs = auto_detect_processes()
+    if procs < 0:
+        raise CliError(f"--detect-processes must be >= 0, got {procs}")
+    return run_station(settings, station, StationOptions(
+        sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)))

@@ -1,0 +1,123 @@
+"""The API process's handle on the station process: the control channel's client.
+
+Every call opens a connection, sends one request and reads one answer (a Unix socket on the
+same machine: well under a millisecond), so a restarted station is reached again without any
+reconnect logic. A station that does not answer is :class:`StationDownError`, which the API maps
+to 503 and readiness reports as ``station: false``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+from collections.abc import AsyncIterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from server.errors import ConflictError, InvalidInputError, NotFoundError, NotReadyError
+
+
+class StationDownError(NotReadyError):
+    """The station process does not answer on its control channel."""
+
+
+_KINDS: dict[str, type[Exception]] = {
+    "not_found": NotFoundError, "invalid": InvalidInputError, "conflict": ConflictError,
+    "busy": ConflictError,
+}
+
+
+class StationClient:
+    """Blocking calls to the station's control channel (from FastAPI's worker threads)."""
+
+    def __init__(self, path: Path, timeout_s: float = 5.0) -> None:
+        self.path = Path(path)
+        self.timeout_s = timeout_s
+
+    def call(self, op: str, timeout_s: float | None = None, **args: Any) -> Any:
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+                sock.settimeout(timeout)
+                sock.connect(str(self.path))
+                sock.sendall(json.dumps({"id": 1, "op": op, "args": args}).encode() + b"\n")
+                data = b""
+                while not data.endswith(b"\n"):
+                    chunk = sock.recv(1 << 20)
+                    if not chunk:
+                        break
+                    data += chunk
+        except (FileNotFoundError, ConnectionRefusedError) as err:
+            raise StationDownError(f"the station process is not running ({err.strerror})") \
+                from None
+        except TimeoutError:
+            raise StationDownError(f"the station process did not answer {op!r} within "
+                                   f"{timeout:g} s") from None
+        except OSError as err:
+            raise StationDownError(f"the station process is not reachable: {err}") from None
+        if not data:
+            raise StationDownError("the station process closed the control channel")
+        answer = json.loads(data)
+        if answer.get("ok"):
+            return answer.get("result")
+        err = answer.get("error") or {}
+        kind, message = err.get("kind", "internal"), err.get("message", "")
+        exc = _KINDS.get(kind)
+        if exc is None:
+            raise RuntimeError(f"the station failed: {message}")
+        raise exc(message)
+
+    # ------------------------------------------------------------------ what the API uses
+    def status(self) -> dict[str, Any]:
+        result: dict[str, Any] = self.call("status")
+        return result
+
+    def readiness(self) -> Mapping[str, bool]:
+        try:
+            parts: dict[str, bool] = self.call("readiness", timeout_s=2.0)
+        except StationDownError:
+            return {"station": False}
+        return {"station": True, **parts}
+
+    def trigger(self, part_id: str | None = None, view_index: int = 0,
+                trigger_id: int | None = None) -> dict[str, Any]:
+        result: dict[str, Any] = self.call("trigger", timeout_s=35.0, part_id=part_id,
+                                           view=view_index, trigger_id=trigger_id)
+        return result
+
+    def arm_teach(self, by: str) -> dict[str, Any]:
+        result: dict[str, Any] = self.call("arm_teach", by=by)
+        return result
+
+    def teach_from_measurement(self, measurement_id: int, by: str) -> dict[str, Any]:
+        result: dict[str, Any] = self.call("teach", timeout_s=35.0,
+                                           measurement_id=measurement_id, by=by)
+        return result
+
+    def activate_recipe(self, name: str, version: int | None, by: str) -> dict[str, Any]:
+        result: dict[str, Any] = self.call("activate_recipe", timeout_s=35.0, name=name,
+                                           version=version, by=by)
+        return result
+
+    def reload_recipes(self) -> None:
+        with contextlib.suppress(StationDownError):
+            self.call("reload_recipes", timeout_s=35.0)
+
+    async def events(self) -> AsyncIterator[dict[str, Any]]:
+        """Recorded answers as they happen (live pages); ends when the station goes away."""
+        try:
+            reader, writer = await asyncio.open_unix_connection(str(self.path))
+        except OSError as err:
+            raise StationDownError(f"the station process is not running ({err})") from None
+        try:
+            writer.write(b'{"id":1,"op":"subscribe"}\n')
+            await writer.drain()
+            await reader.readline()  # the subscription's acknowledgement
+            while line := await reader.readline():
+                yield json.loads(line)
+        finally:
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()

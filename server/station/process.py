@@ -1,0 +1,70 @@
+"""The station process: open the store, start the station and its control channel, run until
+SIGTERM or SIGINT, and stop in order (links first, so no trigger is taken that cannot finish)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+
+from mvpose_core.station import StationConfig
+from server.settings import Settings
+from server.state import open_services
+from server.station.control import ControlServer
+from server.station.core import Station, StationOptions
+
+log = logging.getLogger(__name__)
+
+
+class StationProcess:
+    """A started station with its control channel (``mvpose station``; tests run it in-process)."""
+
+    def __init__(self, settings: Settings, station: StationConfig,
+                 options: StationOptions | None = None) -> None:
+        self.settings = settings
+        self.station = Station(station, options)
+        self.control: ControlServer | None = None
+        self._services = None
+
+    def start(self) -> None:
+        services = open_services(self.settings, bootstrap=False)
+        self._services = services
+        try:
+            self.station.start(services)
+            control = ControlServer(self.station, self.settings.resolved_control_socket)
+            self.station.run_on_loop(control.start(), timeout=10)
+            self.control = control
+        except BaseException:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        if self.control is not None and self.station.loop is not None:
+            try:
+                self.station.run_on_loop(self.control.stop(), timeout=5)
+            except Exception:
+                log.exception("the control channel did not stop cleanly")
+        self.control = None
+        self.station.stop()
+        if self._services is not None:
+            self._services.close()
+            self._services = None
+
+
+def run_station(settings: Settings, station: StationConfig, options: StationOptions) -> int:
+    """Run until SIGTERM/SIGINT; 0 on a clean stop."""
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    proc = StationProcess(settings, station, options)
+    t = time.monotonic()
+    proc.start()
+    st = proc.station
+    links = ", ".join(f"{k} {v.get('port')}" for k, v in st.status()["links"].items())
+    print(f"mvpose station {station.name!r}: ready in {time.monotonic() - t:.1f} s; links: "
+          f"{links}; control {settings.resolved_control_socket}", flush=True)
+    stop.wait()
+    log.info("station %s: stopping", station.name)
+    proc.stop()
+    return 0
