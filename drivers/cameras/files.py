@@ -1,14 +1,21 @@
-"""A camera that replays an image folder in name order, for offline reprocessing.
+"""A camera that replays an image folder, for offline reprocessing: images matched to triggers
+by the number in their names.
 
-Each software trigger (or each grab when free running) takes the next image, as a triggered
-camera exposes one frame per trigger (so a frame dropped as stale still uses its image); after the
-last one the camera reports that the folder is exhausted. Images are read as they are: an 8-bit grey
-image is a frame, 8-bit colour is converted to grey, anything else (16-bit, float) is refused
-with the camera, the file and the format named.
+Every image's name carries a number (its last run of digits: ``0007.png``, ``frame0007.png``,
+``left-7.tif``); the folder's smallest number is the first trigger's image, and trigger k takes
+the image numbered ``first + k − 1`` — by name, never by position in the folder, so one missing
+file fails its own trigger alone (the camera names the number it looked for) and the next
+trigger still gets its own image. Each software trigger (or each grab when free running) takes
+the next number, as a triggered camera exposes one frame per trigger (a frame dropped as stale
+still uses its image); past the largest number the camera reports that the folder is exhausted.
+Images are read as they are (:func:`read_image`): an 8-bit grey image is a frame, 8-bit colour is
+converted to grey, anything else (16-bit, float) is refused with the camera, the file and the
+format named.
 """
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -28,6 +35,34 @@ def list_images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+_LAST_NUMBER = re.compile(r"(\d+)\D*$")
+
+
+def image_number(path: Path) -> int | None:
+    """The number an image's name carries (its last run of digits), None without one."""
+    m = _LAST_NUMBER.search(path.stem)
+    return int(m.group(1)) if m else None
+
+
+def read_image(path: Path, camera_id: str) -> Image:
+    """One image file as a mono8 frame: 8-bit grey as is, 8-bit colour converted to grey; an
+    unreadable file or any other format is a :class:`DriverOperationError` (``FrameFormatError``)
+    naming the camera, the file and the format."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DriverOperationError(f"camera {camera_id!r} (files): cannot read {str(path)!r}")
+    h, w = raw.shape[:2]
+    if raw.ndim == 2 and raw.dtype == np.uint8:
+        return raw  # type: ignore[return-value]  # uint8 checked above
+    fmt = {3: "bgr8", 4: "bgra8"}.get(raw.shape[2] if raw.ndim == 3 else 0, "")
+    if raw.dtype != np.uint8 or not fmt:
+        raise FrameFormatError(
+            f"camera {camera_id!r}: expected mono8, got {image_format(raw)} ({raw.dtype}) "
+            f"in {path.name!r}"
+        )
+    return to_mono8(raw, fmt, w, h, camera_id)
+
+
 class FilesCamera(Camera):
     """Replays ``driver.folder``."""
 
@@ -35,9 +70,10 @@ class FilesCamera(Camera):
 
     def __init__(self, config: CameraConfig) -> None:
         super().__init__(config)
-        self._files: list[Path] = []
+        self._files: dict[int, Path] = {}  # image number -> file
+        self._first = 0
         self._next = 0
-        self._pending: list[int] = []  # file indices taken by triggers, not yet grabbed
+        self._pending: list[int] = []  # trigger indices (0 = first) not yet grabbed
         self._trigger_mode: TriggerMode = "software"
         self._roi = CameraSettings()
 
@@ -53,7 +89,23 @@ class FilesCamera(Camera):
                 f"camera {self.camera_id!r} (files): no images {list(IMAGE_SUFFIXES)} "
                 f"in {str(folder)!r}"
             )
-        self._files = files
+        numbered: dict[int, Path] = {}
+        for f in files:
+            n = image_number(f)
+            if n is None:
+                raise DriverInitError(
+                    f"camera {self.camera_id!r} (files): {f.name!r} in {str(folder)!r} has no "
+                    "number in its name; images are matched to triggers by number "
+                    "(e.g. 0001.png, 0002.png, ...)"
+                )
+            if n in numbered:
+                raise DriverInitError(
+                    f"camera {self.camera_id!r} (files): {numbered[n].name!r} and {f.name!r} "
+                    f"in {str(folder)!r} both carry number {n}"
+                )
+            numbered[n] = f
+        self._files = numbered
+        self._first = min(numbered)
         self._next = 0
 
     def _configure(self, settings: CameraSettings) -> None:
@@ -88,34 +140,22 @@ class FilesCamera(Camera):
             index = self._pending.pop(0)
         else:
             index, self._next = self._next, self._next + 1
-        if index >= len(self._files):
+        number = self._first + index
+        if number > max(self._files):
             raise DriverOperationError(
                 f"camera {self.camera_id!r} (files): folder exhausted after "
                 f"{len(self._files)} images"
             )
-        path = self._files[index]
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
+        path = self._files.get(number)
+        if path is None:  # this trigger's image only; the next trigger takes the next number
             raise DriverOperationError(
-                f"camera {self.camera_id!r} (files): cannot read {str(path)!r}"
+                f"camera {self.camera_id!r} (files): no image numbered {number} for trigger "
+                f"{index + 1} in {self.config.driver.folder!r}"
             )
-        image = self._to_mono(raw, path)
-        return self._crop(image, path), index + 1, None
-
-    def _to_mono(self, raw: np.ndarray, path: Path) -> Image:
-        h, w = raw.shape[:2]
-        if raw.ndim == 2 and raw.dtype == np.uint8:
-            return raw
-        fmt = {3: "bgr8", 4: "bgra8"}.get(raw.shape[2] if raw.ndim == 3 else 0, "")
-        if raw.dtype != np.uint8 or not fmt:
-            raise FrameFormatError(
-                f"camera {self.camera_id!r}: expected mono8, got {image_format(raw)} ({raw.dtype}) "
-                f"in {path.name!r}"
-            )
-        return to_mono8(raw, fmt, w, h, self.camera_id)
+        return self._crop(read_image(path, self.camera_id), path), index + 1, None
 
     def _crop(self, image: Image, path: Path) -> Image:
         return np.ascontiguousarray(self._full_or_region(image, f" in {path.name!r}"))
 
     def _close(self) -> None:
-        self._files = []
+        self._files = {}

@@ -186,7 +186,7 @@ def test_pylon_failed_buffer_is_an_operation_error() -> None:
 def test_files_16_bit_image_is_refused(tmp_path: Path) -> None:
     folder = tmp_path / "deep"
     folder.mkdir()
-    cv2.imwrite(str(folder / "a.png"), np.full((H, W), 4000, dtype=np.uint16))
+    cv2.imwrite(str(folder / "0001.png"), np.full((H, W), 4000, dtype=np.uint16))
     with make_camera(camera_config("deep", kind="files", folder=str(folder))) as cam:
         cam.arm("software")
         cam.trigger()
