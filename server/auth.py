@@ -9,6 +9,7 @@ environment: ``MVPOSE_BOOTSTRAP_TOKEN`` is ensured at start-up as the engineer t
 from __future__ import annotations
 
 import hashlib
+import logging
 import secrets
 from dataclasses import dataclass
 from enum import StrEnum
@@ -16,8 +17,21 @@ from enum import StrEnum
 from server.errors import ForbiddenError, InvalidInputError, UnauthenticatedError
 from server.store.tokens import TokenInfo, TokenRepository
 
+log = logging.getLogger(__name__)
+
 TOKEN_PREFIX = "mvp_"
 BOOTSTRAP_NAME = "bootstrap"
+BOOTSTRAP_MIN_LENGTH = 16
+#: the command that makes the first engineer token when no bootstrap token is configured
+CREATE_COMMAND = "mvpose token create NAME --role engineer"
+
+# HTTP authentication schemes (IANA registry and common ones) that may be named back in a 401:
+# anything else in front of the first space may be the secret itself, sent without a scheme.
+_KNOWN_SCHEMES = frozenset({
+    "basic", "bearer", "digest", "dpop", "gnap", "hoba", "mutual", "negotiate", "ntlm",
+    "oauth", "privatetoken", "scram-sha-1", "scram-sha-256", "token", "vapid",
+    "aws4-hmac-sha256", "apikey",
+})
 
 
 class Role(StrEnum):
@@ -60,12 +74,35 @@ def create_token(repo: TokenRepository, name: str, role: Role) -> tuple[str, Tok
     return secret, repo.create(name, role.value, hash_secret(secret))
 
 
-def ensure_bootstrap(repo: TokenRepository, secret: str) -> TokenInfo:
-    if len(secret) < 16:
+def check_bootstrap_secret(secret: str) -> None:
+    """InvalidInputError unless ``secret`` is long enough to be the bootstrap token."""
+    if len(secret) < BOOTSTRAP_MIN_LENGTH:
         raise InvalidInputError(
-            f"MVPOSE_BOOTSTRAP_TOKEN must have at least 16 characters, got {len(secret)}"
+            f"MVPOSE_BOOTSTRAP_TOKEN must have at least {BOOTSTRAP_MIN_LENGTH} characters, "
+            f"got {len(secret)}"
         )
+
+
+def ensure_bootstrap(repo: TokenRepository, secret: str) -> TokenInfo:
+    check_bootstrap_secret(secret)
     return repo.upsert_secret(BOOTSTRAP_NAME, Role.ENGINEER.value, hash_secret(secret))
+
+
+def ensure_access(repo: TokenRepository, bootstrap_secret: str | None) -> TokenInfo | None:
+    """At start-up: ensure the bootstrap token if one is configured; otherwise warn when no live
+    engineer token exists (nobody could create tokens or change anything), naming the command
+    that creates one. Returns the bootstrap token's info, or None."""
+    if bootstrap_secret is not None:
+        return ensure_bootstrap(repo, bootstrap_secret)
+    if repo.live_count(Role.ENGINEER.value) == 0:
+        log.warning(
+            "no engineer token exists and MVPOSE_BOOTSTRAP_TOKEN is not set: nobody can create "
+            "tokens or change recipes. Create one with `%s` (with the same MVPOSE_DATA_DIR / "
+            "MVPOSE_DATABASE_URL / --station as the server; it prints the secret once) or set "
+            "MVPOSE_BOOTSTRAP_TOKEN (at least %d characters) and restart",
+            CREATE_COMMAND, BOOTSTRAP_MIN_LENGTH,
+        )
+    return None
 
 
 def bearer_hash(authorization: str | None) -> str:
@@ -75,9 +112,16 @@ def bearer_hash(authorization: str | None) -> str:
         raise UnauthenticatedError(
             "missing Authorization header; send 'Authorization: Bearer <token>'"
         )
-    scheme, _, secret = authorization.partition(" ")
-    if scheme.lower() != "bearer" or not secret.strip():
-        raise UnauthenticatedError(f"Authorization scheme {scheme[:20]!r} is not 'Bearer <token>'")
+    scheme, _, secret = authorization.strip().partition(" ")
+    if scheme.lower() != "bearer":
+        # Never echo what was sent: without a scheme, the first word is the secret itself.
+        named = f"scheme {scheme!r}" if scheme.lower() in _KNOWN_SCHEMES else (
+            "a value without the Bearer scheme (not shown: it may be the secret)")
+        raise UnauthenticatedError(
+            f"Authorization header has {named}; send 'Authorization: Bearer <token>'")
+    if not secret.strip():
+        raise UnauthenticatedError(
+            "Authorization header 'Bearer' has no token; send 'Authorization: Bearer <token>'")
     return hash_secret(secret.strip())
 
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import iter_route_contexts
 from pydantic import ValidationError
 from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -23,14 +25,17 @@ PROBLEM_JSON = "application/problem+json"
 
 
 def problem(
-    status: int, title: str, detail: str, slug: str, instance: str | None = None, **extra: Any
+    status: int, title: str, detail: str, slug: str, instance: str | None = None,
+    headers: Mapping[str, str] | None = None, **extra: Any,
 ) -> JSONResponse:
     body = {"type": PROBLEM_TYPE + slug, "title": title, "status": status, "detail": detail}
     if instance:
         body["instance"] = instance
     body.update(extra)
-    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
-    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
+    out = dict(headers or {})
+    if status == 401:
+        out["WWW-Authenticate"] = "Bearer"
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=out or None)
 
 
 def _errors(errors: list[Any]) -> list[dict[str, Any]]:
@@ -43,6 +48,17 @@ def _errors(errors: list[Any]) -> list[dict[str, Any]]:
         }
         for e in errors
     ]
+
+
+def allowed_methods(app: Any, path: str) -> str:
+    """The ``Allow`` value of ``path``: the methods of every route on it (Starlette's own 405
+    names only the first route that matched the path, e.g. GET but not the POST beside it)."""
+    methods: set[str] = set()
+    for route in iter_route_contexts(list(app.routes)):
+        regex, route_methods = getattr(route, "path_regex", None), route.methods
+        if regex is not None and route_methods and regex.match(path):
+            methods |= route_methods
+    return ", ".join(sorted(methods))
 
 
 def _to_response(exc: Exception, path: str) -> JSONResponse:
@@ -61,12 +77,14 @@ def _to_response(exc: Exception, path: str) -> JSONResponse:
         return problem(503, "Store unavailable", f"the database did not answer: "
                        f"{type(exc.orig).__name__}", "store-unavailable", path)
     if isinstance(exc, StarletteHTTPException):
+        # Its headers matter: a 405 carries Allow (the methods the path answers).
         return problem(
             exc.status_code,
             _REASON.get(exc.status_code, "HTTP error"),
             str(exc.detail),
             f"http-{exc.status_code}",
             path,
+            headers=exc.headers,
         )
     log.exception("unhandled error on %s", path, exc_info=exc)
     return problem(
@@ -86,9 +104,16 @@ _REASON = {
 
 
 def install_problem_handlers(app: FastAPI) -> None:
-    """Every error becomes application/problem+json through :func:`_to_response`."""
+    """Every error becomes application/problem+json through :func:`_to_response`, and the
+    app's OpenAPI document says so for every route (server/api/openapi.py)."""
+    from server.api.openapi import install_openapi  # it imports this module
+
+    install_openapi(app)
 
     async def handler(request: Request, exc: Exception) -> JSONResponse:
+        if isinstance(exc, StarletteHTTPException) and exc.status_code == 405:
+            allow = allowed_methods(request.app, request.url.path)
+            exc = StarletteHTTPException(405, exc.detail, {**(exc.headers or {}), "Allow": allow})
         return _to_response(exc, request.url.path)
 
     for exc_type in (

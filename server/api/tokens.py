@@ -8,6 +8,7 @@ from fastapi import APIRouter, Path
 from pydantic import BaseModel, Field
 
 from server.api.deps import EngineerUser, StoreDep
+from server.api.openapi import problem_responses
 from server.auth import Role, create_token
 from server.store.tokens import TokenInfo
 
@@ -24,9 +25,10 @@ class NewToken(BaseModel):
     token: str = Field(description="the secret; shown only in this response")
 
 
-@router.post("", response_model=NewToken, status_code=201)
+@router.post("", response_model=NewToken, status_code=201, responses=problem_responses(409))
 def create(request: TokenRequest, _: EngineerUser, store: StoreDep) -> NewToken:
-    """Create a token with a role; store the returned secret, it cannot be shown again."""
+    """Create a token with a role; store the returned secret, it cannot be shown again.
+    A revoked token's name may be used again; a live one's is a 409."""
     secret, info = create_token(store.tokens, request.name, request.role)
     return NewToken(info=info, token=secret)
 
@@ -37,9 +39,10 @@ def list_tokens(_: EngineerUser, store: StoreDep) -> list[TokenInfo]:
     return store.tokens.list()
 
 
-@router.delete("/{name}", response_model=TokenInfo)
+@router.delete("/{name}", response_model=TokenInfo, responses=problem_responses(409))
 def revoke(
     name: Annotated[str, Path(max_length=64)], _: EngineerUser, store: StoreDep
 ) -> TokenInfo:
-    """Revoke a token; requests with it fail from now on."""
+    """Revoke a token; requests with it fail from now on. The last live engineer token cannot
+    be revoked (409): nobody could manage tokens any more."""
     return store.tokens.revoke(name)

@@ -9,13 +9,16 @@ from datetime import UTC, datetime
 from typing import cast
 
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import Engine, Table, insert, select, update
+from sqlalchemy import Engine, Table, func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
 from server.errors import ConflictError, NotFoundError
 from server.store.models import TokenRow
 
 T = cast(Table, TokenRow.__table__)
+
+#: the role that manages tokens; its last live token cannot be revoked
+ENGINEER = "engineer"
 
 
 class TokenInfo(BaseModel):
@@ -66,19 +69,31 @@ class TokenRepository:
             self._generation += 1
 
     def create(self, name: str, role: str, token_sha256: str) -> TokenInfo:
+        """A new live token. The name of a revoked token may be used again: its row takes the
+        new secret, role and creation time (requests with the old secret stay refused)."""
+        try:
+            return self._create(name, role, token_sha256)
+        finally:
+            self._forget()
+
+    def _create(self, name: str, role: str, token_sha256: str) -> TokenInfo:
+        now = datetime.now(UTC)
         try:
             with self._engine.begin() as conn:
-                conn.execute(
-                    insert(T).values(
-                        name=name,
-                        role=role,
-                        token_sha256=token_sha256,
-                        created_at=datetime.now(UTC),
+                reused = conn.execute(
+                    update(T)
+                    .where(T.c.name == name, T.c.revoked_at.is_not(None))
+                    .values(role=role, token_sha256=token_sha256, created_at=now, revoked_at=None)
+                ).rowcount
+                if reused == 0:
+                    conn.execute(
+                        insert(T).values(
+                            name=name, role=role, token_sha256=token_sha256, created_at=now
+                        )
                     )
-                )
         except IntegrityError:
             raise ConflictError(
-                f"a token named {name!r} (or with the same secret) exists"
+                f"a live token named {name!r} exists (revoke it first to reuse the name)"
             ) from None
         return self.by_name(name)
 
@@ -111,6 +126,15 @@ class TokenRepository:
             self._verified[token_sha256] = (expiry, info)
         return info
 
+    def live_count(self, role: str) -> int:
+        """How many live (not revoked) tokens have this role."""
+        with self._engine.connect() as conn:
+            n = conn.execute(
+                select(func.count()).select_from(T)
+                .where(T.c.role == role, T.c.revoked_at.is_(None))
+            ).scalar_one()
+        return int(n)
+
     def list(self) -> list[TokenInfo]:
         with self._engine.connect() as conn:
             return [_info(r) for r in conn.execute(select(T).order_by(T.c.id)).all()]
@@ -122,15 +146,35 @@ class TokenRepository:
             self._forget()
 
     def _revoke(self, name: str) -> TokenInfo:
+        live_engineers = select(func.count()).select_from(T).where(
+            T.c.role == ENGINEER, T.c.revoked_at.is_(None)).scalar_subquery()
         with self._engine.begin() as conn:
+            # PostgreSQL: lock the live engineer rows, so two revokes of the last two engineers
+            # cannot both see the other one (SQLite runs one writer at a time anyway).
+            conn.execute(select(T.c.id).where(T.c.role == ENGINEER, T.c.revoked_at.is_(None))
+                         .with_for_update())
             n = conn.execute(
                 update(T)
-                .where(T.c.name == name, T.c.revoked_at.is_(None))
+                .where(T.c.name == name, T.c.revoked_at.is_(None),
+                       (T.c.role != ENGINEER) | (live_engineers > 1))
                 .values(revoked_at=datetime.now(UTC))
             ).rowcount
         if n == 0:
-            raise NotFoundError(f"no live token named {name!r}")
+            info = self._live(name)
+            if info is None:
+                raise NotFoundError(f"no live token named {name!r}")
+            raise ConflictError(
+                f"token {name!r} is the last live engineer token: revoking it would leave "
+                "nobody able to manage tokens, recipes or calibrations; create another "
+                "engineer token first (POST /api/v1/tokens or `mvpose token create`)"
+            )
         return self.by_name(name)
+
+    def _live(self, name: str) -> TokenInfo | None:
+        with self._engine.connect() as conn:
+            row = conn.execute(
+                select(T).where(T.c.name == name, T.c.revoked_at.is_(None))).first()
+        return None if row is None else _info(row)
 
     def upsert_secret(self, name: str, role: str, token_sha256: str) -> TokenInfo:
         """Make ``name`` a live token with this secret and role (bootstrap token at start-up)."""

@@ -1,0 +1,83 @@
+"""The API against its own OpenAPI document (schemathesis), on a bounded budget.
+
+Every operation of the app as production builds it (station 1 on SQLite, three stored
+measurements, no station process: the station routes answer 503 after auth), with every
+schemathesis check: no 5xx, every status, media type, header and body as documented, invalid
+input refused, auth enforced, 405 with Allow for undeclared methods.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import schemathesis
+from apps import ENGINEER, settings
+from hypothesis import HealthCheck
+from hypothesis import settings as budget
+from records import make_record
+from schemathesis.config import SchemathesisConfig
+from schemathesis.specs.openapi.schemas import OpenApiSchema
+
+from mvpose_core.reasons import Reason
+from server.app import create_app
+from server.state import open_services
+
+#: examples per operation and phase; ~27 operations, the whole module stays well under 60 s
+MAX_EXAMPLES = 5
+AUTH = {"Authorization": f"Bearer {ENGINEER}"}
+
+# Where the schema cannot say everything that makes a request valid, a schema-valid request may
+# be refused with a documented 4xx: an opaque cursor this API did not hand out (400), a recipe
+# that is a JSON object but not a valid recipe (400) or does not fit the station (422), an empty
+# calibration (400). Without a station process the station routes answer 503 (documented).
+ACCEPTED = '"2xx", "3xx", "401", "403", "404", "409", "429", "5xx"'  # schemathesis' default
+CONFIG = f"""
+[[operations]]
+include-name = "GET /api/v1/measurements"
+checks.positive_data_acceptance.expected-statuses = [{ACCEPTED}, "400"]
+
+[[operations]]
+include-name = ["POST /api/v1/recipes/{{name}}/versions",
+                "POST /api/v1/calibrations/{{name}}/versions"]
+checks.positive_data_acceptance.expected-statuses = [{ACCEPTED}, "400", "422"]
+
+[[operations]]
+include-path-regex = "^/api/v1/station/"
+checks.not_a_server_error.expected-statuses = ["2xx", "3xx", "4xx", "503"]
+"""
+
+
+@pytest.fixture(scope="module")
+def seeded_schema(tmp_path_factory: pytest.TempPathFactory) -> OpenApiSchema:
+    config = settings(Path(tmp_path_factory.mktemp("fuzz")))
+    services = open_services(config)  # stored as the pipeline stores them
+    try:
+        rng = np.random.default_rng(7)
+        for i, reason in enumerate([Reason.OK, Reason.MARKS_MISSING, Reason.OK], start=1):
+            services.record_measurement(
+                make_record(rng, services.station_name, trigger_id=i, reason=reason))
+    finally:
+        services.close()
+    return schemathesis.openapi.from_asgi(
+        "/openapi.json", create_app(config), config=SchemathesisConfig.from_str(CONFIG))
+
+
+@pytest.fixture
+def api_schema(request: pytest.FixtureRequest, seeded_schema: OpenApiSchema) -> OpenApiSchema:
+    # schemathesis 4.32's lazy loader renames the test through ``node._nodeid``, which pytest 9
+    # no longer has: give it the id it expects.
+    if not hasattr(request.node, "_nodeid"):
+        request.node._nodeid = request.node.nodeid
+    return seeded_schema
+
+
+schema = schemathesis.pytest.from_fixture("api_schema")
+
+
+@schema.parametrize()
+@budget(max_examples=MAX_EXAMPLES, deadline=None,
+        suppress_health_check=list(HealthCheck))
+def test_every_operation_answers_as_documented(case: schemathesis.Case) -> None:
+    case.call_and_validate(headers=AUTH)
