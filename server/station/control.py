@@ -170,13 +170,24 @@ class ControlServer:
             raise ConflictError("the station has no recipe selected")
         answer = await asyncio.wait_for(self.station.measure_answer(req), 30.0)
         out = answer.outcome
+        db_id = answer.db_id
+        if db_id is None and answer.on_committed is not None:
+            # A commissioning caller wants the database id (to teach from it, to look it up):
+            # wait for the commit a little; a database that is down gives null, the result id
+            # stays the key.
+            loop = asyncio.get_running_loop()
+            committed: asyncio.Future[int] = loop.create_future()
+            answer.on_committed(lambda i: loop.call_soon_threadsafe(
+                lambda: committed.done() or committed.set_result(i)))
+            with contextlib.suppress(TimeoutError):
+                db_id = await asyncio.wait_for(committed, 2.0)
         return {
             "result_code": out.result_code, "result_id": out.result_id,
             "final": out.final, "views_done": out.views_done,
             "processing_ms": out.processing_ms,
             "offset": list(out.offset) if out.offset is not None else None,
             "sigma_trans_mm": out.sigma_trans_mm, "sigma_rot_deg": out.sigma_rot_deg,
-            "message": answer.message, "measurement_id": answer.db_id,
+            "message": answer.message, "measurement_id": db_id,
             "record": answer.record.model_dump(mode="json") if answer.record else None,
         }
 

@@ -73,21 +73,46 @@ class Appended:
 
     result_id: int
     db_id: int | None
+    # calls back with the database id once the record is in the database (at once if it is)
+    on_committed: Callable[[Callable[[int], object]], None] | None = None
 
 
 class RecordSink(Protocol):
     def append(self, record: MeasurementRecord) -> Appended: ...
 
+    def status(self) -> dict[str, Any]: ...
 
-class StoreSink:
-    """Appends straight to the store (the chain's seq is the result id)."""
+    def close(self) -> None: ...
 
-    def __init__(self, services: Services) -> None:
+
+class WriterSink:
+    """The station's durable writer (server.store.writer): the journal first, the database
+    behind it, so an append never waits for the database longer than ``db_wait_s``."""
+
+    def __init__(self, services: Services, db_wait_s: float = 0.005) -> None:
+        from server.store.writer import DurableWriter
+
         self.services = services
+        s = services.settings
+        self.writer = DurableWriter.open(s.resolved_database_url, services.station_name,
+                                         s.data_dir, db_wait_s=db_wait_s,
+                                         sqlite_synchronous=s.sqlite_synchronous)
 
     def append(self, record: MeasurementRecord) -> Appended:
-        stored = self.services.record_measurement(record)
-        return Appended(result_id=stored.seq, db_id=stored.id)
+        sealed = self.writer.append(record)  # StoreFailedError: the station answers STORE_FAILED
+        self.services.metrics.observe(record, sealed.seq)
+        return Appended(result_id=sealed.seq, db_id=sealed.id, on_committed=sealed.on_committed)
+
+    def status(self) -> dict[str, Any]:
+        st = self.writer.status()
+        return {"up": st.up, "head_seq": st.head_seq, "committed_seq": st.committed_seq,
+                "pending": st.pending, "last_error": st.last_error}
+
+    def flush(self, timeout_s: float) -> bool:
+        return self.writer.flush(timeout_s)
+
+    def close(self) -> None:
+        self.writer.close()
 
 
 @dataclass
@@ -98,6 +123,7 @@ class Answer:
     record: MeasurementRecord | None
     message: str
     db_id: int | None = None
+    on_committed: Callable[[Callable[[int], object]], None] | None = None
 
 
 class _Ticket:
@@ -154,7 +180,7 @@ class Station:
                 f"file, got {services.settings.station}")
         self.services = services
         try:
-            self._start(services, sink or StoreSink(services))
+            self._start(services, sink or WriterSink(services))
         except BaseException:
             self.stop()  # whatever did open (camera threads, pools, the loop) closes again
             raise
@@ -222,6 +248,9 @@ class Station:
         if self.capture is not None:
             self.capture.close()
         self.pipeline = self.capture = None
+        if self.sink is not None:
+            self.sink.close()  # what the database did not take yet stays in the journal
+            self.sink = None
 
     async def _stop_loop_tasks(self) -> None:
         if self._watch is not None:
@@ -525,12 +554,21 @@ class Station:
                 "at": record.triggered_at.isoformat(),
             }
             event = dict(self.last)
+        if done.db_id is None and done.on_committed is not None:
+            done.on_committed(lambda db_id: self._committed(done.result_id, db_id))
         for listen in list(self._listeners):
             try:
                 listen(event)
             except Exception:
                 log.exception("a result listener failed")
-        return Answer(outcome, record, message, done.db_id)
+        answer = Answer(outcome, record, message, done.db_id)
+        answer.on_committed = done.on_committed
+        return answer
+
+    def _committed(self, result_id: int, db_id: int) -> None:
+        with self._lock:
+            if self.last is not None and self.last["result_id"] == result_id:
+                self.last["measurement_id"] = db_id
 
     def _after(self, step: Step, answer: Answer) -> None:
         rec = answer.record
@@ -541,8 +579,16 @@ class Station:
                             f"taught by {by} from trigger {rec.trigger_id} "
                             f"(result {answer.outcome.result_id})")
             self._recipe_changed()
-        if rec.images and answer.db_id is not None and self._archive_exec is not None:
-            self._archive_exec.submit(self._archive, answer.db_id, rec, step.result.frames)
+        archive = self._archive_exec
+        if rec.images and archive is not None and answer.on_committed is not None:
+            frames = step.result.frames
+            # The archive's rows name the record's database id: written once the database has
+            # the record (at once, unless the database is slow or down).
+            def write(db_id: int) -> None:
+                with contextlib.suppress(RuntimeError):  # the station stopped meanwhile
+                    archive.submit(self._archive, db_id, rec, frames)
+
+            answer.on_committed(write)
 
     def _archive(self, measurement_id: int, rec: MeasurementRecord,
                  frames: Mapping[tuple[int, str], np.ndarray]) -> None:
@@ -599,10 +645,16 @@ class Station:
         return self._trigger_exec.submit(fn, *args).result(timeout=30)
 
     def wait_idle(self, timeout_s: float = 10.0) -> None:
-        """Block until every trigger and archive write submitted so far is done (tests, demo)."""
-        for ex in (self._trigger_exec, self._record_exec, self._archive_exec):
+        """Block until every trigger, database commit and archive write submitted so far is
+        done (tests, demo)."""
+        for ex in (self._trigger_exec, self._record_exec):
             if ex is not None:
                 ex.submit(lambda: None).result(timeout=timeout_s)
+        flush = getattr(self.sink, "flush", None)
+        if flush is not None:
+            flush(timeout_s)
+        if self._archive_exec is not None:
+            self._archive_exec.submit(lambda: None).result(timeout=timeout_s)
 
     def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
         """Call ``listen(last_result)`` after each recorded answer (trigger or recorder thread)."""
@@ -654,4 +706,5 @@ class Station:
             "sequence_views": [v.view for v in self.sequence.views] if self.sequence else [],
             "last_result": last,
             "warm_up_ms": {k: round(v, 1) for k, v in self.warmed_ms.items()},
+            "store": self.sink.status() if self.sink is not None else None,
         }
