@@ -127,11 +127,6 @@ class DriftReport(BaseModel):
     cameras: list[CameraDriftReport]
 
 
-class VerifyRequest(BaseModel):
-    measurement_id: int = Field(ge=1, le=2**63 - 1, strict=True,
-                                description="a measurement of the taught reference part")
-
-
 class VerifyReport(BaseModel):
     """A measurement of the reference part against its taught pose."""
 

@@ -7,9 +7,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import Response
+from pydantic import BaseModel, Field
 
-from server.api.deps import OperatorUser, ReadUser, ServicesDep, json_response
-from server.drift import DriftReport, DriftService, VerifyReport, VerifyRequest, verify_reference
+from server.api.deps import IdInt, OperatorUser, ReadUser, ServicesDep, json_response
+from server.drift import DriftReport, DriftService, VerifyReport, verify_reference
 
 router = APIRouter(tags=["calibration"])
 
@@ -27,6 +28,10 @@ def get_drift(request: Request, services: ServicesDep) -> DriftService:
 
 
 DriftDep = Annotated[DriftService, Depends(get_drift)]
+
+
+class VerifyRequest(BaseModel):
+    measurement_id: IdInt = Field(description="a measurement of the taught reference part")
 
 
 @router.get("/drift", response_model=DriftReport)
