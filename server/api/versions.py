@@ -6,7 +6,7 @@ from collections.abc import Callable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Path
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field, StrictBool, ValidationError
 
 from mvpose_core.station import RecipeConfig, StationConfig, parse_station
 from server.api.deps import EngineerUser, ReadUser, ServicesDep
@@ -26,7 +26,8 @@ class VersionContent(BaseModel):
 class VersionUpload(BaseModel):
     content: dict[str, Any] = Field(description="the recipe (station-file schema) or calibration")
     comment: str = Field("", max_length=400)
-    activate: bool = Field(False, description="make the new version active at once")
+    # true/false only: pydantic's lax bool would also take 1, "yes" or "on"
+    activate: StrictBool = Field(False, description="make the new version active at once")
 
 
 def check_recipe(

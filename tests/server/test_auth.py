@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -40,24 +41,107 @@ async def test_role_matrix(tmp_path: Path) -> None:
             r = await admin.post("/api/v1/tokens", json={"name": f"t-{role}", "role": role})
             assert r.status_code == 201
             secrets[role] = r.json()["token"]
-        change = ("POST", "/api/v1/recipes/floor_panel/versions/1/activate")
-        calls = [("GET", "/api/v1/measurements"), ("GET", "/api/v1/measurements/chain"),
-                 ("GET", "/api/v1/recipes"), ("GET", "/api/v1/measurements/export"),
-                 change, ("GET", "/api/v1/tokens")]
-        expected = {  # read (MES) reads; changes and tokens need the engineer
-            "read": [200, 200, 200, 200, 403, 403],
-            "operator": [200, 200, 200, 200, 403, 403],
-            "engineer": [200, 200, 200, 200, 200, 200],
+        change = ("POST", "/api/v1/recipes/floor_panel/versions/1/activate", None)
+        calls = [("GET", "/api/v1/measurements", None), ("GET", "/api/v1/measurements/chain", None),
+                 ("GET", "/api/v1/recipes", None), ("GET", "/api/v1/measurements/export", None),
+                 change, ("GET", "/api/v1/tokens", None),
+                 # the station's operations: without a station process they answer 503 once the
+                 # role is allowed (403 before that)
+                 ("POST", "/api/v1/station/trigger", {"part_id": "P1"}),
+                 ("POST", "/api/v1/station/teach", {}),
+                 ("POST", "/api/v1/station/recipe", {"name": "floor_panel"})]
+        expected = {  # read (MES) reads; operators trigger and teach; changes need the engineer
+            "read": [200, 200, 200, 200, 403, 403, 403, 403, 403],
+            "operator": [200, 200, 200, 200, 403, 403, 503, 503, 503],
+            "engineer": [200, 200, 200, 200, 200, 200, 503, 503, 503],
         }
         for role, secret in secrets.items():
             got = []
-            for method, url in calls:
-                r = await admin.request(method, url, headers={"Authorization": f"Bearer {secret}"})
+            for method, url, body in calls:
+                r = await admin.request(method, url, json=body,
+                                        headers={"Authorization": f"Bearer {secret}"})
                 got.append(r.status_code)
                 if r.status_code == 403:
+                    needed = "'operator'" if "/station/" in url else "'engineer'"
                     assert f"role {role!r}" in r.json()["detail"]
-                    assert "'engineer'" in r.json()["detail"]
+                    assert needed in r.json()["detail"], r.json()["detail"]
+                if r.status_code == 503:
+                    assert "without a station process" in r.json()["detail"]
             assert got == expected[role], role
+
+
+async def test_a_401_never_echoes_what_was_sent(tmp_path: Path) -> None:
+    secret = "mvp_0123456789abcdefghijklmnopqrstuvwxyzABCDEFG"
+    async with running(create_app(settings(tmp_path))) as (client, _):
+        for value in (secret, f"{secret} trailing", f"Token{secret}", f"Bearer{secret}",
+                      f"Basic {secret}"):
+            r = await client.get("/api/v1/measurements", headers={"Authorization": value})
+            assert r.status_code == 401, value
+            shown = r.text + " ".join(f"{k}: {v}" for k, v in r.headers.items())
+            for k in range(len(secret) - 4):  # not even a piece of it
+                assert secret[k:k + 5] not in shown, (value, shown)
+            assert "Bearer <token>" in r.json()["detail"]
+        r = await client.get("/api/v1/measurements", headers={"Authorization": secret})
+        assert "without the Bearer scheme" in r.json()["detail"]
+
+
+async def test_the_last_engineer_token_cannot_be_revoked(tmp_path: Path) -> None:
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (admin, _):
+        r = await admin.delete("/api/v1/tokens/bootstrap")
+        assert r.status_code == 409 and r.headers["content-type"] == PROBLEM
+        assert "last live engineer token" in r.json()["detail"]
+        assert "create another engineer token" in r.json()["detail"]
+        assert (await admin.get("/api/v1/tokens")).status_code == 200  # still in
+
+        second = (await admin.post("/api/v1/tokens", json={"name": "eng2", "role": "engineer"})
+                  ).json()["token"]
+        reader = await admin.post("/api/v1/tokens", json={"name": "mes", "role": "read"})
+        assert reader.status_code == 201
+        assert (await admin.delete("/api/v1/tokens/bootstrap")).status_code == 200
+        eng2 = {"Authorization": f"Bearer {second}"}
+        r = await admin.delete("/api/v1/tokens/eng2", headers=eng2)
+        assert r.status_code == 409, r.text  # read tokens do not count
+        assert (await admin.delete("/api/v1/tokens/mes", headers=eng2)).status_code == 200
+        r = await admin.delete("/api/v1/tokens/bootstrap", headers=eng2)
+        assert r.status_code == 404 and "no live token named 'bootstrap'" in r.json()["detail"]
+
+
+async def test_a_revoked_token_name_can_be_used_again(tmp_path: Path) -> None:
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (admin, _):
+        old = (await admin.post("/api/v1/tokens", json={"name": "mes", "role": "read"})
+               ).json()["token"]
+        r = await admin.post("/api/v1/tokens", json={"name": "mes", "role": "read"})
+        assert r.status_code == 409 and "live token named 'mes'" in r.json()["detail"]
+        assert (await admin.delete("/api/v1/tokens/mes")).status_code == 200
+        r = await admin.post("/api/v1/tokens", json={"name": "mes", "role": "operator"})
+        assert r.status_code == 201, r.text
+        new = r.json()["token"]
+        assert r.json()["info"]["revoked_at"] is None and r.json()["info"]["role"] == "operator"
+        r = await admin.get("/api/v1/measurements", headers={"Authorization": f"Bearer {old}"})
+        assert r.status_code == 401  # the old secret stays refused
+        r = await admin.get("/api/v1/measurements", headers={"Authorization": f"Bearer {new}"})
+        assert r.status_code == 200
+        listing = (await admin.get("/api/v1/tokens")).json()
+        assert [(t["name"], t["role"]) for t in listing] == [("bootstrap", "engineer"),
+                                                             ("mes", "operator")]
+
+
+async def test_start_up_without_any_engineer_token_warns_how_to_make_one(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="server.auth"):
+        async with running(create_app(settings(tmp_path, bootstrap_token=None))):
+            pass
+    (warning,) = [r.getMessage() for r in caplog.records if r.name == "server.auth"]
+    assert "MVPOSE_BOOTSTRAP_TOKEN is not set" in warning
+    assert "mvpose token create NAME --role engineer" in warning
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="server.auth"):
+        async with running(create_app(settings(tmp_path))):  # with the bootstrap token: quiet
+            pass
+        async with running(create_app(settings(tmp_path, bootstrap_token=None))):
+            pass  # the bootstrap token made then is still there: nothing to warn about
+    assert [r for r in caplog.records if r.name == "server.auth"] == []
 
 
 async def test_tokens_are_stored_hashed_shown_once_and_revocable(tmp_path: Path) -> None:
