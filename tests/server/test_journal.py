@@ -81,7 +81,18 @@ def test_append_seals_the_next_link_and_the_database_holds_it_as_sealed(
         writer.close()
 
 
-def test_insert_links_is_idempotent_and_refuses_another_chain(store: Store) -> None:
+@pytest.fixture(params=["sqlite", "postgresql"])
+def any_store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Store]:
+    if request.param == "sqlite":
+        s = open_store(f"sqlite:///{tmp_path / 'any.db'}", STATION)
+    else:
+        s = open_store(request.getfixturevalue("postgres_cluster").create_database(), STATION)
+    yield s
+    s.close()
+
+
+def test_insert_links_is_idempotent_and_refuses_another_chain(any_store: Store) -> None:
+    store = any_store
     rng = np.random.default_rng(2)
     links, prev = [], GENESIS
     for seq in (1, 2, 3):
