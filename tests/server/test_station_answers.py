@@ -1,0 +1,140 @@
+"""Every answer a link gives has a record with the same code and id, whatever fails.
+
+The station in-process (server.loopback: the station with its control channel and the API), a
+PLC twin over Modbus/TCP on loopback, and for the database faults a real PostgreSQL 15 frozen
+with SIGSTOP.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from stations import relaxed_deadline, runtime_options, settings_for, station_file
+from test_store_faults import _signal_all
+
+from mvpose_core.reasons import Reason
+from server.loopback import move_part, running_server, running_station, trigger
+from server.store.schemas import MeasurementFilter
+
+
+def _records(lb: Any) -> list[Any]:
+    return list(lb.runtime.services.store.measurements.iterate(MeasurementFilter()))
+
+
+def _deadline_ms(ms: float) -> Any:
+    def edit(data: dict[str, Any]) -> None:
+        data["deadline_ms"] = ms
+    return edit
+
+
+async def test_a_stuck_trigger_is_answered_with_a_recorded_timeout(tmp_path: Path) -> None:
+    settings = settings_for(station_file(tmp_path, "station1", _deadline_ms(500.0)),
+                            tmp_path / "var")
+    opts = runtime_options()
+    from dataclasses import replace
+
+    opts = replace(opts, answer_margin_s=0.3)
+    async with running_station(settings, opts, http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        # A camera that hangs, a detector stuck in a loop: the trigger thread does not come back.
+        release = threading.Event()
+        lb.runtime._trigger_exec.submit(release.wait, 30)
+        t = time.monotonic()
+        status, _ = await trigger(lb.twin, recipe, 41, None, timeout=5.0)
+        waited = time.monotonic() - t
+        assert status.result_code == Reason.TIMEOUT
+        assert waited < 0.5 + 0.3 + 0.5, f"answered after {waited:.2f} s"
+        recs = _records(lb)
+        assert [(r.seq, r.record.trigger_id, r.record.reason_code) for r in recs] == [
+            (status.result_id, 41, int(Reason.TIMEOUT))]
+        release.set()
+        lb.runtime.wait_idle()
+        # The late result of trigger 41 is never recorded: the record says what the PLC was told.
+        assert [r.record.trigger_id for r in _records(lb)] == [41]
+        status, _ = await trigger(lb.twin, recipe, 42, None)
+        lb.runtime.wait_idle()
+        last = _records(lb)[-1]  # the station works on: the next answer, its own record
+        assert (last.seq, last.record.trigger_id, last.record.reason_code) == (
+            recs[0].seq + 1, 42, status.result_code) == (status.result_id, 42, status.result_code)
+
+
+async def test_result_ids_are_the_records_and_survive_a_restart(tmp_path: Path) -> None:
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline),
+                            tmp_path / "var")
+    seen: list[tuple[int, int]] = []
+    for round_ in range(2):
+        async with running_station(settings, runtime_options(), http_port=None) as lb:
+            recipe = lb.runtime.active.config
+            await move_part(lb.runtime, lb.twin, recipe.T_rf_from_pf0.matrix)
+            for k in range(3):
+                status, _ = await trigger(lb.twin, recipe, 100 * round_ + k, None)
+                assert status.result_code == 0
+                seen.append((status.trigger_id, status.result_id))
+            lb.runtime.wait_idle()
+            by_seq = {r.seq: r.record.trigger_id for r in _records(lb)}
+    ids = [rid for _, rid in seen]
+    assert ids == sorted(set(ids)), f"result ids reused or out of order: {ids}"
+    assert all(by_seq[rid] == tid for tid, rid in seen)
+
+
+async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) -> None:
+    def only_one_plc(data: dict[str, Any]) -> None:
+        data["links"] = {"modbus": {"allowlist": ["10.20.30.40"]}}
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline, only_one_plc),
+                            tmp_path / "var")
+    async with running_server(settings, runtime_options(), http_port=None) as rs:
+        reader, writer = await asyncio.open_connection("127.0.0.1", rs.runtime.plc_port)
+        # A TEACH_REFERENCE command write (fc 16 at holding 2-3), from a host not on the list.
+        writer.write(b"\x00\x01\x00\x00\x00\x0b\x01\x10\x00\x02\x00\x02\x04\x00\x02\x00\x00")
+        await writer.drain()
+        try:
+            answer = await asyncio.wait_for(reader.read(100), 3)
+        except ConnectionResetError:
+            answer = b""
+        assert answer == b""  # closed without an answer
+        writer.close()
+        st = rs.runtime.status()
+        assert st["plc"]["rejected_connections"] >= 1
+        assert st["teach_armed"] is False
+
+
+@pytest.mark.slow
+async def test_a_frozen_database_never_delays_the_answer(
+    tmp_path: Path, postgres_cluster: Any
+) -> None:
+    url = postgres_cluster.create_database()
+    path = station_file(tmp_path, "station1", _deadline_ms(250.0))
+    settings = settings_for(path, tmp_path / "var", database_url=url)
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        await move_part(lb.runtime, lb.twin, recipe.T_rf_from_pf0.matrix)
+        for k in range(3):  # warm: the database answers
+            status, _ = await trigger(lb.twin, recipe, k, None)
+            assert status.result_code == 0
+        _signal_all(postgres_cluster, signal.SIGSTOP)
+        try:
+            answers = []
+            for k in range(10, 16):
+                t = time.monotonic()
+                status, _ = await trigger(lb.twin, recipe, k, None)
+                answers.append((k, status.result_code, status.result_id,
+                                time.monotonic() - t))
+            assert lb.runtime.status()["store"]["pending"] >= 1
+        finally:
+            _signal_all(postgres_cluster, signal.SIGCONT)
+        for k, code, _rid, took in answers:
+            assert code == 0, f"trigger {k}: code {code}"
+            assert took < 0.25 + 0.3, f"trigger {k} answered after {took:.3f} s"
+        lb.runtime.wait_idle(30)
+        stored = {r.seq: r.record for r in _records(lb)}
+        for k, code, rid, _ in answers:
+            assert stored[rid].trigger_id == k and stored[rid].reason_code == code
+        assert lb.runtime.services.store.measurements.verify_chain().ok
+
