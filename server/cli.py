@@ -25,6 +25,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "server.commands.validate",
         "commissioning validation against ground-truth offsets",
     ),
+    "measure": ("server.commands.measure", "measure saved images offline (no deadline)"),
+    "replay": (
+        "server.commands.replay",
+        "re-measure archived measurements with another calibration or recipe version",
+    ),
 }
 
 

@@ -180,9 +180,9 @@ def summary(outcomes: Sequence[Outcome]) -> str:
         f" ({nok})" if nok else "")
 
 
-def grasp_difference(a: Array, b: Array, recipe: RecipeConfig) -> tuple[float, float]:
+def grasp_difference(a: Any, b: Any, recipe: RecipeConfig) -> tuple[float, float]:
     """Rotation (deg) and translation (mm) between two part poses, at the grasp frame."""
     from mvpose_core.transforms import transform_error
 
     G = recipe.T_pf_from_grasp.matrix
-    return transform_error(np.asarray(a) @ G, np.asarray(b) @ G)
+    return transform_error(np.asarray(a, dtype=float) @ G, np.asarray(b, dtype=float) @ G)

@@ -1,4 +1,4 @@
-"""``mvpose measure`` on rendered images with known truth, then ``mvpose validate`` on its output."""
+"""``mvpose measure`` on rendered images with known truth, then ``mvpose validate`` on it."""
 
 from __future__ import annotations
 
