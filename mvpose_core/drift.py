@@ -245,8 +245,9 @@ class DriftWatch:
         means_px: Mapping[CameraKey, Array | tuple[float, float]],
         stamp: float | None = None,
         in_fit: Mapping[CameraKey, float] | None = None,
-    ) -> list[CameraDrift]:
-        """Feed one trigger: each camera's mean residual ``(du, dv)`` px; every camera's state.
+    ) -> None:
+        """Feed one trigger: each camera's mean residual ``(du, dv)`` px (then ask
+        :meth:`states` or :meth:`statistics`).
 
         A camera missing from ``means_px`` (no residual of it) skips this trigger. ``in_fit``
         is the fraction of each camera's observations the pose used (1 if not given; the robust
@@ -267,7 +268,10 @@ class DriftWatch:
         if len(self._stamps) > 2 * self.options.history:
             keep = n - self.options.history
             self._stamps = {i: t for i, t in self._stamps.items() if i >= keep}
-        return self.states()
+
+    def statistics(self) -> dict[CameraKey, float]:
+        """Each camera's largest one-sided statistic, σ (0 while learning): cheap, per trigger."""
+        return {k: (max(c.S) if c.S is not None else 0.0) for k, c in self._cams.items()}
 
     def _feed(self, cam: _Camera, n: int, u: float, v: float, in_fit: float) -> None:
         if cam.S is None:
