@@ -125,9 +125,8 @@ def part2(name: str, rng: np.random.Generator, o: DriftOptions) -> tuple[bool, d
                     while alarm is None and n < 1000:
                         t = simulated_residuals(station, recipe, rng, 1, shift_px={key: move})[0]
                         n += 1
-                        hits = [
-                            d for d in w.update(t.means_px, None, t.in_fit) if d.status == "alarm"
-                        ]
+                        w.update(t.means_px, None, t.in_fit)
+                        hits = [d for d in w.states() if d.status == "alarm"]
                         alarm = hits[0] if hits else None
                     delays.append(n)
                     if alarm is not None and alarm.moved == key:

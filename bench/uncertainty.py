@@ -3,10 +3,11 @@
 For each example station (or ``--station FILE``): the detector part at pixel noise σ ≠ the
 recipe's a-priori ``detector_noise_px`` (observations with N(0, σ²) per coordinate), and the
 calibration part with the station's transforms drawn from a stated 1σ (robot repeatability
-0.02 mm / 0.004°, rig pose 0.1 mm / 0.015°, camera in rig 0.03 mm / 0.003°, unless the station
-file sets its own ``uncertainty:``) and measured with the nominal station. Prints the RMS error
+0.02 mm / 0.004°, rig pose 0.1 mm / 0.015°, camera in rig 0.03 mm / 0.003°, or ``--robot``,
+``--rigs``, ``--cameras``; unless the station file sets its own ``uncertainty:``) and measured
+with the nominal station. Prints the RMS error
 at the grasp point against the RMS reported 1σ (docs/engine.md, "Uncertainty model").
-Run: ``python -m bench.uncertainty [--trials N] [--station FILE] [--noise PX ...]``.
+Run: ``python -m bench.uncertainty [--trials N] [--station FILE] [--noise PX ...] [--rigs MM DEG]``.
 """
 
 from __future__ import annotations
@@ -36,12 +37,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trials", type=int, default=1000)
     p.add_argument("--station", type=Path, action="append", help="station file (default: "
                    "lab, station1, station2 of deploy/stations)")
-    p.add_argument("--noise", type=float, nargs="+", default=[0.01, 0.03, 0.1],
-                   help="detector noise σ px per coordinate (default 0.01 0.03 0.1)")
+    p.add_argument("--noise", type=float, nargs="*", default=[0.01, 0.03, 0.1],
+                   help="detector noise σ px per coordinate (default 0.01 0.03 0.1; none: skip)")
+    for name, what in (("robot", "robot repeatability"), ("rigs", "every rig's pose"),
+                       ("cameras", "every camera in its rig")):
+        p.add_argument(f"--{name}", type=float, nargs=2, metavar=("MM", "DEG"),
+                       help=f"1σ of {what} for the calibration check (default "
+                       f"{CALIB[name].mm} {CALIB[name].deg})")
     p.add_argument("--seed", type=int, default=2026)
     args = p.parse_args(argv)
     files = args.station or [STATIONS / f"{n}.yaml" for n in ("lab", "station1", "station2")]
     rng = np.random.default_rng(args.seed)
+    calib = {k: PoseSigma(mm=v[0], deg=v[1]) if (v := getattr(args, k)) else CALIB[k]
+             for k in CALIB}
     worst = 1.0
     for path in files:
         station = load_station(path)
@@ -55,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
             worst = max(worst, *(max(r, 1 / r) for r in chk.ratio))
         u = station.uncertainty
         drawn = station if (u.rigs or u.cameras or not u.robot_repeatability.is_zero) else (
-            with_calibration_sigma(station, **CALIB))
+            with_calibration_sigma(station, **calib))
         with tqdm(total=args.trials, desc="calibration", leave=False) as bar:
             chk = calibration_check(drawn, recipe, args.trials, rng, progress=bar.update)
         print(f"  {'':7} {chk.line()}")

@@ -161,7 +161,9 @@ class _Segment:
     first_at: datetime
     records: int = 0
     ids: dict[int, tuple[int, datetime]] = field(default_factory=dict)  # trigger → id, time
-    trend: dict[tuple[int, str], deque[DriftPoint]] = field(default_factory=dict)
+    # per camera: (id, triggered_at, du, dv, statistic) of the last triggers
+    trend: dict[tuple[int, str], deque[tuple[int, datetime, float, float, float]]] = field(
+        default_factory=dict)
 
 
 class DriftService:
@@ -173,13 +175,15 @@ class DriftService:
         station: StationConfig | None,
         options: DriftOptions = DriftOptions(),  # noqa: B008 - frozen, immutable default
         *,
-        window: int = 20_000,
+        window: int = 5_000,
         trend: int = 500,
     ) -> None:
         self.store = store
         self.station = station
         self.options = options
-        self.window = window  # records read at most on the first report
+        # Records read at most on the first report (~0.7 ms each to parse): they should span
+        # the learning window and the drift of interest.
+        self.window = window
         self.trend = trend
         self._lock = threading.Lock()
         self._last_id = 0
@@ -197,8 +201,10 @@ class DriftService:
         repo = self.store.measurements
         out: list[StoredMeasurement] = []
         cursor = None
+        limit = 20  # usually a few records are new: parse no more than needed
         while len(out) < self.window:
-            page, cursor = repo.page(MeasurementFilter(), cursor, min(500, self.window))
+            page, cursor = repo.page(MeasurementFilter(), cursor, limit)
+            limit = min(500, self.window)
             fresh = [m for m in page if m.id > self._last_id]
             out += fresh
             if len(fresh) < len(page) or cursor is None:
@@ -224,12 +230,12 @@ class DriftService:
             seg.ids = {i: v for i, v in seg.ids.items() if i > n - self.options.history}
         means = {(c.view, c.camera_id): c.mean_px for c in rec.camera_residuals}
         in_fit = {(c.view, c.camera_id): c.used / c.count for c in rec.camera_residuals}
-        states = {d.key: d for d in seg.watch.update(means, rec.triggered_at.timestamp(), in_fit)}
+        seg.watch.update(means, rec.triggered_at.timestamp(), in_fit)
+        stats = seg.watch.statistics()
         seg.records += 1
         for k, (du, dv) in means.items():
             points = seg.trend.setdefault(k, deque(maxlen=self.trend))
-            points.append(DriftPoint(id=stored.id, triggered_at=rec.triggered_at, du_px=du,
-                                     dv_px=dv, statistic=round(states[k].statistic, 4)))
+            points.append((stored.id, rec.triggered_at, du, dv, round(stats[k], 4)))
 
     def _response(self, recipe_name: str) -> Response:
         """How each camera's move shows in every camera's residuals (none without the station)."""
@@ -294,7 +300,9 @@ class DriftService:
             learning_left=self.options.warmup - d.triggers if d.status == "learning" else 0,
             baseline_mean_px=d.mean_px,
             baseline_sigma_px=d.sigma_px,
-            trend=list(seg.trend.get(d.key, ())),
+            trend=[DriftPoint.model_construct(id=i, triggered_at=t, du_px=du, dv_px=dv,
+                                              statistic=st)
+                   for i, t, du, dv, st in seg.trend.get(d.key, ())],
         )
 
 

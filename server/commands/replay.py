@@ -16,7 +16,7 @@ import csv
 import io
 import json
 from collections.abc import Iterator
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 
 from tqdm import tqdm
@@ -52,12 +52,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--database-url", help="store URL (default sqlite:///<data-dir>/mvpose.db)")
     parser.add_argument("--images-dir", type=Path, help="image archive (default <data-dir>/images)")
     parser.add_argument("--ids", help="measurement ids, comma-separated (default: all)")
-    parser.add_argument("--since", type=datetime.fromisoformat, help="triggered at or after")
-    parser.add_argument("--until", type=datetime.fromisoformat, help="triggered before")
+    parser.add_argument("--since", type=_when, help="triggered at or after (ISO time; UTC "
+                        "unless it names its zone)")
+    parser.add_argument("--until", type=_when, help="triggered before (ISO time)")
     parser.add_argument("--result", choices=["OK", "NOK"], help="only OK or only NOK records")
     parser.add_argument("--out", type=Path, default=Path("replay"),
                         help="folder for replay.csv and replay.json (default ./replay)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _when(text: str) -> datetime:
+    t = datetime.fromisoformat(text)
+    return t if t.tzinfo is not None else t.replace(tzinfo=UTC)
 
 
 def _records(store: Store, args: argparse.Namespace) -> Iterator[StoredMeasurement]:

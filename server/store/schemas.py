@@ -160,6 +160,16 @@ class MeasurementRecord(_Model):
         return [[float(x) for x in row] for row in T]
 
 
+def _drop_result_id(data: Any) -> Any:
+    """What this model wrote reads back: ``result_id`` (computed, = seq) is checked, not kept."""
+    if isinstance(data, dict) and "result_id" in data:
+        data = dict(data)
+        result_id = data.pop("result_id")
+        if result_id != data.get("seq"):
+            raise ValueError(f"result_id {result_id!r} is not seq {data.get('seq')!r}")
+    return data
+
+
 class StoredMeasurement(_Model):
     """A record as stored: its place in the chain and the hashes that seal it."""
 
@@ -174,6 +184,8 @@ class StoredMeasurement(_Model):
     @property
     def result_id(self) -> int:
         return self.seq
+
+    _read_back = model_validator(mode="before")(_drop_result_id)
 
 
 class MeasurementSummary(_Model):
@@ -204,6 +216,8 @@ class MeasurementSummary(_Model):
     @property
     def result_id(self) -> int:
         return self.seq
+
+    _read_back = model_validator(mode="before")(_drop_result_id)
 
 
 class ImageStatus(_Model):

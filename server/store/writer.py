@@ -335,6 +335,11 @@ class DurableWriter:
         return head[0] if head else 0
 
     @property
+    def engine(self) -> Engine:
+        """The writer's own engine (bounded connect, statement and lock waits)."""
+        return self._engine
+
+    @property
     def journal_dir(self) -> Path:
         return self._journal.directory
 
@@ -392,8 +397,13 @@ def _writer_engine(url: str, sqlite_synchronous: str, connect_timeout_s: float,
         options = (f"{options} " if isinstance(options, str) and options else "") + (
             f"-c statement_timeout={int(statement_timeout_s * 1000)} "
             f"-c lock_timeout={int(statement_timeout_s * 1000)}")
+        # A partitioned network drops packets without a reset: the kernel's retransmissions
+        # would hold an insert for many minutes; tcp_user_timeout and keepalives end it.
         parsed = parsed.update_query_dict({
-            "connect_timeout": str(max(1, round(connect_timeout_s))), "options": options})
+            "connect_timeout": str(max(1, round(connect_timeout_s))), "options": options,
+            "tcp_user_timeout": str(int(2 * statement_timeout_s * 1000)),
+            "keepalives": "1", "keepalives_idle": "5", "keepalives_interval": "2",
+            "keepalives_count": "3"})
     engine = create_store_engine(parsed.render_as_string(hide_password=False),
                                  sqlite_synchronous)
     if parsed.get_backend_name() == "sqlite":

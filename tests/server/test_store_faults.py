@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import sqlalchemy as sa
 from postgres import PG_BIN, PostgresCluster, _as_owner, start_cluster, stop_cluster
 from records import make_record
 
@@ -120,6 +121,25 @@ def _assert_stored_exactly(url: str, sealed: list[Sealed]) -> None:
 def _open(url: str, data_dir: Path) -> DurableWriter:
     return DurableWriter.open(url, STATION, data_dir, db_wait_s=DB_WAIT_S, connect_timeout_s=1,
                               retry_max_s=0.2, stall_s=0.2)
+
+
+def test_the_writer_connection_has_bounded_waits(
+        cluster: tuple[PostgresCluster, Path], tmp_path: Path) -> None:
+    c, _ = cluster
+    writer = DurableWriter.open(c.create_database(), STATION, tmp_path / "var",
+                                statement_timeout_s=3.0)
+    try:
+        with writer.engine.connect() as conn:
+            shown = {k: conn.execute(sa.text(f"SHOW {k}")).scalar_one()
+                     for k in ("statement_timeout", "lock_timeout")}
+            dbapi = conn.connection.dbapi_connection
+            assert dbapi is not None
+            client = dbapi.info.get_parameters()  # libpq's own settings of this connection
+    finally:
+        writer.close()
+    assert shown == {"statement_timeout": "3s", "lock_timeout": "3s"}
+    assert (client["connect_timeout"], client["tcp_user_timeout"], client["keepalives"]) == (
+        "2", "6000", "1")
 
 
 def test_a_frozen_database_never_holds_up_an_append(
