@@ -252,7 +252,8 @@ def overlay_svg(ov: CameraOverlay, k: int) -> str:
 
 
 # ---------------------------------------------------------------------------- history
-def history_rows(items: list[MeasurementSummary], next_url: str | None) -> str:
+def history_rows(items: list[MeasurementSummary], next_url: str | None, filters: str) -> str:
+    """The list and its export links (inside the part htmx swaps, so they follow the filters)."""
     rows = []
     for m in items:
         off = (" ".join(num(v, 2) for v in m.offset.values[:3]) if m.offset else "—")
@@ -269,7 +270,10 @@ def history_rows(items: list[MeasurementSummary], next_url: str | None) -> str:
             f'hx-target="#rows" hx-push-url="{esc(next_url)}">next page →</a>'
             if next_url else '<span class="muted">last page</span>')
     empty = '<tr><td colspan="11" class="muted">no measurements match</td></tr>'
-    return f"""<div id="rows"><table class="history"><thead><tr><th>id</th><th>triggered</th>
+    export = "/api/v1/measurements/export?format={}" + (f"&{filters}" if filters else "")
+    links = (f'<p class="export">Export every match: <a href="{esc(export.format("csv"))}" '
+             f'download>CSV</a> · <a href="{esc(export.format("json"))}" download>JSON</a></p>')
+    return f"""<div id="rows">{links}<table class="history"><thead><tr><th>id</th><th>triggered</th>
 <th>trigger</th><th>part</th><th>recipe</th><th>result</th><th>reason</th>
 <th>offset X Y Z</th><th>1σ mm</th><th>RMS px</th><th>cycle ms</th></tr></thead>
 <tbody>{"".join(rows) or empty}</tbody></table><p>{more}</p></div>"""

@@ -20,6 +20,8 @@ import anyio.to_thread
 from server.web.reader import Reader
 
 POLL_S = 0.25
+#: how long the newest record's frames are waited for (the archive writes them after the record)
+FRAMES_WAIT_S = 5.0
 STATUS_EVERY_S = 1.0
 KEEPALIVE_S = 15.0
 STREAM_S = 600.0
@@ -52,6 +54,8 @@ class LiveFeed:
     _queues: set[asyncio.Queue[str]] = field(default_factory=set)
     _task: asyncio.Task[None] | None = None
     _frames_id: int | None = None
+    _awaited: int | None = None  # newest record, while its frames may still be being written
+    _until: float = 0.0
     polls: int = 0
 
     @property
@@ -100,9 +104,15 @@ class LiveFeed:
         while True:
             self.polls += 1
             newest = await anyio.to_thread.run_sync(self.reader.newest_id)
-            if newest != self.snapshot.newest_id:
+            # A record's frames are written after the record (after the PLC has its answer):
+            # a newest record that plans frames not on disk yet is looked at again a while.
+            waiting = newest is not None and newest == self._awaited and loop.time() < self._until
+            if newest != self.snapshot.newest_id or waiting:
                 result, frames, frames_id = await anyio.to_thread.run_sync(
                     self.render_result, self.reader, newest, self._frames_id)
+                if newest != self.snapshot.newest_id:
+                    self._until = loop.time() + FRAMES_WAIT_S
+                self._awaited = newest if frames_id != newest else None
                 self._frames_id = frames_id
                 self.snapshot.newest_id = newest
                 if result != self.snapshot.result_html:

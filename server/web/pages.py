@@ -13,7 +13,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response, Streamin
 from mvpose_core.offset import frame_offsets
 from mvpose_core.station import RecipeConfig
 from server.auth import Role
-from server.errors import NotFoundError
+from server.errors import InvalidInputError, NotFoundError
 from server.store.schemas import MAX_ID, MeasurementFilter
 from server.web import html
 from server.web.context import (
@@ -109,10 +109,10 @@ FILTERS = ("since", "until", "result", "reason_code", "recipe", "part_id")
 @router.get("/history")
 async def history_page(
     request: Request,
-    since: datetime | None = None,
-    until: datetime | None = None,
+    since: Annotated[str, Query(max_length=64)] = "",
+    until: Annotated[str, Query(max_length=64)] = "",
     result: Literal["OK", "NOK", ""] = "",
-    reason_code: Annotated[int | None, Query(ge=0, le=65535)] = None,
+    reason_code: Annotated[str, Query(max_length=5, pattern=r"^\d*$")] = "",
     recipe: Annotated[str, Query(max_length=64)] = "",
     part_id: Annotated[str, Query(max_length=64)] = "",
     cursor: Annotated[str | None, Query(max_length=200)] = None,
@@ -124,25 +124,21 @@ async def history_page(
     if user is None:
         return to_login(request)
     reader = reader_of(request)
-    filters = MeasurementFilter(since=since, until=until, result=result or None,
-                                reason_code=reason_code, recipe=recipe or None,
-                                part_id=part_id or None)
-    params = {"since": since.isoformat() if since else None,
-              "until": until.isoformat() if until else None, "result": result,
+    # A form sends its empty fields too: empty means "any", as an absent REST parameter.
+    filters = MeasurementFilter(since=_time(since, "since"), until=_time(until, "until"),
+                                result=result or None,
+                                reason_code=int(reason_code) if reason_code else None,
+                                recipe=recipe or None, part_id=part_id or None)
+    params = {"since": since, "until": until, "result": result,
               "reason_code": reason_code, "recipe": recipe, "part_id": part_id}
     items, next_cursor = await in_thread(reader.store.measurements.summary_page, filters,
                                          cursor, limit)
     next_url = (f"/history?{html.query(params | {'cursor': next_cursor, 'limit': limit})}"
                 if next_cursor else None)
-    rows = html.history_rows(items, next_url)
+    rows = html.history_rows(items, next_url, html.query(params))
     if fragment:
         return HTMLResponse(rows)
-    q = html.query(params)
     e = html.esc
-
-    def export(fmt: str) -> str:
-        return f"/api/v1/measurements/export?format={fmt}" + (f"&{q}" if q else "")
-
     sel = {v: " selected" if result == v else "" for v in ("", "OK", "NOK")}
     body = f"""<section class="panel"><h2>History</h2>
 <form id="filters" class="filters" action="/history" method="get" hx-get="/history"
@@ -157,10 +153,20 @@ async def history_page(
 <label>recipe <input name="recipe" value="{e(recipe)}"></label>
 <label>part id <input name="part_id" value="{e(part_id)}"></label>
 <label>per page <input name="limit" type="number" min="1" max="1000" value="{limit}"></label>
-<button type="submit">Filter</button></form>
-<p class="export">Export these: <a href="{e(export('csv'))}" download>CSV</a>
- · <a href="{e(export('json'))}" download>JSON</a></p>{rows}</section>"""
+<button type="submit">Filter</button></form>{rows}</section>"""
     return HTMLResponse(html.layout("History", user, body, "/history"))
+
+
+def _time(text: str, name: str) -> datetime | None:
+    if not text:
+        return None
+    try:
+        t = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise InvalidInputError(f"{name} = {text!r} is not an ISO 8601 time") from None
+    if t.tzinfo is None:
+        raise InvalidInputError(f"{name} = {text!r} has no time zone; add Z or +hh:mm")
+    return t
 
 
 @router.get("/history/{measurement_id}")

@@ -187,9 +187,11 @@ function setupCharts() {
     fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
       .then((r) => r.json()).then((d) => {
         host.textContent = "";
+        const t1 = performance.now();
         (host.dataset.kind === "calibration" ? drawCalibration : drawTrends)(host, d);
+        host.dataset.renderMs = String(Math.round(performance.now() - t1));
+        host.dataset.loadMs = String(Math.round(t1 - t0));
         host.dataset.points = String(d.columns.t.length);
-        host.dataset.drawMs = String(Math.round(performance.now() - t0));
       }).catch((err) => { host.textContent = "could not load: " + err.message; });
   };
   form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });

@@ -1,0 +1,291 @@
+"""The operator page in a real browser: Debian's Chromium driven by Playwright.
+
+One API app on a real socket (port 0) reads a SQLite store that a second set of services writes
+into, as the station process does; the records are the pose engine's own on simulated station 1
+(server.web.sample). Screenshots of every page go to var/screenshots/ (printed).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from apps import ENGINEER, settings
+from system_packages import ensure_commands
+
+from mvpose_core.offset import frame_offsets
+from server.app import create_app
+from server.auth import Role, create_token
+from server.state import Services, open_services
+from server.store.schemas import Offset, StoredMeasurement
+from server.web.geometry import recipe_from_content
+from server.web.sample import SampleLine
+from server.web.screenshots import VIEWPORT, launch, login, serve
+
+ROOT = Path(__file__).resolve().parents[2]
+SHOTS = ROOT / "var" / "screenshots"
+BULK = 1500  # results on the trend charts besides the sample line's
+
+
+@dataclass
+class Site:
+    base: str
+    browser: Any
+    writer: Services  # the station process's side of the store
+    line: SampleLine
+    tokens: dict[str, str]
+    framed: StoredMeasurement  # newest record with frames when the tests start
+    ok_framed: StoredMeasurement
+
+    def page(self, role: str = "engineer") -> Any:
+        context = self.browser.new_context(viewport=VIEWPORT)
+        page = context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda err: errors.append(str(err)))
+        page.errors = errors
+        login(page, self.base, self.tokens[role])
+        return page
+
+    def shot(self, page: Any, name: str) -> None:
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        path = SHOTS / f"{name}.png"
+        page.screenshot(path=str(path), full_page=True)
+        print(f"screenshot: {path}")
+        assert not page.errors, page.errors
+
+
+def _bulk(line: SampleLine, n: int) -> None:
+    """``n`` results fast: one measured record replayed with new numbers (trend charts)."""
+    rng = np.random.default_rng(3)
+    template, _ = line.record()
+    assert template.offset is not None and template.uncertainty is not None
+    for _ in range(n):
+        line.trigger_id += 1
+        off = [v + float(rng.normal(0, 0.5)) for v in template.offset.values]
+        line.services.record_measurement(template.model_copy(update={
+            "trigger_id": line.trigger_id, "part_id": f"VIN{line.trigger_id:06d}",
+            "triggered_at": line.start + timedelta(seconds=line.period_s * line.trigger_id),
+            "offset": Offset(convention=template.offset.convention, values=off),
+            "timings_ms": {**template.timings_ms, "total": float(rng.uniform(15, 35))},
+        }))
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
+    ensure_commands({"chromium": "chromium"})
+    from playwright.sync_api import sync_playwright
+
+    cfg = settings(tmp_path_factory.mktemp("web"), sqlite_synchronous="NORMAL")
+    writer = open_services(cfg)
+    try:
+        line = SampleLine(writer)
+        _bulk(line, BULK)
+        line.run(12, missing_every=4)
+        ok_framed = line.store(*line.record(frames=True))
+        line.run(3)
+        framed = line.store(*line.record(missing="B2", frames=True))
+        line.run(2)
+        line.taught_version(ok_framed)
+        tokens = {"engineer": ENGINEER}
+        for role in (Role.READ, Role.OPERATOR):
+            tokens[role.value] = create_token(writer.store.tokens, f"b-{role.value}", role)[0]
+        with serve(create_app(cfg)) as base, sync_playwright() as pw:
+            browser = launch(pw)
+            try:
+                yield Site(base, browser, writer, line, tokens, framed, ok_framed)
+            finally:
+                browser.close()
+    finally:
+        writer.close()
+
+
+def _in_thread(fn: Any) -> Any:
+    """Run a store write off the test's thread (the station writes from its own process)."""
+    out: list[Any] = []
+    t = threading.Thread(target=lambda: out.append(fn()))
+    t.start()
+    t.join(60)
+    return out[0]
+
+
+def _overlay_points(page: Any, figure: Any) -> list[dict[str, float]]:
+    """Each found-mark circle's centre on screen, scaled back to full-resolution pixels."""
+    return figure.evaluate("""(fig) => {
+        const img = fig.querySelector('img').getBoundingClientRect();
+        const W = Number(fig.dataset.width), H = Number(fig.dataset.height);
+        return [...fig.querySelectorAll('circle.found')].map((c) => {
+            const r = c.getBoundingClientRect();
+            return {mark: c.dataset.mark,
+                    u: (r.left + r.width / 2 - img.left) * W / img.width,
+                    v: (r.top + r.height / 2 - img.top) * H / img.height};
+        });
+    }""")
+
+
+def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: Site) -> None:
+    page = site.page("engineer")
+    page.wait_for_function("[...document.querySelectorAll('#frames img')].every("
+                           "(i) => i.complete && i.naturalWidth > 0)")
+    frames = page.locator("#frames")
+    assert frames.get_attribute("data-id") == str(site.framed.id)
+    assert "newest one with archived frames" in frames.inner_text()
+    assert page.locator("#status .state").inner_text() == "station down"
+    assert page.locator("#result").get_attribute("data-id") == str(site.framed.id + 2)
+
+    detected = {(cd.camera_id, d.mark_id): d.uv for cd in site.framed.record.detections
+                for d in cd.detections if d.found}
+    checked = 0
+    for figure in page.locator("figure.cam").element_handles():
+        cam = figure.get_attribute("data-camera")
+        image = None
+        for ref in site.framed.record.images:
+            if ref.camera_id == cam:
+                image = cv2.imread(str(site.writer.images.resolve(ref.path)), 0)
+        assert image is not None
+        for p in _overlay_points(page, figure):
+            uv = detected[(cam, p["mark"])]
+            assert math.hypot(p["u"] - uv[0], p["v"] - uv[1]) < 2.0, (cam, p, uv)
+            # and the mark really is there: a dark disc under the circle, light around it
+            u, v = round(uv[0]), round(uv[1])
+            inner = image[v - 3:v + 4, u - 3:u + 4].mean()
+            ring = np.r_[image[v - 20, u - 20:u + 21], image[v + 20, u - 20:u + 21]].mean()
+            assert inner < ring - 40, (cam, p["mark"], inner, ring)
+            checked += 1
+        assert figure.query_selector_all("rect.window")
+    assert checked == 7
+    assert page.locator('#frames g.missing[data-mark="B2"]').count() == 1
+    site.shot(page, "live")
+
+    # A new result is pushed (server-sent events): the page shows it without reloading.
+    page.evaluate("window.__same_page = 42")
+    new = _in_thread(lambda: site.line.store(*site.line.record()))
+    page.wait_for_function(f"document.querySelector('#result').dataset.id === '{new.id}'",
+                           timeout=15000)
+    assert page.evaluate("window.__same_page") == 42
+    assert page.locator("#frames").get_attribute("data-id") == str(site.framed.id)
+    framed = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
+    page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{framed.id}'",
+                           timeout=15000)
+    assert "showing the last result" in page.locator("#frames").inner_text()
+    assert "marks the recipe needs were not found" in page.locator("#result").inner_text()
+    assert page.evaluate("window.__same_page") == 42
+    page.context.close()
+
+
+def test_history_filters_paging_drill_down_and_export(site: Site) -> None:
+    page = site.page("read")
+    page.goto(f"{site.base}/history")
+    page.select_option("#filters select[name=result]", "NOK")
+    page.fill("#filters input[name=limit]", "3")
+    page.click("#filters button[type=submit]")
+    page.wait_for_function("location.search.includes('result=NOK')")
+    rows = page.locator("#rows tbody tr")
+    assert rows.count() == 3 and all(c == "nok" for c in
+                                     rows.evaluate_all("(rs) => rs.map((r) => r.className)"))
+    first = page.locator("#rows tbody tr").first.get_attribute("data-id")
+    page.click("#rows a.more")
+    page.wait_for_function(f"!document.querySelector('#rows tr[data-id=\"{first}\"]')")
+    assert page.locator("#rows tbody tr.nok").count() >= 1
+    site.shot(page, "history")
+    href = page.locator("p.export a", has_text="CSV").get_attribute("href")
+    csv = page.request.get(site.base + href)
+    assert csv.ok and csv.headers["content-type"].startswith("text/csv")
+    lines = csv.text().strip().splitlines()
+    assert len(lines) > 4 and all(",NOK," in row for row in lines[1:])
+
+    page.goto(f"{site.base}/history/{site.framed.id}")
+    page.wait_for_function("[...document.querySelectorAll('figure.cam img')].every("
+                           "(i) => i.complete && i.naturalWidth > 0)")
+    text = page.inner_text("main")
+    for words in ("Detections and residuals", "Timings", "floor_panel", "MARKS_MISSING",
+                  site.framed.hash, "total"):
+        assert words in text, words
+    assert page.locator("line.residual").count() == 7
+    assert page.locator("text=Teach this").count() == 0  # a read token does not teach
+    site.shot(page, "record")
+    page.context.close()
+
+
+def test_trends_and_calibration_draw_thousands_of_points(site: Site) -> None:
+    page = site.page("engineer")
+    page.goto(f"{site.base}/trends")
+    page.wait_for_selector("#charts[data-points]", timeout=30000)
+    points = int(page.locator("#charts").get_attribute("data-points"))
+    assert points >= BULK
+    assert page.locator("#charts .uplot").count() == 7
+    render_ms = float(page.locator("#charts").get_attribute("data-render-ms"))
+    print(f"trends: {points} points per chart, 7 charts drawn in {render_ms:.0f} ms")
+    assert render_ms < 1500
+    titles = page.locator("#charts h3").all_inner_texts()
+    assert any(t.startswith("NOK rate by reason") for t in titles)
+    assert "deadline" in page.locator("#charts").inner_text()
+    site.shot(page, "trends")
+
+    page.goto(f"{site.base}/calibration")
+    page.wait_for_selector("#charts[data-points]", timeout=30000)
+    titles = page.locator("#charts h3").all_inner_texts()
+    assert titles == [f"Camera {c}: mean residual (px)"
+                      for c in ("back_left", "back_right", "top_left", "top_right")]
+    drift = page.locator("#drift")
+    page.wait_for_function("!document.querySelector('#drift').textContent.includes('loading')")
+    assert "/api/v1/drift" in drift.inner_text() or drift.inner_text().strip()
+    assert "station file" in page.inner_text("main")
+    site.shot(page, "calibration")
+    page.context.close()
+
+
+def test_recipes_diff_activate_and_teach_confirmation_by_role(site: Site) -> None:
+    page = site.page("operator")
+    page.goto(f"{site.base}/recipes/floor_panel")
+    changed = page.locator("table.diff tr.changed td:first-child").all_inner_texts()
+    assert changed == ["T_rf_from_pf0.wpr", "T_rf_from_pf0.xyz"]
+    assert page.locator("button", has_text="Activate").count() == 0  # operators do not
+    page.goto(f"{site.base}/history/{site.ok_framed.id}")
+    info, content = site.writer.store.versions.content("recipe", "floor_panel")
+    recipe = recipe_from_content("floor_panel", info.version, content)
+    expected = frame_offsets(np.array(site.ok_framed.record.T_rf_from_pf),
+                             recipe.T_rf_from_pf0.matrix, recipe.T_pf_from_grasp.matrix,
+                             recipe.robot_convention).base
+    cells = page.locator("#teach-offset td").all_text_contents()
+    shown = [float(c.split()[0]) for c in cells]
+    assert np.allclose(shown, expected, atol=1e-3) and cells[0].endswith("mm")
+    assert page.locator("#teach-open").is_disabled()  # station down
+    page.context.close()
+
+    page = site.page("engineer")
+    page.goto(f"{site.base}/recipes/floor_panel")
+    page.on("dialog", lambda d: d.accept())
+    site.shot(page, "recipes")
+    page.locator("button", has_text="Activate").click()
+    page.wait_for_function("document.querySelector('tr.active td').textContent === 'v2'")
+    assert [n.active_version for n in site.writer.store.versions.names("recipe")] == [2]
+    page.context.close()
+
+
+def test_docs_work_offline(site: Site) -> None:
+    page = site.page("read")
+    outside: list[str] = []
+
+    def only_local(route: Any) -> None:
+        if route.request.url.startswith(site.base):
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort()
+
+    page.route("**/*", only_local)
+    page.goto(f"{site.base}/docs")
+    page.wait_for_selector(".swagger-ui .info .title", timeout=20000)
+    assert "mvpose station server" in page.inner_text(".swagger-ui .info .title")
+    assert page.locator(".opblock").count() > 10
+    assert outside == []
+    site.shot(page, "docs")
+    page.context.close()
