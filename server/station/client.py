@@ -62,8 +62,8 @@ class StationClient:
         answer = json.loads(data)
         if answer.get("ok"):
             return answer.get("result")
-        err = answer.get("error") or {}
-        kind, message = err.get("kind", "internal"), err.get("message", "")
+        error = answer.get("error") or {}
+        kind, message = error.get("kind", "internal"), error.get("message", "")
         exc = _KINDS.get(kind)
         if exc is None:
             raise RuntimeError(f"the station failed: {message}")

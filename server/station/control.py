@@ -56,7 +56,11 @@ class ControlServer:
                                                        limit=MAX_LINE)
         os.chmod(self.path, 0o600)
         loop = asyncio.get_running_loop()
-        self.station.add_listener(lambda event: loop.call_soon_threadsafe(self._publish, event))
+
+        def listen(event: dict[str, Any]) -> None:  # on the trigger or recorder thread
+            loop.call_soon_threadsafe(self._publish, event)
+
+        self.station.add_listener(listen)
 
     async def stop(self) -> None:
         for q in list(self._streams):
@@ -177,8 +181,12 @@ class ControlServer:
             # stays the key.
             loop = asyncio.get_running_loop()
             committed: asyncio.Future[int] = loop.create_future()
-            answer.on_committed(lambda i: loop.call_soon_threadsafe(
-                lambda: committed.done() or committed.set_result(i)))
+
+            def settle(db_id: int) -> None:
+                if not committed.done():
+                    committed.set_result(db_id)
+
+            answer.on_committed(lambda db_id: loop.call_soon_threadsafe(settle, db_id))
             with contextlib.suppress(TimeoutError):
                 db_id = await asyncio.wait_for(committed, 2.0)
         return {

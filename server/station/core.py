@@ -411,7 +411,7 @@ class Station:
         out: asyncio.Future[Answer] = loop.create_future()
         work = loop.run_in_executor(self._trigger_exec, self._run, request, t0, at, ticket)
 
-        def finished(f: asyncio.Future[Answer]) -> None:
+        def finished(f: asyncio.Future[Answer | None]) -> None:
             watchdog.cancel()
             if out.done():
                 return
@@ -419,8 +419,8 @@ class Station:
                 out.cancel()
             elif (err := f.exception()) is not None:
                 out.set_exception(err)
-            elif f.result() is not None:
-                out.set_result(f.result())
+            elif (answer := f.result()) is not None:  # None: the watchdog has answered
+                out.set_result(answer)
 
         def expire() -> None:
             with ticket.lock:

@@ -1,0 +1,141 @@
+"""`mvpose serve` as it runs on a station: two processes, each killed with SIGKILL and restarted.
+
+The supervisor, the station process and the API process are real processes started by the
+command line; the PLC is the twin in this test's process, talking Modbus/TCP on loopback. While
+the twin triggers back to back, the API process is killed: no trigger fails. Then the station
+process is killed: the API keeps serving history and its readiness says the station is down,
+until the station is back; result ids go on from where they were, never reused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+from stations import ENGINEER, relaxed_deadline, station_file
+
+from server.loopback import attach_twin, detach_twin
+from server.station.client import StationClient, StationDownError
+
+START_S = 120.0  # two processes, migrations and four simulated 4 MP cameras on a loaded machine
+
+
+def _ping(client: StationClient) -> dict[str, Any] | None:
+    try:
+        result: dict[str, Any] = client.call("ping", timeout_s=1.0)
+        return result
+    except StationDownError:
+        return None
+
+
+async def _until(what: str, check: Any, timeout: float = START_S) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        got = await asyncio.to_thread(check)
+        if got:
+            return got
+        assert time.monotonic() < deadline, f"{what} within {timeout:g} s"
+        await asyncio.sleep(0.1)
+
+
+def _api(data_dir: Path) -> dict[str, Any] | None:
+    try:
+        found: dict[str, Any] = json.loads((data_dir / "api.json").read_text())
+    except (OSError, ValueError):
+        return None
+    try:
+        live = httpx.get(f"http://127.0.0.1:{found['port']}/api/v1/health/live", timeout=1.0)
+    except httpx.HTTPError:
+        return None
+    return found if live.status_code == 200 else None
+
+
+async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: Path) -> None:
+    path = station_file(tmp_path, "station1", relaxed_deadline)
+    data = tmp_path / "var"
+    env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=ENGINEER)
+    log = (tmp_path / "serve.log").open("wb")
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "server.cli", "serve", "--station", str(path), "--data-dir",
+         str(data), "--port", "0", "--plc-port", "0", "--log-level", "warning"],
+        env=env, stdout=log, stderr=subprocess.STDOUT)
+    client = StationClient(data / "station.sock")
+    try:
+        station = await _until("the station process answers", lambda: _ping(client))
+        api = await _until("the API process answers", lambda: _api(data))
+        port = (await asyncio.to_thread(client.status))["links"]["modbus"]["port"]
+        twin, beat = await attach_twin(port, poll_s=0.002)
+        answers: list[tuple[int, int, int]] = []
+        try:
+            async def storm(first: int, n: int) -> None:
+                for k in range(first, first + n):
+                    status = await twin.cycle(k, timeout=10.0)
+                    answers.append((k, status.result_code, status.result_id))
+
+            run = asyncio.create_task(storm(1, 30))
+            await _until("a few triggers answered", lambda: len(answers) >= 5, 60)
+            os.kill(api["pid"], signal.SIGKILL)
+            await run
+            assert [code for _, code, _ in answers] == [0] * 30, answers
+            back = await _until("a new API process",
+                                lambda: (a := _api(data)) and a["pid"] != api["pid"] and a)
+            api = back
+        finally:
+            await detach_twin(twin, beat)
+
+        base = f"http://127.0.0.1:{api['port']}/api/v1"
+        auth = {"Authorization": f"Bearer {ENGINEER}"}
+        async with httpx.AsyncClient(base_url=base, headers=auth, timeout=10) as http:
+            os.kill(station["pid"], signal.SIGKILL)
+
+            async def down() -> bool:
+                r = await http.get("/health/ready")
+                return r.status_code == 503 and r.json()["checks"].get("station") is False
+
+            deadline = time.monotonic() + 10
+            while not await down():
+                assert time.monotonic() < deadline, "readiness never said the station is down"
+                await asyncio.sleep(0.05)
+            history = await http.get("/measurements", params={"limit": 100})
+            assert history.status_code == 200
+            assert len(history.json()["items"]) == 30  # history is served while it is down
+            assert (await http.get("/station/status")).status_code == 503
+
+            restarted = await _until(
+                "a new station process",
+                lambda: (p := _ping(client)) and p["pid"] != station["pid"] and p)
+            assert restarted["pid"] != station["pid"]
+            port = (await asyncio.to_thread(client.status))["links"]["modbus"]["port"]
+            twin, beat = await attach_twin(port, poll_s=0.002)
+            try:
+                for k in range(31, 34):
+                    status = await twin.cycle(k, timeout=10.0)
+                    answers.append((k, status.result_code, status.result_id))
+            finally:
+                await detach_twin(twin, beat)
+            ids = [rid for _, _, rid in answers]
+            assert ids == sorted(set(ids)), f"result ids reused after the restart: {ids}"
+            await _until("the API is ready again",
+                         lambda: httpx.get(base + "/health/ready", timeout=2).status_code == 200,
+                         30)
+            for k, code, rid in answers[-3:]:
+                found = (await http.get("/measurements", params={"result_id": rid})).json()
+                assert [(m["trigger_id"], m["reason_code"]) for m in found["items"]] == [
+                    (k, code)]
+    finally:
+        t = time.monotonic()
+        serve.send_signal(signal.SIGTERM)
+        code = serve.wait(timeout=30)
+        stopped_s = time.monotonic() - t
+        log.close()
+    assert code == 0, (tmp_path / "serve.log").read_text()[-3000:]
+    assert stopped_s < 5.0, f"SIGTERM took {stopped_s:.1f} s"
+    assert not (data / "station.sock").exists()
