@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "server.commands.validate",
         "commissioning validation against ground-truth offsets",
     ),
+    "token": ("server.commands.token", "create, list and revoke API tokens in the store"),
     "measure": ("server.commands.measure", "measure saved images offline (no deadline)"),
     "replay": (
         "server.commands.replay",
@@ -67,19 +68,82 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+# Commands that start the API (uvicorn runs the app's lifespan, where a bad setting would
+# otherwise end as a logged traceback and, under `mvpose serve`, an API process restarted forever).
+SERVER_COMMANDS = frozenset({"serve", "api"})
+
+
+def one_line(message: object) -> str:
+    """A message on one line: YAML's context lines and a list of problems joined by '; '."""
+    lines = [x.strip() for x in str(message).splitlines()]
+    return "; ".join(x for x in lines if x and set(x) != {"^"})
+
+
+def check_port_free(host: str, port: int) -> None:
+    """CliError naming the address when ``host:port`` cannot be bound (in use, not ours)."""
+    import socket
+
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds it
+        try:
+            s.bind((host, port))
+        except OSError as err:
+            raise CliError(f"REST address {host}:{port} is not free ({err.strerror}): stop "
+                           "what listens there, or pass --port / set MVPOSE_PORT") from None
+
+
+def check_start_up(args: argparse.Namespace) -> None:
+    """What would stop a server only once it runs, checked before anything starts: the
+    bootstrap token's length and (``mvpose api``) the REST address."""
+    import os
+
+    if args.command not in SERVER_COMMANDS:
+        return
+    secret = os.environ.get("MVPOSE_BOOTSTRAP_TOKEN")
+    if secret is not None:
+        from server.auth import check_bootstrap_secret
+        from server.errors import DomainError
+
+        try:
+            check_bootstrap_secret(secret)
+        except DomainError as err:
+            raise CliError(err.detail) from None
+    if args.command == "api":  # `mvpose serve` checks the address itself before its children
+        from server.commands.options import api_address
+
+        check_port_free(*api_address(args))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(first if first in COMMANDS else None)
     args = parser.parse_args(argv)
+    from mvpose_core.station import StationFileError
+    from server.errors import DomainError
+
     try:
+        check_start_up(args)
         return int(args._module.run(args) or 0)
     except CliError as err:
-        print(f"mvpose {args.command}: error: {err}", file=sys.stderr)
+        print(f"mvpose {args.command}: error: {one_line(err)}", file=sys.stderr)
         return 2
+    except (StationFileError, DomainError) as err:
+        print(f"mvpose {args.command}: error: {one_line(err)}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a file or address the command needs: name it, no traceback
+        where = f" ({err.filename})" if err.filename else ""
+        print(f"mvpose {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # `python -m server.cli`: run the module the commands import (server.cli), not this copy
+    # named __main__, whose CliError would be another class than the one they raise.
+    from server.cli import main as _main
+
+    raise SystemExit(_main())

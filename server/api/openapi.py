@@ -129,7 +129,7 @@ def declare_problems(schema: dict[str, Any], routes: Iterable[BaseRoute]) -> dic
     for route in iter_route_contexts(list(routes)):
         if not isinstance(route.original_route, APIRoute) or not route.include_in_schema:
             continue
-        for method in route.methods:
+        for method in route.methods or ():
             operation = paths.get(route.path_format, {}).get(method.lower())
             if operation is None:
                 continue
