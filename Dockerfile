@@ -1,6 +1,15 @@
 # One container per station: `mvpose serve` on the station file mounted at /etc/mvpose/station.yaml.
-# tests/test_dockerfile.py runs this file's `pip install` commands in a fresh virtual environment,
-# because no Docker engine runs on our build machines; keep every install step a RUN line below.
+# tests/test_dockerfile.py runs this file's `npm ci` and `pip install` commands (a fresh node_modules,
+# a fresh virtual environment), because no Docker engine runs on our build machines; keep every
+# install step a RUN line below.
+
+# The operator page's front-end libraries (htmx, uPlot, Swagger UI), from the npm registry,
+# pinned by server/web/package-lock.json; copied into the package before pip installs it.
+FROM node:20-slim AS web
+WORKDIR /web
+COPY server/web/package.json server/web/package-lock.json ./
+RUN npm ci --ignore-scripts --no-audit --no-fund --prefer-offline
+
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -23,6 +32,7 @@ COPY pyproject.toml README.md ./
 COPY mvpose_core ./mvpose_core
 COPY drivers ./drivers
 COPY server ./server
+COPY --from=web /web/node_modules ./server/web/node_modules
 # postgres: the psycopg driver for plants that collect every station in one PostgreSQL database.
 RUN python -m pip install --no-cache-dir ".[postgres]"
 COPY deploy/stations /etc/mvpose/examples

@@ -8,10 +8,11 @@ STAMP := $(VENV)/.installed-stamp
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml server/web/package-lock.json
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test,dev]"
+	npm ci --prefix server/web --ignore-scripts --no-audit --no-fund --loglevel=error
 	touch $(STAMP)
 
 demo: $(STAMP)

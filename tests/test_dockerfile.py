@@ -50,6 +50,32 @@ def _env(instructions: list[tuple[str, str]]) -> dict[str, str]:
     return env
 
 
+def _stages(instructions: list[tuple[str, str]]) -> dict[str, list[tuple[str, str]]]:
+    """Each build stage's instructions by stage name (``FROM image AS name``); the final stage
+    is also under ``""``."""
+    stages: dict[str, list[tuple[str, str]]] = {}
+    current: list[tuple[str, str]] = []
+    for word, rest in instructions:
+        if word == "FROM":
+            current = []
+            parts = rest.split()
+            stages[parts[2] if len(parts) == 3 and parts[1].upper() == "AS" else rest] = current
+            stages[""] = current
+        current.append((word, rest))
+    return stages
+
+
+def _npm_commands(instructions: list[tuple[str, str]]) -> list[list[str]]:
+    cmds = []
+    for word, rest in instructions:
+        if word == "RUN":
+            for part in rest.split("&&"):
+                argv = shlex.split(part)
+                if argv and argv[0] == "npm":
+                    cmds.append(argv)
+    return cmds
+
+
 def _pip_commands(instructions: list[tuple[str, str]]) -> list[list[str]]:
     cmds = []
     for word, rest in instructions:
@@ -63,7 +89,7 @@ def _pip_commands(instructions: list[tuple[str, str]]) -> list[list[str]]:
 
 
 def test_dockerfile_is_slim_non_root_with_healthcheck() -> None:
-    ins = _instructions(DOCKERFILE.read_text())
+    ins = _stages(_instructions(DOCKERFILE.read_text()))[""]  # the image that runs
     words = [w for w, _ in ins]
     base = next(rest for w, rest in ins if w == "FROM")
     assert base.endswith("-slim"), f"base image {base!r} is not a slim image"
@@ -76,8 +102,32 @@ def test_dockerfile_is_slim_non_root_with_healthcheck() -> None:
     assert _pip_commands(ins), "the Dockerfile installs nothing with pip"
 
 
+def _web_stage(ins: list[tuple[str, str]], tmp_path: Path) -> tuple[str, Path]:
+    """Run the operator page's node stage: its COPY lines, then its ``npm ci`` literally
+    (--prefer-offline: from the npm cache `make venv` filled). Returns (WORKDIR, its copy)."""
+    npm = _npm_commands(ins)
+    assert npm and all(argv[:2] == ["npm", "ci"] for argv in npm), \
+        f"the web stage must install exactly the lock file's versions (npm ci), got {npm}"
+    workdir = next(rest for w, rest in ins if w == "WORKDIR")
+    ctx = tmp_path / "web"
+    ctx.mkdir()
+    for word, rest in ins:
+        if word == "COPY":
+            *sources, dest = shlex.split(rest)
+            assert dest in ("./", "."), rest
+            for src in sources:
+                shutil.copy2(ROOT / src, ctx / Path(src).name)
+    for argv in npm:
+        done = subprocess.run([shutil.which("npm") or "npm", *argv[1:]], cwd=ctx,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, f"{shlex.join(argv)} failed:\n{done.stdout}\n{done.stderr}"
+    return workdir, ctx
+
+
 def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
-    ins = _instructions(DOCKERFILE.read_text())
+    stages = _stages(_instructions(DOCKERFILE.read_text()))
+    web_dir, web_ctx = _web_stage(stages["web"], tmp_path)
+    ins = stages[""]
     # Build context: the COPY lines before the first pip install, relative to WORKDIR.
     ctx = tmp_path / "workdir"
     ctx.mkdir()
@@ -86,14 +136,21 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
             break
         if word == "COPY":
             *sources, dest = shlex.split(rest)
+            stage = next((s.removeprefix("--from=") for s in sources if s.startswith("--from=")),
+                         None)
+            sources = [s for s in sources if not s.startswith("--")]
             for src in sources:
                 target = ctx / (Path(src).name if dest in ("./", ".") else dest.removeprefix("./"))
-                if (ROOT / src).is_dir():
-                    shutil.copytree(
-                        ROOT / src, target, ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
-                    )
+                origin = ROOT / src
+                if stage is not None:
+                    assert stage == "web", rest
+                    origin = web_ctx / Path(src).relative_to(web_dir)
+                if origin.is_dir():
+                    # a developer's own server/web/node_modules is not in the image's context
+                    shutil.copytree(origin, target, ignore=shutil.ignore_patterns(
+                        "__pycache__", "*.pyc", *(("node_modules",) if stage is None else ())))
                 else:
-                    shutil.copy2(ROOT / src, target)
+                    shutil.copy2(origin, target)
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
@@ -128,7 +185,16 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
             shipped = f.suffix in (".py", ".ini", ".mako", ".yaml") and "__pycache__" not in f.parts
             if shipped and not (site / f.relative_to(ROOT)).exists():
                 missing.append(str(f.relative_to(ROOT)))
+    web = ROOT / "server" / "web"
+    missing += [str(f.relative_to(ROOT)) for f in (web / "static").iterdir()
+                if not (site / f.relative_to(ROOT)).exists()]
     assert not missing, f"files not installed by the Dockerfile's pip install: {missing}"
+    # The operator page's libraries: the npm packages' files it serves, in the installed package
+    from server.web.assets import VENDOR
+
+    for name, rel in VENDOR.items():
+        assert (site / "server" / "web" / "node_modules" / rel).is_file(), (
+            f"/static/vendor/{name}: {rel} is not in the image (pyproject package-data?)")
     check = subprocess.run(
         [str(py), "-m", "pip", "check"], env=env, capture_output=True, text=True, cwd=tmp_path
     )
