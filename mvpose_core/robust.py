@@ -33,7 +33,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mvpose_core.detect.stereo import epipolar_distance_px
 from mvpose_core.detect.types import MarkDetection
 from mvpose_core.estimate import EstimateOptions, PoseResult, SolveInfo, estimate_pose
 from mvpose_core.problem import Observation, PoseInputError
@@ -144,7 +143,7 @@ def estimate_pose_robust(
     limit = None if config.outlier_px is None else max(config.outlier_px, 5.0 * sigma_px)
     if limit is not None:
         for _ in range(2 * n + 2):  # each pass makes one change; a few suffice in practice
-            res = _all_residuals(obs, cands, pose.T_rf_from_pf, by_cam, marks_pf)
+            res = _all_residuals(obs, cands, chosen, pose, used, by_cam, marks_pf)
             cur = np.array([res[k][chosen[k]] for k in range(n)])
             length = np.where(used, cur, -1.0)
             worst = int(np.argmax(length))
@@ -157,7 +156,7 @@ def estimate_pose_robust(
                     without = solve(trial, pose.T_rf_from_pf)
                 except PoseInputError:
                     break  # the rest would not fix a pose: keep it, the gate judges
-                res_w = _all_residuals(obs, cands, without.T_rf_from_pf, by_cam, marks_pf)
+                res_w = _all_residuals(obs, cands, chosen, without, trial, by_cam, marks_pf)
                 tau = _threshold(limit, res_w, chosen, trial)
                 best = int(np.argmin(res_w[worst])) if config.candidates else chosen[worst]
                 if res_w[worst][chosen[worst]] <= tau:
@@ -193,7 +192,8 @@ def estimate_pose_robust(
                 why_out.pop(k, None)
             pose = solve(used, pose.T_rf_from_pf)
     final = [replace(o, uv=cands[k][chosen[k]]) for k, o in enumerate(obs)]
-    res_all = _residual_vectors(final, pose.T_rf_from_pf, by_cam, marks_pf)
+    res_all = np.array([o.uv for o in final], dtype=float) - _predictions(
+        final, cands, chosen, pose, used, by_cam, marks_pf)
     keys = [o.key for o in final]
     info = pose.info
     info = SolveInfo(
@@ -218,35 +218,42 @@ def _threshold(limit: float, res: list[Array], chosen: list[int], used: Array) -
     return max(limit, 4.0 * float(np.median(lengths))) if lengths else limit
 
 
-def _predict(cam: ViewCamera, T_rf_from_pf: Array, p_pf: Array) -> Array:
-    p_cf = apply(compose(invert(cam.T_rf_from_cf), T_rf_from_pf), p_pf[None])
-    if not p_cf[0, 2] > 0:
-        return np.array([np.inf, np.inf])
-    return cam.model.project(p_cf)[0]
-
-
-def _residual_vectors(
-    obs: Sequence[Observation], T: Array, by_cam: Mapping[tuple[int, str], ViewCamera],
-    marks_pf: Mapping[str, np.ndarray],
+def _predictions(
+    obs: Sequence[Observation], cands: list[list[Array]], chosen: list[int], pose: PoseResult,
+    mask: Array, by_cam: Mapping[tuple[int, str], ViewCamera], marks_pf: Mapping[str, np.ndarray],
 ) -> Array:
+    """``["N", 2]`` where ``pose`` (estimated from the observations in ``mask``, with the
+    candidates ``chosen``) puts each observation's mark: from the estimate's own residuals for
+    those, one projection per camera for the rest (inf behind the camera)."""
     out = np.empty((len(obs), 2))
-    for k, o in enumerate(obs):
-        out[k] = np.asarray(o.uv, dtype=float) - _predict(
-            by_cam[(o.view, o.camera_id)], T, np.asarray(marks_pf[o.mark_id], dtype=float))
+    idx = np.flatnonzero(mask)
+    out[idx] = np.array([cands[k][chosen[k]] for k in idx.tolist()], dtype=float).reshape(
+        -1, 2) - pose.residuals_px
+    rows: dict[tuple[int, str], list[int]] = {}
+    for k in np.flatnonzero(~np.asarray(mask, dtype=bool)).tolist():
+        rows.setdefault((obs[k].view, obs[k].camera_id), []).append(k)
+    for key, ks in rows.items():
+        cam = by_cam[key]
+        P = np.array([marks_pf[obs[k].mark_id] for k in ks], dtype=float)
+        p_cf = apply(compose(invert(cam.T_rf_from_cf), pose.T_rf_from_pf), P)
+        ahead = p_cf[:, 2] > 0
+        uv = cam.model.project(np.where(ahead[:, None], p_cf, [0.0, 0.0, 1.0]))
+        out[ks] = np.where(ahead[:, None], uv, np.inf)
     return out
 
 
 def _all_residuals(
-    obs: Sequence[Observation], cands: list[list[Array]], T: Array,
-    by_cam: Mapping[tuple[int, str], ViewCamera], marks_pf: Mapping[str, np.ndarray],
+    obs: Sequence[Observation], cands: list[list[Array]], chosen: list[int], pose: PoseResult,
+    mask: Array, by_cam: Mapping[tuple[int, str], ViewCamera], marks_pf: Mapping[str, np.ndarray],
 ) -> list[Array]:
-    """Per observation, the residual length (px) of each of its candidates at pose ``T``."""
-    out = []
-    for o, cs in zip(obs, cands, strict=True):
-        pred = _predict(by_cam[(o.view, o.camera_id)], T,
-                        np.asarray(marks_pf[o.mark_id], dtype=float))
-        out.append(np.linalg.norm(np.asarray(cs, dtype=float) - pred, axis=1))
-    return out
+    """Per observation, the residual length (px) of each of its candidates at ``pose``."""
+    pred = _predictions(obs, cands, chosen, pose, mask, by_cam, marks_pf)
+    return [np.linalg.norm(np.asarray(cs, dtype=float) - pred[k], axis=1)
+            for k, cs in enumerate(cands)]
+
+
+def _skew(t: Array) -> Array:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
 def _stereo(
@@ -258,14 +265,38 @@ def _stereo(
     groups: dict[tuple[int, str], list[int]] = {}
     for k, o in enumerate(obs):
         groups.setdefault((o.view, o.mark_id), []).append(k)
+    groups = {g: ks for g, ks in groups.items() if len(ks) > 1}
+    if not groups:
+        return
+    # Every candidate's normalised ray, one undistortion per camera; essential matrices per pair.
+    rays: dict[int, Array] = {}
+    per_cam: dict[tuple[int, str], list[int]] = {}
+    for ks in groups.values():
+        for k in ks:
+            per_cam.setdefault((obs[k].view, obs[k].camera_id), []).append(k)
+    for key, ks in per_cam.items():
+        uv = np.concatenate([np.asarray(cands[k], dtype=float).reshape(-1, 2) for k in ks])
+        xy = by_cam[key].model.undistort_normalized(uv)
+        first = 0
+        for k in ks:
+            n = len(cands[k])
+            rays[k] = np.concatenate([xy[first : first + n], np.ones((n, 1))], axis=1)
+            first += n
+    essential: dict[tuple[tuple[int, str], tuple[int, str]], Array] = {}
 
     def dist(a: int, ia: int, b: int, ib: int) -> float:
-        ca, cb = by_cam[(obs[a].view, obs[a].camera_id)], by_cam[(obs[b].view, obs[b].camera_id)]
-        return epipolar_distance_px(ca, cands[a][ia][None], cb, cands[b][ib][None])
+        ka, kb = (obs[a].view, obs[a].camera_id), (obs[b].view, obs[b].camera_id)
+        E = essential.get((ka, kb))
+        if E is None:
+            T_b_from_a = compose(invert(by_cam[kb].T_rf_from_cf), by_cam[ka].T_rf_from_cf)
+            E = essential[(ka, kb)] = _skew(T_b_from_a[:3, 3]) @ T_b_from_a[:3, :3]
+        xa, xb = rays[a][ia], rays[b][ib]
+        la, lb = E.T @ xb, E @ xa  # epipolar lines in a and in b (x_b^T E x_a = 0)
+        da = abs(float(la @ xa)) / np.hypot(la[0], la[1]) * by_cam[ka].model.fx
+        db = abs(float(lb @ xb)) / np.hypot(lb[0], lb[1]) * by_cam[kb].model.fx
+        return 0.5 * (da + db)
 
     for ks in groups.values():
-        if len(ks) < 2:
-            continue
         d = {(a, b): dist(a, 0, b, 0) for a in ks for b in ks if a < b}
         odd = [a for a in ks
                if all(d[(min(a, b), max(a, b))] > limit for b in ks if b != a)]
