@@ -117,6 +117,7 @@ class StationResult:
     views: tuple[ViewCapture, ...]
     timings_ms: dict[str, float]
     frames: dict[tuple[int, str], np.ndarray]
+    observations: tuple[Observation, ...] = ()  # what the last measure() call was given
 
     @property
     def ok(self) -> bool:
@@ -269,6 +270,7 @@ class Pipeline:
         meas: Measurement | None = None
         message = ""
         code: int
+        obs: list[Observation] = []
         try:
             t = time.monotonic()
             obs = [o for v in views for o in v.observations()]
@@ -316,7 +318,7 @@ class Pipeline:
         frames = {(v.view, cid): img for v in views for cid, img in v.frames.items()}
         timings["total"] = (time.monotonic() - t0) * 1e3
         return StationResult(code=code, message=message, measurement=meas, views=tuple(views),
-                             timings_ms=timings, frames=frames)
+                             timings_ms=timings, frames=frames, observations=tuple(obs))
 
     def note_append_ms(self, ms: float) -> None:
         """How long the last record's append took (the deadline reserve learns from it)."""

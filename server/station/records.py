@@ -15,6 +15,7 @@ import numpy as np
 
 from mvpose_core.detect import MarkDetection
 from mvpose_core.reasons import reason_name
+from server.drift import record_camera_residuals
 from server.pipeline import StationResult
 from server.recipes import ActiveRecipe
 from server.store.schemas import (
@@ -47,8 +48,9 @@ def result_record(prov: Provenance, result: StationResult, *, trigger_id: int,
         CameraDetections(view=v.view, camera_id=cid, detections=[_detection(d) for d in ds])
         for v in result.views for cid, ds in v.detections.items()
     ]
-    pose = offset = unc = res = None
+    pose = offset = unc = res = cams = None
     if meas is not None:
+        cams = record_camera_residuals(result.observations, meas)  # the drift watch's input
         pose = MeasurementRecord.matrix(meas.T_rf_from_pf)
         offset = Offset(convention=rc.robot_convention, values=[float(x) for x in meas.offset])
         unc = Uncertainty(sigma_mm=float(meas.sigma_trans_mm), sigma_deg=float(meas.sigma_rot_deg))
@@ -64,6 +66,7 @@ def result_record(prov: Provenance, result: StationResult, *, trigger_id: int,
         result="OK" if result.code == 0 else "NOK", reason_code=result.code,
         reason=reason_name(result.code), message=result.message[:500] or None,
         detections=dets, T_rf_from_pf=pose, offset=offset, uncertainty=unc, residuals=res,
+        camera_residuals=cams,
         timings_ms={k: round(v, 4) for k, v in result.timings_ms.items()}, images=list(images),
     )
 

@@ -78,6 +78,10 @@ async def test_result_ids_are_the_records_and_survive_a_restart(tmp_path: Path) 
                 seen.append((status.trigger_id, status.result_id))
             lb.runtime.wait_idle()
             by_seq = {r.seq: r.record.trigger_id for r in _records(lb)}
+            last = _records(lb)[-1].record  # what the drift watch reads: every camera's residual
+            assert last.camera_residuals is not None
+            assert {c.camera_id for c in last.camera_residuals} == {
+                d.camera_id for d in last.detections}
     ids = [rid for _, rid in seen]
     assert ids == sorted(set(ids)), f"result ids reused or out of order: {ids}"
     assert all(by_seq[rid] == tid for tid, rid in seen)
