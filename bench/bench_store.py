@@ -100,16 +100,32 @@ def run(folder: Path, synchronous: str, readers: int, repeat: int,
         store.close()
 
 
-def run_appends(folder: Path, url: str, label: str, db_wait_s: float, repeat: int) -> Timing:
-    """DurableWriter.append: seal, fsynced journal line, then the commit waited <= db_wait_s."""
-    data_dir = folder / f"{label.replace(' ', '_')}-{db_wait_s * 1e3:.0f}ms"
+def run_appends(folder: Path, url: str, label: str, db_wait_s: float, repeat: int,
+                period_s: float | None = None) -> Timing:
+    """DurableWriter.append: seal, fsynced journal line, then the commit waited <= db_wait_s.
+
+    Back to back (``period_s`` None), each append meets the database thread still committing
+    the one before (two fsyncs on one disk); paced like a line (one trigger every ``period_s``),
+    the database thread has finished, as on a station."""
+    pace = f", one per {period_s * 1e3:.0f} ms" if period_s else ""
+    name = f"append {label} (db_wait {db_wait_s * 1e3:.0f} ms{pace})"
+    data_dir = folder / name.replace(" ", "_").replace("(", "").replace(")", "").replace(",", "")
     writer = DurableWriter.open(url, "bench", data_dir, db_wait_s=db_wait_s)
     rng = np.random.default_rng(0)
     counter = iter(range(1, 10**9))
     try:
-        timing = measure(f"append {label} (db_wait {db_wait_s * 1e3:.0f} ms)",
-                         lambda: writer.append(station1_record(rng, next(counter))),
-                         repeat=repeat, warmup=20)
+        if period_s is None:
+            timing = measure(name, lambda: writer.append(station1_record(rng, next(counter))),
+                             repeat=repeat, warmup=20)
+        else:
+            samples = []
+            for _ in range(repeat + 20):
+                record = station1_record(rng, next(counter))
+                time.sleep(period_s)  # the line's cadence
+                t0 = time.perf_counter()
+                writer.append(record)
+                samples.append((time.perf_counter() - t0) * 1e3)
+            timing = Timing(name, np.array(samples[20:]))
     finally:
         writer.close(timeout=60.0)
     store = open_store(url, "bench")
@@ -131,7 +147,9 @@ def postgres_appends(folder: Path, repeat: int) -> list[Timing]:
         return []
     cluster, root = start_cluster()
     try:
-        out = [run_appends(folder, cluster.create_database(), "PostgreSQL 15", 0.005, repeat)]
+        out = [run_appends(folder, cluster.create_database(), "PostgreSQL 15", 0.005, repeat),
+               run_appends(folder, cluster.create_database(), "PostgreSQL 15", 0.005, 300,
+                           period_s=0.03)]
         url = cluster.create_database()
         writer = DurableWriter.open(url, "bench", folder / "pg-frozen", db_wait_s=0.005)
         rng = np.random.default_rng(0)
@@ -187,7 +205,11 @@ def main() -> int:
         sqlite_url = f"sqlite:///{folder / 'bench-append.db'}"
         appends = [run_appends(folder, sqlite_url, "SQLite FULL", 0.005, 500),
                    run_appends(folder, f"sqlite:///{folder / 'bench-append0.db'}",
-                               "SQLite FULL", 0.0, 500)]
+                               "SQLite FULL", 0.0, 500),
+                   run_appends(folder, f"sqlite:///{folder / 'bench-append-paced.db'}",
+                               "SQLite FULL", 0.005, 300, period_s=0.03),
+                   run_appends(folder, f"sqlite:///{folder / 'bench-append-paced0.db'}",
+                               "SQLite FULL", 0.0, 300, period_s=0.03)]
         appends += postgres_appends(folder, 500)
     for t in (full, normal, mes, mes_fast, hammer, page):
         print(t.line(full if t is not full and t is not page else None))
