@@ -4,7 +4,7 @@ helpers: the app on a real socket, Debian's Chromium through Playwright).
     python -m server.web.screenshots --out docs/figures
 
 starts the API app on a temporary SQLite store, fills it with records the pose engine measured
-on simulated station 1 (server.web.sample), logs in and saves ``operator-<page>.png`` for each
+on simulated station 1 (server.web.sample), logs in and saves ``operator-<page>.jpg`` for each
 page. Needs the ``test`` extra (playwright) and /usr/bin/chromium (Debian's ``chromium``).
 """
 
@@ -30,7 +30,7 @@ CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--no-first-run"]
 STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
-VIEWPORT = {"width": 1600, "height": 1000}
+VIEWPORT = {"width": 1440, "height": 900}
 
 
 @contextmanager
@@ -107,18 +107,19 @@ def main(argv: list[str] | None = None) -> int:
                 login(page, base, token)
                 shots = {
                     "live": ("/", "#frames figure.cam"),
-                    "history": ("/history", "table.history"),
+                    "history": ("/history?limit=15", "table.history"),
                     "record": (f"/history/{newest[0].id - 2}", "figure.cam"),
                     "trends": ("/trends", "#charts[data-points]"),
                     "calibration": ("/calibration", "#charts[data-points]"),
                     "recipes": ("/recipes/floor_panel", "table.diff"),
-                    "docs": ("/docs", ".swagger-ui .info"),
+                    "docs": ("/docs", ".swagger-ui .opblock"),
                 }
                 for name, (path, ready) in shots.items():
                     page.goto(base + path)
-                    page.wait_for_selector(ready, state="attached")
-                    target = args.out / f"operator-{name}.png"
-                    page.screenshot(path=str(target), full_page=name != "docs")
+                    page.wait_for_selector(ready)
+                    target = args.out / f"operator-{name}.jpg"
+                    page.screenshot(path=str(target), full_page=name != "docs", type="jpeg",
+                                    quality=80)
                     print(target)
                 browser.close()
         finally:
