@@ -211,20 +211,29 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
 def test_compose_files_run_the_image_on_an_example_station_with_known_settings() -> None:
     import yaml
 
+    from server.commands.options import LINK_OPTIONS
     from server.settings import Settings
 
     known = {f"MVPOSE_{name.upper()}" for name in Settings.model_fields}
-    known |= {"MVPOSE_HOST", "MVPOSE_PORT", "MVPOSE_PLC_HOST", "MVPOSE_PLC_PORT"}  # serve's
+    known |= {"MVPOSE_HOST", "MVPOSE_PORT"} | {env for env, _, _ in LINK_OPTIONS.values()}
     files = sorted((ROOT / "deploy").glob("compose.*.yaml"))
-    assert {f.name for f in files} == {f"compose.{p.stem}.yaml"
-                                      for p in (ROOT / "deploy" / "stations").glob("*.yaml")}
+    single = [f for f in files if not f.name.endswith(".split.yaml")]
+    assert {f.name for f in single} == {f"compose.{p.stem}.yaml"
+                                       for p in (ROOT / "deploy" / "stations").glob("*.yaml")}
     for f in files:
         doc = yaml.safe_load(f.read_text())
-        svc = doc["services"]["mvpose"]
-        assert svc["build"]["dockerfile"] == "Dockerfile" and svc["network_mode"] == "host"
-        unknown = set(svc["environment"]) - known
-        assert not unknown, f"{f.name}: environment variables nothing reads: {unknown}"
-        mounts = [v.split(":") for v in svc["volumes"]]
-        station = next(src for src, dst, *_ in mounts if dst == "/etc/mvpose/station.yaml")
-        assert (ROOT / "deploy" / station).is_file(), f"{f.name}: no station file {station}"
-        assert doc["services"]["postgres"]["profiles"] == ["postgres"]
+        if f in single:  # one container: `mvpose serve` supervises both processes
+            services = {"mvpose": doc["services"]["mvpose"]}
+            assert doc["services"]["postgres"]["profiles"] == ["postgres"]
+        else:  # two containers: each process on its own
+            services = {k: doc["services"][k] for k in ("station", "api")}
+            assert services["station"]["entrypoint"] == ["mvpose", "station"]
+            assert services["api"]["entrypoint"] == ["mvpose", "api"]
+        for svc in services.values():
+            assert svc["network_mode"] == "host"
+            unknown = set(svc["environment"]) - known
+            assert not unknown, f"{f.name}: environment variables nothing reads: {unknown}"
+            mounts = [v.split(":") for v in svc["volumes"]]
+            station = next(src for src, dst, *_ in mounts if dst == "/etc/mvpose/station.yaml")
+            assert (ROOT / "deploy" / station).is_file(), f"{f.name}: no station file {station}"
+            assert any(dst == "/var/lib/mvpose" for _, dst, *_ in mounts)
