@@ -136,6 +136,17 @@ def run_appends(folder: Path, url: str, label: str, db_wait_s: float, repeat: in
     return timing
 
 
+def disk_append(folder: Path, repeat: int) -> Timing:
+    """The disk alone: append a journal-sized line (2.6 kB) to a file and fdatasync it."""
+    line = b"x" * 2600 + b"\n"
+    fd = os.open(folder / "disk-append", os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        return measure("append + fdatasync of a 2.6 kB line (the disk)",
+                       lambda: (os.write(fd, line), os.fdatasync(fd)), repeat=repeat)
+    finally:
+        os.close(fd)
+
+
 def postgres_appends(folder: Path, repeat: int) -> list[Timing]:
     """Appends on a throwaway PostgreSQL 15 cluster (tests/server/postgres.py: fsync off), and
     with that cluster frozen by SIGSTOP: the append then costs the journal plus db_wait_s."""
@@ -203,7 +214,8 @@ def main() -> int:
                        lambda: store.measurements.summary_page(f, None, 50), repeat=100)
         store.close()
         sqlite_url = f"sqlite:///{folder / 'bench-append.db'}"
-        appends = [run_appends(folder, sqlite_url, "SQLite FULL", 0.005, 500),
+        appends = [disk_append(folder, 500),
+                   run_appends(folder, sqlite_url, "SQLite FULL", 0.005, 500),
                    run_appends(folder, f"sqlite:///{folder / 'bench-append0.db'}",
                                "SQLite FULL", 0.0, 500),
                    run_appends(folder, f"sqlite:///{folder / 'bench-append-paced.db'}",
