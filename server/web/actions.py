@@ -133,9 +133,13 @@ async def activate(request: Request, body: Annotated[ActivateBody, Body()]) -> d
     user = await need(request, Role.ENGINEER)
     runtime = runtime_of(request.app)
     if runtime is not None:
-        rec = await in_thread(runtime.activate_recipe, body.name, body.version, user.name)
-        return {"message": f"{body.name} v{rec.get('version', body.version)} active",
-                "via": "station"}
+        try:
+            rec = await in_thread(runtime.activate_recipe, body.name, body.version, user.name)
+        except NotReadyError:
+            pass  # the station is down: the store takes it, as the REST API's activate does
+        else:
+            return {"message": f"{body.name} v{rec.get('version', body.version)} active",
+                    "via": "station"}
     services = services_of(request)
     info = await in_thread(services.store.versions.activate, "recipe", body.name, body.version,
                            user.name)

@@ -85,6 +85,11 @@ def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
         return None, f"the station does not answer: {type(err).__name__}: {err}"
 
 
+def station_up(app: Any) -> bool:
+    """Whether the station answers (its actions are offered only then). Blocking."""
+    return station_status(app)[0] is not None
+
+
 def calibration_words(reader: Reader) -> str:
     """The active calibration(s) from the store, with age; the station file's otherwise."""
     from datetime import UTC, datetime

@@ -96,12 +96,12 @@ def status_panel(status: Mapping[str, Any] | None, error: str | None,
                 f'<p class="state bad" data-state="DOWN">station down</p><p class="why">{why}'
                 f'</p><p>History, trends and recipes below are read from the store.</p>'
                 f'<p>Calibration: {calibration}</p></section>')
-    plc = status.get("plc") or {}
     recipe = status.get("recipe") or {}
-    link = plc.get("state") or ("running" if plc.get("running") else "not running")
-    online = plc.get("plc_online")
-    link_words = f"{link}" + ("" if online is None else (" · PLC online" if online
-                                                         else " · PLC offline"))
+    links = status.get("links") or ({"plc": status["plc"]} if status.get("plc") else {})
+    link_words = "; ".join(f"{name}: {_link(v)}" for name, v in links.items()) or "none"
+    cal = status.get("calibration")
+    if isinstance(cal, Mapping) and cal.get("id"):
+        calibration = f"{esc(cal['id'])} ({esc(str(cal.get('sha256', ''))[:12])})"
     cams = status.get("cameras") or {}
     cam_rows = "".join(f"<li>{esc(k)}: {esc(_short(v))}</li>" for k, v in cams.items())
     counts = status.get("counts") or {}
@@ -117,6 +117,15 @@ def status_panel(status: Mapping[str, Any] | None, error: str | None,
 <dt>Recipe</dt><dd>{rec}</dd><dt>Calibration</dt><dd>{calibration}</dd>
 <dt>Counts</dt><dd>{count_words}</dd></dl>
 {f"<ul class='cams'>{cam_rows}</ul>" if cam_rows else ""}{armed}</section>"""
+
+
+def _link(v: object) -> str:
+    if not isinstance(v, Mapping):
+        return str(v)
+    state = v.get("state") or ("running" if v.get("running") else "not running")
+    online = v.get("plc_online")
+    return str(state) + ("" if online is None else (" · PLC online" if online
+                                                    else " · PLC offline"))
 
 
 def _short(v: object) -> str:

@@ -19,7 +19,7 @@ from server.web.context import (
     need,
     page_user,
     reader_of,
-    runtime_of,
+    station_up,
 )
 from server.web.pages import Html, to_login
 from server.web.reader import age_words
@@ -155,7 +155,7 @@ async def recipe_page(
     else:
         diff = diff_table(ca, cb, ia.version, ib.version)
     engineer = html.can(user, Role.ENGINEER)
-    station_up = runtime_of(request.app) is not None
+    up = html.can(user, Role.OPERATOR) and await in_thread(station_up, request.app)
     rows = []
     for v in versions:
         act = ""
@@ -172,7 +172,7 @@ async def recipe_page(
                           for n in numbers) for k, sel in (("a", a), ("b", b))}
     arm = ""
     if html.can(user, Role.OPERATOR):
-        down = "" if station_up else " disabled title='station down'"
+        down = "" if up else " disabled title='station down'"
         arm = (f'<p><button type="button" class="post" data-action="/web/actions/arm-teach" '
                f'data-confirm="The next OK result becomes the reference of the active recipe. '
                f'Arm?"{down}>Arm teach (next OK result)</button> or teach from a stored OK '

@@ -26,7 +26,7 @@ from server.web.context import (
     reader_of,
     render_live_result,
     render_status,
-    runtime_of,
+    station_up,
 )
 from server.web.reader import Reader, RecordView
 
@@ -50,7 +50,8 @@ async def live_page(request: Request) -> Html:
     status = await in_thread(render_status, request.app, reader)
     actions = ""
     if html.can(user, Role.OPERATOR):
-        down = "" if runtime_of(request.app) is not None else " disabled title='station down'"
+        up = await in_thread(station_up, request.app)
+        down = "" if up else " disabled title='station down'"
         actions = f"""<section class="panel actions"><h2>Commissioning</h2>
 <form id="trigger-form" data-action="/web/actions/trigger"><label>part id
 <input name="part_id" maxlength="40"></label><button type="submit"{down}>Trigger now</button>
@@ -183,7 +184,7 @@ async def record_page(
     teach = ""
     if html.can(user, Role.OPERATOR) and rec.result == "OK":
         preview = await in_thread(teach_preview, reader, view)
-        teach = teach_block(s.id, preview, runtime_of(request.app) is not None)
+        teach = teach_block(s.id, preview, await in_thread(station_up, request.app))
     images = "".join(f"<li>view {i.view} {html.esc(i.camera_id)}: "
                      f"{'archived' if (i.view, i.camera_id) in view.frames else 'evicted'}</li>"
                      for i in rec.images) or "<li>none kept (OK frames are kept 1 in N)</li>"

@@ -237,3 +237,36 @@ async def test_docs_and_page_assets_are_served_by_the_app(tmp_path: Path) -> Non
         # an open redirect after login is refused
         r = await client.get("/login", params={"next": "//evil.example/x"})
         assert 'data-next="/"' in r.text
+
+
+def test_status_panel_reads_the_station_status() -> None:
+    from server.web.html import status_panel
+
+    status = {"station": "station1", "state": "READY", "deadline_ms": 50.0,
+              "recipe": {"name": "floor_panel", "version": 3, "number": 1, "sha256": "ab" * 32},
+              "calibration": {"id": "cal-7", "sha256": "cd" * 32}, "teach_armed": True,
+              "cameras": {"top_left": "up (0 reconnects)", "top_right": "down: timeout"},
+              "links": {"modbus": {"running": True, "state": "READY", "plc_online": False,
+                                   "server_heartbeat": 12}},
+              "counts": {"triggers": 5, "ok": 4, "nok": 1}}
+    panel = status_panel(status, None, "station file")
+    for words in ("READY", "modbus: READY · PLC offline", "floor_panel v3", "cal-7 (cdcdcdcdcdcd)",
+                  "top_right: down: timeout", "triggers 5, ok 4, nok 1", "teach armed"):
+        assert words in panel, words
+    assert "12" not in panel.replace("cdcdcdcdcdcd", "")  # the heartbeat is not shown
+    down = status_panel(None, "the station process is not running", "station file")
+    assert "station down" in down and "not running" in down
+
+
+async def test_a_station_that_does_not_answer_is_shown_down(tmp_path: Path) -> None:
+    from server.station.client import StationClient
+
+    station = StationClient(tmp_path / "no-station.sock", timeout_s=0.5)
+    async with running(create_app(settings(tmp_path), station)) as (client, _):
+        await _login(client, ENGINEER)
+        page = (await client.get("/")).text
+        assert "station down" in page and "the station process is not running" in page
+        # the engineer's actions stay on the page, disabled while the station is down
+        assert re.search(r"<button type=\"submit\" disabled[^>]*>Trigger now", page)
+        r = await client.post("/web/actions/trigger", json={"part_id": "VIN1"}, headers=ORIGIN)
+        assert r.status_code == 503 and "not running" in r.json()["detail"]
