@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from drivers.plc.registers import Status
-from mvpose_core.reasons import reason_name
+from mvpose_core.reasons import describe, reason_name
 from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
+from mvpose_core.transforms import RobotConvention
 from server.loopback import Loopback, TriggerRow, move_part, running_station, trigger
 from server.pipeline import PipelineOptions, auto_detect_processes
 from server.settings import Settings
@@ -35,6 +36,15 @@ def _free(port: int) -> int:
 
 def _fmt(v: np.ndarray) -> str:
     return " ".join(f"{x:7.2f}" for x in v[:3]) + " |" + " ".join(f"{x:6.2f}" for x in v[3:6])
+
+
+def _units(conv: RobotConvention) -> tuple[str, str]:
+    """The units of the offset columns as the PLC gets them (docs/plc-interface.md)."""
+    if conv is RobotConvention.ABB:
+        return "mm", "quat."
+    if conv is RobotConvention.UR:
+        return "mm", "rad"
+    return "mm", "deg"
 
 
 def run_station_demo(
@@ -62,6 +72,7 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
     # The pipeline as `mvpose serve` runs it on this machine.
     options = StationOptions(
         sim_seed=seed, pipeline=PipelineOptions(detect_processes=auto_detect_processes()))
+    print("starting the station: store, 4 MP simulated cameras, warm-up ...", flush=True)
     async with running_station(settings, options, http_port=port) as lb:
         rt = lb.runtime
         assert rt.active is not None and rt.services is not None  # started
@@ -73,9 +84,16 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         print(f"token     {token}   (engineer; e.g. curl -H 'Authorization: Bearer {token}' "
               f"{lb.base_url}/api/v1/measurements)")
         print(f"Modbus    127.0.0.1:{rt.plc_port}   store {settings.resolved_database_url}")
-        labels = " ".join(f"{x:>7}" for x in recipe.robot_convention.labels[:3]) + " |" + " ".join(
-            f"{x:>6}" for x in recipe.robot_convention.labels[3:6])
-        print(f"\n{'#':>4}  offset {labels}   error (grasp)     1σ (grasp)      server  result")
+        conv = recipe.robot_convention
+        lin, ang = _units(conv)
+        labels = " ".join(f"{x:>7}" for x in conv.labels[:3]) + " |" + " ".join(
+            f"{x:>6}" for x in conv.labels[3:6])
+        units = " ".join(f"{lin:>7}" for _ in range(3)) + " |" + " ".join(
+            f"{ang:>6}" for _ in range(3))
+        print(f"\nOffsets in the {conv.value.upper()} convention (what the PLC reads); error = "
+              f"measured vs true at the grasp point; 1σ = the station's own estimate there.")
+        print(f"{'#':>4}  offset {labels}   error at grasp    1σ at grasp     cycle    result")
+        print(f"{'':>4}         {units}   deg       mm      deg       mm     ms")
         first = rt.services.store.measurements.count() + 1
         rows: list[TriggerRow] = []
         bad = nok = 0
@@ -92,15 +110,17 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
             if row.result_code == 0:
                 wrong = row.rot_err_deg > tol.rotation_deg or row.trans_err_mm > tol.translation_mm
                 bad += wrong
-                print(f"      meas.  {_fmt(row.measured_offset)}   {row.rot_err_deg:5.3f}° "
-                      f"{row.trans_err_mm:5.3f} mm   {row.sigma_deg:5.3f}° {row.sigma_mm:5.3f} mm"
-                      f"   {row.server_ms:5.1f} ms  OK{'  BEYOND TOLERANCE' if wrong else ''}")
+                print(f"      meas.  {_fmt(row.measured_offset)}   {row.rot_err_deg:5.3f}  "
+                      f"{row.trans_err_mm:6.3f}    {row.sigma_deg:5.3f}  {row.sigma_mm:6.3f}  "
+                      f"{row.server_ms:5.1f}    OK{'  BEYOND TOLERANCE' if wrong else ''}")
             else:
                 nok += 1
                 msg = rt.last["message"] if rt.last else ""
-                print(f"      NOK {reason_name(row.result_code)} ({row.result_code}) after "
-                      f"{row.server_ms:.1f} ms: {msg}")
+                print(f"      NOK: {describe(row.result_code)} ({reason_name(row.result_code)}, "
+                      f"code {row.result_code}) after {row.server_ms:.1f} ms\n           {msg}")
         _summary(rows, nok)
+        print(f"\nOperator page: {lb.base_url}/  (log in with the token above); REST API "
+              f"{lb.base_url}/api/v1; records in {settings.resolved_database_url}")
         if triggers is None or keep_serving:
             print(f"\nREST API still up at {lb.base_url}/api/v1 — Ctrl-C to stop")
             while True:
