@@ -89,6 +89,7 @@ class Sealed:
 
     link: Link
     _commit: _Commit = field(repr=False, compare=False)
+    journal_ms: float = 0.0  # the journal write and its fsync, of the whole append
 
     @property
     def seq(self) -> int:
@@ -261,6 +262,7 @@ class DurableWriter:
             assert head is not None
             link = seal_link(self.station, head[0] + 1, head[1], datetime.now(UTC), record,
                              record_json)
+            t0 = time.perf_counter()
             try:
                 self._journal.append(link)
             except OSError as err:
@@ -268,13 +270,14 @@ class DurableWriter:
                     f"station {self.station!r}: the journal {self._journal.directory} could not "
                     f"take seq {link.seq}: {err}"
                 ) from err
+            journal_ms = (time.perf_counter() - t0) * 1e3
             commit = _Commit()
             with self._cond:
                 self._queue.append((link, commit, time.monotonic()))
                 self._cond.notify_all()
         if self.db_wait_s > 0:
             commit.wait(self.db_wait_s)
-        return Sealed(link, commit)
+        return Sealed(link, commit, journal_ms)
 
     # ------------------------------------------------------------------ the database thread
     def _run(self) -> None:

@@ -34,9 +34,11 @@ HERE = Path(__file__).parent
 STATION = "station1"
 DB_WAIT_S = 0.005
 # What "never waits on the database" means in numbers: an append is one fsynced journal write
-# (about 1 ms, up to tens of ms on this shared VM) plus at most DB_WAIT_S; a frozen or stopped
-# database would instead hold it for the seconds the fault lasts.
-APPEND_BOUND_S = 0.1
+# plus at most DB_WAIT_S; a frozen or stopped database would instead hold it for as long as the
+# fault lasts (half a second and more here). Beyond its journal write, an append may take
+# DB_WAIT_S and SLACK_S (a thread waking late on this shared 2-core VM): 50 ms. The journal
+# write is the disk's own time, whatever the database does.
+SLACK_S = 0.045
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +94,8 @@ def _timed_appends(writer: DurableWriter, rng: np.random.Generator, first: int, 
         t0 = time.perf_counter()
         sealed.append(writer.append(rec))
         took.append(time.perf_counter() - t0)
+        beyond_journal = took[-1] - sealed[-1].journal_ms / 1e3
+        assert beyond_journal < DB_WAIT_S + SLACK_S, (sealed[-1].seq, took[-1], beyond_journal)
         time.sleep(every_s)  # the line's cadence, not a wait for a condition
     return sealed, took
 
@@ -154,7 +158,7 @@ def test_a_frozen_database_never_holds_up_an_append(
         assert writer.flush(30.0)
         _signal_all(c, signal.SIGSTOP)
         try:
-            frozen, took = _timed_appends(writer, rng, 11, 25)
+            frozen, _ = _timed_appends(writer, rng, 11, 25)
             status = writer.status()
             on_disk = _journalled(data)
             t0 = time.perf_counter()  # a start-up facing the frozen server gives up in time
@@ -163,7 +167,6 @@ def test_a_frozen_database_never_holds_up_an_append(
             assert time.perf_counter() - t0 < 10
         finally:
             _signal_all(c, signal.SIGCONT)
-        assert max(took) < APPEND_BOUND_S, sorted(took)[-3:]
         assert all(s.id is None for s in frozen)
         assert not status.up and status.pending == 25 and status.head_seq == 35
         assert status.oldest_pending_s is not None and status.oldest_pending_s > 0.2
@@ -191,9 +194,8 @@ def test_a_stopped_and_restarted_database_loses_nothing(
         assert writer.flush(30.0)
         _pg_ctl(c, root, "stop")
         stopped = True
-        down, took = _timed_appends(writer, rng, 11, 10)
+        down, _ = _timed_appends(writer, rng, 11, 10)
         sealed += down
-        assert max(took) < APPEND_BOUND_S, sorted(took)[-3:]
         status = writer.status()
         assert not status.up and status.pending == 10 and "OperationalError" in (
             status.last_error or "")
@@ -203,10 +205,9 @@ def test_a_stopped_and_restarted_database_loses_nothing(
             _open(url, tmp_path / "fresh")
         writer = _open(url, data)  # the database still down: the journal has the head
         assert writer.head_seq == 20
-        down, took = _timed_appends(writer, rng, 21, 10)
+        down, _ = _timed_appends(writer, rng, 21, 10)
         sealed += down
         ids_later = down
-        assert max(took) < APPEND_BOUND_S, sorted(took)[-3:]
         _pg_ctl(c, root, "start")
         stopped = False
         more, _ = _timed_appends(writer, rng, 31, 5, every_s=0.0)
