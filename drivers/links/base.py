@@ -19,7 +19,7 @@ controller and the store never disagree.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
@@ -85,6 +85,13 @@ class StationHandler(Protocol):
 
     def selected_recipe(self) -> int:
         """The selected recipe's number (0: none)."""
+        ...
+
+    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``listen(result)`` after every recorded answer, whichever link or client caused
+        it (on the station's trigger or recorder thread: hand it over to your own loop). The
+        dict holds result_id, trigger_id, part_id, recipe, result, reason_code, reason,
+        message, processing_ms, at, offset (recipe convention, or None), sigma_mm, sigma_deg."""
         ...
 
 

@@ -219,11 +219,16 @@ class Station:
 
     async def _start_links(self) -> None:
         margin = self.options.answer_margin_s
-        modbus = self.station.links.modbus
-        if modbus.measure_timeout_s is None:  # backstop a second after the station's watchdog
-            modbus = modbus.model_copy(update={
-                "measure_timeout_s": self.station.deadline_ms / 1000.0 + margin + 1.0})
-        self.links = open_links({"modbus": modbus}, self)
+        configs: dict[str, Any] = {}
+        for name in type(self.station.links).model_fields:  # one block per backend
+            cfg = getattr(self.station.links, name)
+            if cfg is None:
+                continue
+            if getattr(cfg, "measure_timeout_s", 0) is None:  # a backstop behind the watchdog
+                cfg = cfg.model_copy(update={
+                    "measure_timeout_s": self.station.deadline_ms / 1000.0 + margin + 1.0})
+            configs[name] = cfg
+        self.links = open_links(configs, self)
         for link in self.links:
             await link.start()
         self._watch = asyncio.create_task(self._watch_versions(), name="recipe-versions")
@@ -552,6 +557,9 @@ class Station:
                 "reason_code": record.reason_code, "reason": reason_name(record.reason_code),
                 "message": message, "processing_ms": outcome.processing_ms,
                 "at": record.triggered_at.isoformat(),
+                "convention": record.offset.convention.value if record.offset else None,
+                "offset": list(offset) if offset is not None else None,
+                "sigma_mm": outcome.sigma_trans_mm, "sigma_deg": outcome.sigma_rot_deg,
             }
             event = dict(self.last)
         if done.db_id is None and done.on_committed is not None:
