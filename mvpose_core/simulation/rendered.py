@@ -67,9 +67,12 @@ def rendered_trial(
     options: RenderOptions = RenderOptions(),  # noqa: B008 - frozen, immutable default
     per_camera: Mapping[str, RenderOptions] | None = None,
     detect: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
+    measured_as: RecipeConfig | None = None,
 ) -> RenderedTrial:
     """Render every camera (``per_camera`` maps ``ViewCamera.key`` to its own options),
-    detect, measure."""
+    detect, measure. ``measured_as`` is the recipe the detector and estimator are given (default
+    ``recipe``, the one rendered): e.g. one with wrong diameters or the robust rule off."""
+    seen = recipe if measured_as is None else measured_as
     cams = view_cameras(station)
     per_camera = per_camera or {}
     truth: dict[tuple[int, str, str], Array] = {}
@@ -82,10 +85,10 @@ def rendered_trial(
             r = render_view(vc, recipe, T_true, rng, per_camera.get(vc.key, options))
             frames.append((r.image, vc))
             truth.update({(view, vc.camera_id, m): uv for m, uv in r.centres.items()})
-        dets = detect_marks_many(frames, recipe, prior, detect)
+        dets = detect_marks_many(frames, seen, prior, detect)
         obs += observations_of(view, {vc.camera_id: d for vc, d in zip(vcs, dets, strict=True)})
     try:
-        m = measure(station, recipe, obs, cameras=cams)
+        m = measure(station, seen, obs, cameras=cams)
     except PoseInputError as err:
         return RenderedTrial(T_true, None, str(err), np.zeros((0, 2)), float("nan"),
                              float("nan"))
@@ -150,11 +153,12 @@ def rendered_study(
     options: RenderOptions = RenderOptions(),  # noqa: B008 - frozen, immutable default
     per_camera: Mapping[str, RenderOptions] | None = None,
     detect: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
+    measured_as: RecipeConfig | None = None,
 ) -> RenderedStudy:
     """``trials`` rendered triggers with the part displaced about its marks' centroid."""
     runs = [
         rendered_trial(station, recipe, displaced_about_marks(recipe, rng, max_mm, max_deg), rng,
-                       options, per_camera, detect)
+                       options, per_camera, detect, measured_as)
         for _ in range(trials)
     ]
     done = [r for r in runs if r.measurement is not None]
