@@ -12,7 +12,7 @@ The flange pose of a view is the taught one unless the robot reports its actual 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -74,6 +74,33 @@ def view_cameras(
                         rig_position=pos,
                     )
                 )
+    return out
+
+
+def repose(
+    cameras: Sequence[ViewCamera], station: StationConfig, flange_poses: Mapping[int, Array]
+) -> list[ViewCamera]:
+    """``cameras``, posed at their views' taught flange poses, moved to the robot's actual ones.
+
+    The same poses as :func:`view_cameras` with ``flange_poses`` (up to rounding), without
+    building the cameras again: a robot-mounted camera keeps its lens model object and gets the
+    new pose ``T_rf_from_gf(actual) · T_rf_from_gf(taught)⁻¹ · T_rf_from_cf``; a fixed camera, or
+    one of a view without an actual pose, is returned as it is, so that what is remembered for
+    it (window predictions, packed camera tables) is found again.
+    """
+    moves: dict[int, Array] = {}
+    for v in station.views:
+        actual = flange_poses.get(v.id)
+        if actual is not None and v.T_rf_from_gf is not None:
+            moves[v.id] = compose(np.asarray(actual, dtype=float), invert(v.T_rf_from_gf.matrix))
+    robot = {r.id for r in station.rigs if r.mount == "robot"}
+    out: list[ViewCamera] = []
+    for cam in cameras:
+        move = moves.get(cam.view)
+        if move is None or cam.rig_id not in robot:
+            out.append(cam)
+        else:
+            out.append(replace(cam, T_rf_from_cf=compose(move, cam.T_rf_from_cf)))
     return out
 
 

@@ -46,7 +46,7 @@ from mvpose_core.detect import (
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
 from mvpose_core.reasons import Reason
-from mvpose_core.scene import ViewCamera, sighted_marks, view_cameras
+from mvpose_core.scene import ViewCamera, repose, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import synthetic_observations
 from mvpose_core.transforms import Array
@@ -174,10 +174,13 @@ class Pipeline:
     # ------------------------------------------------------------------ capture + detect
     def view_cameras(self, view: int, flange_pose: Array | None) -> dict[str, ViewCamera]:
         """The view's cameras, posed with the robot's actual flange pose when it sent one."""
+        taught = {cid: vc for (v, cid), vc in self._taught.items() if v == view}
         if flange_pose is None:
-            return {cid: vc for (v, cid), vc in self._taught.items() if v == view}
+            return taught
+        # The taught cameras moved, not built anew: each keeps its lens model, and what the
+        # detector remembers per camera place is re-posed (mvpose_core.detect.geometry).
         return {vc.camera_id: vc for vc in
-                view_cameras(self.station, flange_poses={view: flange_pose}, views=[view])}
+                repose(list(taught.values()), self.station, {view: flange_pose})}
 
     def capture_view(
         self, view: int, trigger_id: int, recipe: RecipeConfig, flange_pose: Array | None,
