@@ -20,6 +20,8 @@ from server.web.session import cookie_authorization
 
 #: where the drift engineer's detector answers (server/api/drift.py); the page shows it if mounted
 DRIFT_ENDPOINT = "/api/v1/drift"
+#: the drift engineer's reference-part check (POST, operator)
+VERIFY_ENDPOINT = "/api/v1/calibration/verify"
 
 
 async def page_user(request: Request) -> Principal | None:
@@ -83,6 +85,11 @@ def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
         return dict(runtime.status()), None
     except Exception as err:  # a station handle that cannot answer is a station that is down
         return None, f"the station does not answer: {type(err).__name__}: {err}"
+
+
+def has_endpoint(app: Any, path: str, method: str) -> bool:
+    """Whether the app answers ``method path`` (from its OpenAPI, which FastAPI caches)."""
+    return method.lower() in app.openapi().get("paths", {}).get(path, {})
 
 
 def station_up(app: Any) -> bool:

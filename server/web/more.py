@@ -15,6 +15,7 @@ from server.web import html
 from server.web.context import (
     DRIFT_ENDPOINT,
     deadline_ms,
+    has_endpoint,
     in_thread,
     need,
     page_user,
@@ -77,13 +78,16 @@ async def calibration_page(request: Request) -> Html:
         return to_login(request)
     reader = reader_of(request)
     ages = await in_thread(calibration_ages, reader)
-    drift_mounted = any(getattr(r, "path", None) == DRIFT_ENDPOINT for r in request.app.routes)
+    drift_mounted = has_endpoint(request.app, DRIFT_ENDPOINT, "get")
     drift = (f'<div id="drift" data-src="{DRIFT_ENDPOINT}"><p class="muted">loading the drift '
              "detector's warnings…</p></div>" if drift_mounted else
-             f'<div id="drift" data-src=""><p class="hook">The drift detector is not installed in '
+             f'<div id="drift" data-src=""><p class="hook">The drift watch is not installed in '
              f"this server (no GET {DRIFT_ENDPOINT}): the charts above show what the records "
              "hold. A steady mean residual that walks away from zero is a camera that moved."
              "</p></div>")
+    drift += ("<p>To check the calibration against the taught reference part: measure the "
+              "reference part, open its record in History and use <i>Verify with this "
+              "reference measurement</i> (operator).</p>")
     extra = f"""<section class="panel"><h2>Drift warnings</h2>{drift}</section>
 <section class="panel"><h2>Calibration age</h2>{ages}</section>"""
     intro = ("<p>Per camera, the mean reprojection residual of each result (du, dv in px: the "

@@ -17,8 +17,10 @@ from server.errors import InvalidInputError, NotFoundError
 from server.store.schemas import MAX_ID, MeasurementFilter
 from server.web import html
 from server.web.context import (
+    VERIFY_ENDPOINT,
     TeachPreview,
     deadline_ms,
+    has_endpoint,
     in_thread,
     live_feed,
     need,
@@ -185,6 +187,8 @@ async def record_page(
     if html.can(user, Role.OPERATOR) and rec.result == "OK":
         preview = await in_thread(teach_preview, reader, view)
         teach = teach_block(s.id, preview, await in_thread(station_up, request.app))
+        if has_endpoint(request.app, VERIFY_ENDPOINT, "post"):
+            teach += verify_block(s.id)
     images = "".join(f"<li>view {i.view} {html.esc(i.camera_id)}: "
                      f"{'archived' if (i.view, i.camera_id) in view.frames else 'evicted'}</li>"
                      for i in rec.images) or "<li>none kept (OK frames are kept 1 in N)</li>"
@@ -217,6 +221,15 @@ def teach_preview(reader: Reader, view: RecordView) -> TeachPreview | None:
                         recipe.T_pf_from_grasp.matrix, recipe.robot_convention)
     return TeachPreview(recipe, [float(v) for v in off.base], off.grasp_displacement_mm,
                         off.rotation_deg)
+
+
+def verify_block(rec_id: int) -> str:
+    return f"""<section class="panel"><h2>Verify the calibration</h2>
+<p>If this is a measurement of the taught reference part, the calibration still holds when its
+ implied offset is within the recipe's 1σ tolerances.</p>
+<button type="button" class="post" data-action="{VERIFY_ENDPOINT}"
+ data-body='{{"measurement_id": {rec_id}}}'>Verify with this reference measurement</button>
+<p class="msg" role="status"></p></section>"""
 
 
 def teach_block(rec_id: int, p: TeachPreview | None, station_up: bool) -> str:

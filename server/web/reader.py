@@ -152,10 +152,16 @@ class Reader:
                 self._camera_rows.clear()
 
     def _camera_row(self, s: StoredMeasurement) -> dict[str, tuple[float | None, ...]]:
-        """Per camera: (RMS, mean du, mean dv) of the record's reprojection residuals, px."""
+        """Per camera: (RMS, mean du, mean dv) of the record's reprojection residuals, px: as
+        the pipeline recorded them for the drift watch, else recomputed from the detections."""
         rec = s.record
-        recipe = self.recipe(rec.recipe, rec.recipe_version)
         out: dict[str, tuple[float | None, ...]] = {}
+        if rec.camera_residuals:
+            for c in rec.camera_residuals:
+                key = c.camera_id if c.view == 1 else f"v{c.view}/{c.camera_id}"
+                out[key] = (_r(c.rms_px), _r(c.mean_px[0]), _r(c.mean_px[1]))
+            return out
+        recipe = self.recipe(rec.recipe, rec.recipe_version)
         for ov in self.geometry.overlays(rec, recipe):
             mean = ov.mean_residual
             key = ov.camera_id if ov.view == 1 else f"v{ov.view}/{ov.camera_id}"

@@ -23,6 +23,7 @@ from mvpose_core.scene import view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import matrix_to_xyzwpr
+from server.drift import record_camera_residuals
 from server.state import Services
 from server.store.schemas import (
     CameraDetections,
@@ -116,6 +117,7 @@ class SampleLine:
             residuals=Residuals(rms_px=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))),
                                 max_px=float(np.max(np.linalg.norm(res, axis=1)))),
             timings_ms={k: round(v, 3) for k, v in stages.items()},
+            camera_residuals=record_camera_residuals(used, m),
         )
         images: dict[tuple[int, str], np.ndarray] = {}
         if frames:

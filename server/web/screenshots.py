@@ -67,13 +67,13 @@ def login(page: Any, base: str, token: str) -> None:
     page.wait_for_url(f"{base}/")
 
 
-def populate(services: Services, plain: int = 60) -> SampleLine:
-    """A morning of production: ``plain`` results (some NOK), then camera back_right moves by
-    0.4 px (its mean residual leaves zero), two results with frames kept, and a taught recipe
-    version that is not active yet."""
-    line = SampleLine(services)
-    line.run(plain, missing_every=13)
-    line.run(plain // 2, shift_px=(0.4, -0.2), shift_camera="back_right")
+def populate(services: Services, plain: int = 560, moved: int = 120) -> SampleLine:
+    """A morning of production: ``plain`` results (some NOK; enough for the drift watch to learn
+    the noise), then ``moved`` results after camera back_right moved by (0.4, -0.2) px, two
+    results with frames kept, and a taught recipe version that is not active yet."""
+    line = SampleLine(services, period_s=20.0)
+    line.run(plain, missing_every=37)
+    line.run(moved, shift_px=(0.4, -0.2), shift_camera="back_right")
     line.store(*line.record(missing="B2", frames=True))
     line.run(5)
     taught = line.store(*line.record(frames=True))
@@ -117,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
                 for name, (path, ready) in shots.items():
                     page.goto(base + path)
                     page.wait_for_selector(ready)
+                    page.wait_for_function(  # the drift watch answers after the page
+                        "!(document.querySelector('#drift') || {textContent: ''})"
+                        ".textContent.includes('loading')", timeout=60000)
                     target = args.out / f"operator-{name}.jpg"
                     page.screenshot(path=str(target), full_page=name != "docs", type="jpeg",
                                     quality=80)

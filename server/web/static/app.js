@@ -42,7 +42,7 @@ function setupActions() {
     btn.disabled = true;
     postJSON(btn.dataset.action, btn.dataset.body ? JSON.parse(btn.dataset.body) : {})
       .then((data) => {
-        say(btn, data.message || "done", true);
+        say(btn, data.message || "done", data.passed !== false);
         if (btn.dataset.action.endsWith("/activate")) setTimeout(() => window.location.reload(), 800);
       })
       .catch((err) => say(btn, err.message, false))
@@ -198,6 +198,15 @@ function setupCharts() {
   load();
 }
 
+function cell(row, text, cls) {
+  const td = document.createElement("td");
+  td.textContent = text === null || text === undefined ? "—" : String(text);
+  if (cls) td.className = cls;
+  row.appendChild(td);
+}
+
+// The drift engineer's report (GET /api/v1/drift, server/drift.py DriftReport): overall status,
+// one line per camera in warning or alarm, and each camera's state.
 function setupDrift() {
   const box = document.getElementById("drift");
   if (!box || !box.dataset.src) return;
@@ -205,23 +214,40 @@ function setupDrift() {
     const d = await r.json();
     if (!r.ok) throw new Error(d.detail || ("HTTP " + r.status));
     box.textContent = "";
-    const list = Array.isArray(d) ? d : (d.warnings || d.cameras || d.items || null);
-    if (list && list.length === 0) { box.textContent = "No drift warnings."; return; }
-    if (list) {
-      const ul = document.createElement("ul");
-      list.forEach((w) => {
-        const li = document.createElement("li");
-        li.className = w.warning || w.alarm || w.drifting ? "drift-warning" : "";
-        li.textContent = w.message || w.text || JSON.stringify(w);
-        ul.appendChild(li);
-      });
-      box.appendChild(ul);
-    } else {
-      const pre = document.createElement("pre");
-      pre.textContent = JSON.stringify(d, null, 2);
-      box.appendChild(pre);
+    const head = document.createElement("p");
+    head.className = "drift-status " + d.status;
+    head.dataset.status = d.status;
+    head.textContent = "Drift watch: " + d.status + " — " + d.records + " records of " +
+      (d.recipe || "—") + " with calibration " + (d.calibration_id || "of the station file") + ".";
+    box.appendChild(head);
+    const ul = document.createElement("ul");
+    [...new Set(d.messages || [])].forEach((m) => {
+      const li = document.createElement("li");
+      li.className = "drift-warning";
+      li.textContent = m;
+      ul.appendChild(li);
+    });
+    if (!ul.children.length) {
+      const li = document.createElement("li");
+      li.textContent = "No camera in warning or alarm.";
+      ul.appendChild(li);
     }
-  }).catch((err) => { box.textContent = "drift detector: " + err.message; });
+    box.appendChild(ul);
+    const table = document.createElement("table");
+    table.innerHTML = "<tr><th>camera</th><th>status</th><th>what</th><th>move px</th>" +
+      "<th>since</th><th>triggers</th></tr>";
+    (d.cameras || []).forEach((c) => {
+      const tr = document.createElement("tr");
+      cell(tr, (c.view > 1 ? "v" + c.view + "/" : "") + c.camera_id);
+      cell(tr, c.status, c.status === "alarm" || c.status === "warning" ? "drift-warning" : "");
+      cell(tr, c.message);
+      cell(tr, c.shift_px === null || c.shift_px === undefined ? null : c.shift_px.toFixed(2));
+      cell(tr, c.since ? new Date(c.since).toISOString().replace("T", " ").slice(0, 19) + " UTC" : null);
+      cell(tr, c.learning_left ? c.triggers + " (learning: " + c.learning_left + " to go)" : c.triggers);
+      table.appendChild(tr);
+    });
+    box.appendChild(table);
+  }).catch((err) => { box.textContent = "drift watch: " + err.message; });
 }
 
 document.addEventListener("DOMContentLoaded", () => {
