@@ -37,6 +37,7 @@ from pydantic import (
 
 from mvpose_core.camera import CameraModel
 from mvpose_core.linkconfig import LinksConfig
+from mvpose_core.plantconfig import PlantConfig
 from mvpose_core.transforms import (
     Array,
     RobotConvention,
@@ -460,6 +461,8 @@ class StationConfig(_Model):
     default_recipe: Identifier | None = None
     calibration: str | None = Field(None, description="calibration file this station uses")
     links: LinksConfig = Field(LinksConfig(), description="PLC and controller links")
+    plant: PlantConfig | None = Field(
+        None, description="ISA-95 names and the MQTT broker results stream to")
     uncertainty: UncertaintyConfig = Field(
         UncertaintyConfig(), description="detector noise pooling and calibration 1σ"
     )

@@ -15,6 +15,7 @@ from server.settings import Settings
 from server.state import Services, open_services
 from server.station.control import ControlServer
 from server.station.core import Station, StationOptions
+from server.station.mqtt import MqttPublisher
 
 log = logging.getLogger(__name__)
 
@@ -27,13 +28,19 @@ class StationProcess:
         self.settings = settings
         self.station = Station(station, options)
         self.control: ControlServer | None = None
+        self.publisher: MqttPublisher | None = None  # only with a plant.mqtt block
         self._services: Services | None = None
 
     def start(self) -> None:
         services = open_services(self.settings, bootstrap=False)
         self._services = services
         try:
-            self.station.start(services)
+            self.publisher = MqttPublisher.for_station(self.station.station,
+                                                       services.software_version)
+            self.station.start(services, self.publisher.sink(services) if self.publisher
+                               else None)
+            if self.publisher is not None:
+                self.publisher.start(self.station)
             control = ControlServer(self.station, self.settings.resolved_control_socket)
             self.station.run_on_loop(control.start(), timeout=10)
             self.control = control
@@ -48,6 +55,9 @@ class StationProcess:
             except Exception:
                 log.exception("the control channel did not stop cleanly")
         self.control = None
+        if self.publisher is not None:
+            self.publisher.stop()
+            self.publisher = None
         self.station.stop()
         if self._services is not None:
             self._services.close()

@@ -11,7 +11,7 @@ import base64
 import binascii
 import json
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, cast
@@ -23,7 +23,7 @@ from sqlalchemy.exc import IntegrityError
 
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store.chain import GENESIS, canonical_json, seal
-from server.store.models import MeasurementRow
+from server.store.models import MeasurementRow, OutboxRow
 from server.store.schemas import (
     MAX_ID,
     ChainReport,
@@ -50,6 +50,9 @@ _INSERT_LINK = {
     .on_conflict_do_nothing(index_elements=["station", "seq"])
     .returning(M.c.id),
 }
+_INSERT_OUTBOX = insert(cast(Table, OutboxRow.__table__))
+# The outbox rows (server/store/outbox.py) of a link just inserted, given its database id.
+OutboxRows = Callable[["Link", int], list[dict[str, Any]]]
 
 
 class ChainConflictError(ConflictError):
@@ -139,9 +142,11 @@ def decode_cursor(cursor: str) -> int:
 class MeasurementRepository:
     """Every query on the measurements table of one station."""
 
-    def __init__(self, engine: Engine, station: str) -> None:
+    def __init__(self, engine: Engine, station: str, outbox: OutboxRows | None = None) -> None:
         self._engine = engine
         self.station = station
+        # insert_links writes these rows in the transaction of each link it inserts
+        self.outbox = outbox
         # One writer per process: seq and prev_hash are read and written in one transaction, and
         # the unique (station, seq) constraint catches a second process writing the same chain.
         self._write_lock = threading.Lock()
@@ -208,6 +213,7 @@ class MeasurementRepository:
         Idempotent: a link whose (station, seq) is stored with the same hash is a no-op (its id
         is returned), with another hash a :class:`ChainConflictError`. The first link must follow
         the stored chain: its predecessor is stored with hash ``prev_hash`` (or it is seq 1).
+        With ``outbox``, each link inserted gets its outbox rows in the same transaction.
         """
         if not links:
             return []
@@ -225,6 +231,10 @@ class MeasurementRepository:
             ids = []
             for link in links:
                 new_id = conn.execute(statement, link.row()).scalar_one_or_none()
+                if new_id is not None and self.outbox is not None:
+                    rows = self.outbox(link, new_id)
+                    if rows:
+                        conn.execute(_INSERT_OUTBOX, rows)
                 ids.append(new_id if new_id is not None else self._existing(conn, link))
         return ids
 

@@ -134,3 +134,24 @@ class TokenRow(Base):
     token_sha256: Mapped[str] = mapped_column(String(64), unique=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime())
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class OutboxRow(Base):
+    """One message to publish (MQTT), written in the transaction that inserts its measurement;
+    ``published_at`` is set once the broker acknowledged it (PUBACK). Not append-only: published
+    rows are deleted after the station's ``plant.mqtt.keep_published_h``."""
+
+    __tablename__ = "outbox"
+    __table_args__ = (
+        UniqueConstraint("station", "seq", "topic", name="uq_outbox_station_seq_topic"),
+        Index("ix_outbox_station_pending", "station", "published_at", "id"),
+    )
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64))
+    seq: Mapped[int] = mapped_column(BigInteger)  # the record's result id
+    measurement_id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"))
+    topic: Mapped[str] = mapped_column(String(400))
+    payload: Mapped[str] = mapped_column(Text)  # JSON
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    published_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
