@@ -86,7 +86,9 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 
 
 @schema.parametrize()
-@budget(max_examples=MAX_EXAMPLES, deadline=None,
+# derandomized: the suite runs the same cases every time (a failure reproduces; none appears
+# by chance in CI); MVPOSE_FUZZ_EXAMPLES explores further
+@budget(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None,
         suppress_health_check=list(HealthCheck))
 def test_every_operation_answers_as_documented(case: schemathesis.Case) -> None:
     response = case.call_and_validate()
