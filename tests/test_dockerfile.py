@@ -217,7 +217,8 @@ def test_compose_files_run_the_image_on_an_example_station_with_known_settings()
     known = {f"MVPOSE_{name.upper()}" for name in Settings.model_fields}
     known |= {"MVPOSE_HOST", "MVPOSE_PORT"} | {env for env, _, _ in LINK_OPTIONS.values()}
     files = sorted((ROOT / "deploy").glob("compose.*.yaml"))
-    single = [f for f in files if not f.name.endswith(".split.yaml")]
+    plant = [ROOT / "deploy" / "compose.plant.yaml"]  # three stations, PostgreSQL, a broker
+    single = [f for f in files if not f.name.endswith(".split.yaml") and f not in plant]
     assert {f.name for f in single} == {f"compose.{p.stem}.yaml"
                                        for p in (ROOT / "deploy" / "stations").glob("*.yaml")}
     for f in files:
@@ -225,6 +226,11 @@ def test_compose_files_run_the_image_on_an_example_station_with_known_settings()
         if f in single:  # one container: `mvpose serve` supervises both processes
             services = {"mvpose": doc["services"]["mvpose"]}
             assert doc["services"]["postgres"]["profiles"] == ["postgres"]
+        elif f in plant:  # one `mvpose serve` per station, one database and broker for all
+            services = {k: v for k, v in doc["services"].items() if k.startswith("station")}
+            assert len(services) == 3 and {"postgres", "mosquitto"} <= set(doc["services"])
+            for svc in services.values():
+                assert svc["environment"]["MVPOSE_DATABASE_URL"].startswith("postgresql")
         else:  # two containers: each process on its own
             services = {k: doc["services"][k] for k in ("station", "api")}
             assert services["station"]["entrypoint"] == ["mvpose", "station"]
