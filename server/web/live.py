@@ -3,8 +3,9 @@
 The watcher asks the store for its newest record (one cheap query every
 :data:`POLL_S`) and the station for its status; when either changes it renders the HTML once and
 puts it in every subscriber's queue. Browsers never poll: each holds one EventSource. The
-watcher runs only while someone listens, and a stream ends after :data:`STREAM_S` (the browser
-reconnects on its own), so nothing outlives a shutdown by long.
+watcher runs only while someone listens. A stream ends after :data:`STREAM_S` and the browser
+reconnects on its own: uvicorn's shutdown waits for open responses (unless its
+``timeout_graceful_shutdown`` is set), so an open Live page delays a shutdown by at most that.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ POLL_S = 0.25
 FRAMES_WAIT_S = 5.0
 STATUS_EVERY_S = 1.0
 KEEPALIVE_S = 15.0
-STREAM_S = 600.0
+STREAM_S = 30.0
 #: a browser that cannot keep up loses the oldest message, never the watcher's time
 QUEUE = 8
 
