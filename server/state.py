@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from mvpose_core.station import RecipeConfig, StationConfig, load_station
@@ -59,6 +60,7 @@ def open_services(settings: Settings, *, seed: bool = True, bootstrap: bool = Tr
     try:
         if station is not None and seed:
             seed_recipes(store, station, str(settings.station))
+            seed_calibration(store, station, settings.station)
         if bootstrap:  # the bootstrap token, or a warning when nobody could log in
             secret = settings.bootstrap_token
             ensure_access(store.tokens, secret.get_secret_value() if secret else None)
@@ -107,3 +109,36 @@ def seed_recipes(store: Store, station: StationConfig, source: str) -> None:
                 recipe.name,
                 info.version,
             )
+
+
+def station_calibration_file(station: StationConfig, station_file: Path | None) -> Path | None:
+    """The station file's ``calibration:`` path (relative paths: from the station file)."""
+    if not station.calibration:
+        return None
+    path = Path(station.calibration)
+    if not path.is_absolute() and station_file is not None:
+        path = Path(station_file).parent / path
+    return path
+
+
+def seed_calibration(store: Store, station: StationConfig, station_file: Path | None) -> None:
+    """Store the station file's calibration file as a version of the calibration named after the
+    station, unless that exact content is stored already; a new file content is activated.
+
+    The store's active version of that calibration is what the station measures with (one
+    source of truth): a calibration uploaded and activated over REST replaces the file's until
+    the file's content changes. A missing or tampered file stops start-up, naming the file.
+    """
+    from mvpose_core.calibration.files import load_calibration
+
+    path = station_calibration_file(station, station_file)
+    if path is None:
+        return
+    calib = load_calibration(path)
+    content = calib.model_dump(mode="json")
+    if store.versions.find("calibration", station.name, content) is None:
+        info = store.versions.add("calibration", station.name, content, STATION_FILE_AUTHOR,
+                                  comment=f"from {path}")
+        store.versions.activate("calibration", station.name, info.version, STATION_FILE_AUTHOR)
+        log.info("calibration %s (%s): file content stored as version %d (active)",
+                 station.name, calib.id, info.version)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Path
+from fastapi import APIRouter, Body, Path, Request
 from pydantic import BaseModel, Field, StrictBool, ValidationError
 
 from mvpose_core.station import RecipeConfig, StationConfig, parse_station
@@ -58,10 +58,38 @@ def check_recipe(
 def check_calibration(
     name: str, content: dict[str, Any], station: StationConfig | None
 ) -> dict[str, Any]:
-    """A calibration is stored as uploaded (a JSON object); its sha256 identifies it."""
-    if not content:
-        raise InvalidInputError(f"calibration {name!r}: empty content")
-    return content
+    """A calibration file (``mvpose calibrate`` writes them: docs/calibration.md) whose content
+    hash matches its ``sha256`` and which fits this station; stored under the station's name,
+    the one calibration the station measures with once activated."""
+    from mvpose_core.calibration.files import CalibrationFile, apply_calibration
+
+    if station is not None and name != station.name:
+        raise InvalidInputError(
+            f"calibration {name!r}: station {station.name!r} measures with the calibration "
+            f"named after it; upload to /calibrations/{station.name}/versions")
+    try:
+        calib = CalibrationFile.model_validate(content)
+    except ValidationError as err:
+        raise InvalidInputError(
+            f"calibration {name!r} is not a calibration file: {_first(err)}",
+            errors=[{"loc": [str(x) for x in e["loc"]], "msg": e["msg"]} for e in err.errors()],
+        ) from None
+    try:
+        actual = calib.content_hash()
+    except ValueError as err:  # NaN or infinity somewhere in the file
+        raise InvalidInputError(f"calibration {name!r}: content is not plain JSON ({err})") \
+            from None
+    if actual != calib.sha256:
+        raise InvalidInputError(
+            f"calibration {name!r}: content hash {actual[:12]}… does not match its sha256 "
+            f"{calib.sha256[:12]}…: the file was edited after it was written")
+    if station is not None:
+        try:
+            apply_calibration(station, calib)
+        except (ValueError, KeyError) as err:
+            raise InvalidInputError(f"calibration {name!r} does not fit station "
+                                    f"{station.name!r}: {err}") from None
+    return calib.model_dump(mode="json")
 
 
 def _first(err: ValidationError) -> str:
@@ -110,6 +138,7 @@ def version_router(
         summary=f"Upload a {kind} version",
     )
     def upload(
+        request: Request,
         name: NamePath,
         upload: Annotated[VersionUpload, Body()],
         user: EngineerUser,
@@ -120,6 +149,7 @@ def version_router(
         info = services.store.versions.add(kind, name, content, user.name, upload.comment)
         if upload.activate:
             info = services.store.versions.activate(kind, name, info.version, user.name)
+            _tell_station(request)
         return info
 
     @router.post(
@@ -128,13 +158,24 @@ def version_router(
         summary=f"Activate a {kind} version",
     )
     def activate(
-        name: NamePath, version: VersionPath, user: EngineerUser, services: ServicesDep
+        request: Request, name: NamePath, version: VersionPath, user: EngineerUser,
+        services: ServicesDep,
     ) -> VersionInfo:
         """Make this version the one the station uses from the next trigger on (engineer)."""
-        return services.store.versions.activate(kind, name, version, user.name)
+        info = services.store.versions.activate(kind, name, version, user.name)
+        _tell_station(request)
+        return info
 
     return router
 
 
 recipes_router = version_router("recipe", check_recipe)
 calibrations_router = version_router("calibration", check_calibration)
+
+
+def _tell_station(request: Request) -> None:
+    """The station picks an activated version up within a second by itself; this makes it now,
+    so the next trigger measures with it."""
+    station = getattr(request.app.state, "station", None)
+    if station is not None:
+        station.reload_recipes()

@@ -28,9 +28,8 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -89,7 +88,7 @@ class WriterSink:
     """The station's durable writer (server.store.writer): the journal first, the database
     behind it, so an append never waits for the database longer than ``db_wait_s``."""
 
-    def __init__(self, services: Services, db_wait_s: float = 0.005) -> None:
+    def __init__(self, services: Services, db_wait_s: float = 0.0) -> None:
         from server.store.writer import DurableWriter
 
         self.services = services
@@ -146,7 +145,9 @@ class Station:
     """One station's hardware, links and pipeline; the links' StationHandler."""
 
     def __init__(self, station: StationConfig, options: StationOptions | None = None) -> None:
+        self.file_station = station  # as the station file says, before any calibration
         self.station = station
+        self.calibration_version: int | None = None
         self.options = options or StationOptions()
         self.services: Services | None = None
         self.scene: Any = None  # drivers.cameras.SimScene when the station has sim cameras
@@ -190,7 +191,7 @@ class Station:
                  {lk.name: lk.status().get("port") for lk in self.links}, self.capture.status())
 
     def _start(self, services: Services, sink: RecordSink) -> None:
-        calib = self._apply_calibration(services.settings.station)
+        calib = self._apply_calibration()
         self.provenance = Provenance(self.station.name, services.software_version, calib)
         self.sink = sink
         self.book = RecipeBook(self.station, services.store)
@@ -288,23 +289,57 @@ class Station:
     def loop(self) -> asyncio.AbstractEventLoop | None:
         return self._loop
 
-    def _apply_calibration(self, station_file: Path | None) -> tuple[str, str] | None:
-        """Put the station's calibration file (if it names one) into the station model.
+    def _active_calibration(self) -> tuple[int, Any] | None:
+        """The store's active version of the calibration named after the station (seeded from
+        the station file's ``calibration:`` at start-up, replaced by REST uploads): (version,
+        CalibrationFile), or None when the station has none."""
+        from mvpose_core.calibration.files import CalibrationFile
+        from server.errors import NotFoundError
 
-        A relative path is taken from the station file's folder. A missing or tampered file
-        (content hash) stops start-up, naming the file."""
-        if not self.station.calibration:
+        assert self.services is not None
+        try:
+            info, content = self.services.store.versions.content("calibration",
+                                                                 self.file_station.name)
+        except NotFoundError:
             return None
-        from mvpose_core.calibration.files import apply_calibration, load_calibration
+        return info.version, CalibrationFile.model_validate(content)
 
-        path = Path(self.station.calibration)
-        if not path.is_absolute() and station_file is not None:
-            path = Path(station_file).parent / path
-        calib = load_calibration(path)
-        self.station = apply_calibration(self.station, calib)
-        log.info("station %s: calibration %s (sha256 %s) from %s", self.station.name, calib.id,
-                 calib.sha256[:12], path)
+    def _apply_calibration(self) -> tuple[str, str] | None:
+        """Put the active calibration into the station model (from the station file's model,
+        so one calibration never stacks on another)."""
+        from mvpose_core.calibration.files import apply_calibration
+
+        active = self._active_calibration()
+        self.calibration_version = active[0] if active else None
+        if active is None:
+            self.station = self.file_station
+            return None
+        version, calib = active
+        self.station = apply_calibration(self.file_station, calib)
+        log.info("station %s: calibration %s (sha256 %s), version %d", self.station.name,
+                 calib.id, calib.sha256[:12], version)
         return calib.id, calib.sha256
+
+    def _reload_calibration(self) -> bool:
+        """On the trigger thread: a calibration version activated through the API is measured
+        with from the next trigger on (the pipeline is built again and warmed up)."""
+        assert self.capture is not None and self.book is not None
+        active = self._active_calibration()
+        if (active[0] if active else None) == self.calibration_version:
+            return False
+        calib = self._apply_calibration()
+        old = self.pipeline
+        pipeline = Pipeline(self.station, self.capture, options=self.options.pipeline)
+        for recipe in self.book.recipes.values():
+            with contextlib.suppress(Exception):
+                pipeline.warm_up(recipe.config)
+        self.pipeline = pipeline
+        self.sequence = ViewSequence(self.station, pipeline, self.book)
+        assert self.provenance is not None
+        self.provenance = replace(self.provenance, calibration=calib)
+        if old is not None:
+            old.close()
+        return True
 
     def _open_cameras(self) -> None:
         scene = None
@@ -340,10 +375,12 @@ class Station:
                 self._recipe_changed()
 
     def _reload_recipes(self) -> bool:
+        """Recipe and calibration versions activated elsewhere; True when something changed."""
         assert self.book is not None
         before = {n: r.version for n, r in self.book.recipes.items()}
         self.book.reload_if_changed()
-        return before != {n: r.version for n, r in self.book.recipes.items()}
+        calibrated = self._reload_calibration()
+        return calibrated or before != {n: r.version for n, r in self.book.recipes.items()}
 
     # ------------------------------------------------------------------ recipes
     @property
@@ -705,7 +742,8 @@ class Station:
                 "sha256": active.sha256, "convention": active.config.robot_convention.value,
             },
             "calibration": None if not self.provenance or not self.provenance.calibration else {
-                "id": self.provenance.calibration[0], "sha256": self.provenance.calibration[1]},
+                "id": self.provenance.calibration[0], "sha256": self.provenance.calibration[1],
+                "version": self.calibration_version},
             "teach_armed": self.teach_armed_by is not None,
             "cameras": self.capture.status() if self.capture else {},
             "links": {lk.name: lk.status() for lk in self.links},

@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import asyncio
 import inspect
-from collections.abc import AsyncIterator, Iterator, Mapping, Sequence
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 from apps import ENGINEER, STATION1, settings
 from asgi import StartupFailedError, running
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.routing import APIRoute
 
 from server.api import api_router
 from server.app import create_app
-from server.state import Services
 from server.store.db import head_revision
 
 PROBLEM = "application/problem+json"
@@ -45,11 +44,15 @@ MALFORMED = [
     ("POST", V, b'{"content": {"marks": "x"}}', J, 400, "not valid"),
     ("POST", V, b'{"content": {"name": "door"}}', J, 400, "door"),
     ("POST", "/api/v1/recipes/floor_panel/versions/1/activate?x=1", b"", {}, 200, None),
-    ("POST", "/api/v1/calibrations/cal/versions", b'{"content": {}}', J, 400, "empty"),
+    ("POST", "/api/v1/calibrations/station1/versions", b'{"content": {}}', J, 400,
+     "not a calibration file"),
+    ("POST", "/api/v1/calibrations/cal/versions", b'{"content": {"id": "x"}}', J, 400,
+     "calibration named after it"),
     ("POST", "/api/v1/tokens", b'{"name": "a b", "role": "read"}', J, 422, "name"),
     ("POST", "/api/v1/tokens", b'{"name": "x", "role": "admin"}', J, 422, "role"),
     ("DELETE", "/api/v1/tokens/nobody", None, {}, 404, "nobody"),
-    ("POST", "/api/v1/calibrations/c/versions", b'{"content": {"x": NaN}}', J, 400, "plain JSON"),
+    ("POST", "/api/v1/recipes/floor_panel/versions", b'{"content": {"x": NaN}}', J, 400,
+     "not valid"),
     ("PUT", "/api/v1/measurements", None, {}, 405, None),
     ("GET", "/api/v2/measurements", None, {}, 404, None),
     ("POST", "/api/v1/tokens", b"{}", {"content-length": "12x"}, 400, "Content-Length"),
@@ -92,13 +95,20 @@ async def test_recipe_upload_checked_against_the_station(tmp_path: Path) -> None
         r = await client.get("/api/v1/recipes/floor_panel/versions")
         assert [(v["version"], v["active"]) for v in r.json()] == [(1, False), (2, True)]
 
-        cal = {"id": "cal-1", "cameras": {"cam1": {"fx": 2900.0}}}
-        r = await client.post("/api/v1/calibrations/station/versions",
+        cal = _calibration(fx_more=1.0).model_dump(mode="json")
+        r = await client.post("/api/v1/calibrations/station1/versions",
                               json={"content": cal, "activate": True})
         assert r.status_code == 201 and r.json()["active"] and len(r.json()["sha256"]) == 64
         r = await client.get("/api/v1/calibrations")
-        assert r.json() == [{"kind": "calibration", "name": "station", "latest_version": 1,
+        assert r.json() == [{"kind": "calibration", "name": "station1", "latest_version": 1,
                              "active_version": 1}]
+        tampered = cal | {"cameras": {"top_left": cal["cameras"]["top_left"] | {
+            "intrinsics": cal["cameras"]["top_left"]["intrinsics"] | {"fx": 1.0}}}}
+        r = await client.post("/api/v1/calibrations/station1/versions", json={"content": tampered})
+        assert r.status_code == 400 and "does not match its sha256" in r.json()["detail"]
+        alien = _calibration(fx_more=1.0, camera="cam99").model_dump(mode="json")
+        r = await client.post("/api/v1/calibrations/station1/versions", json={"content": alien})
+        assert r.status_code == 400 and "cam99" in r.json()["detail"]
 
 
 async def test_body_limit_by_header_and_while_streaming(tmp_path: Path) -> None:
@@ -165,47 +175,22 @@ def _api_routes(router: APIRouter) -> Iterator[APIRoute]:
             yield from _api_routes(route.original_router)  # type: ignore[attr-defined]
 
 
-class EventRuntime:
-    """A runtime written for this test: records the order of events, serves one route."""
+async def test_without_its_station_process_the_api_serves_history_and_says_so(
+    tmp_path: Path,
+) -> None:
+    from server.station.client import StationClient
 
-    def __init__(self, events: list[str], ready: bool) -> None:
-        self.events = events
-        self.ready = ready
-
-    def routers(self) -> Sequence[APIRouter]:
-        router = APIRouter(prefix="/station")
-
-        @router.get("/status")
-        def status(request: Request) -> dict[str, str]:
-            return {"station": request.state.services.station_name}
-
-        return [router]
-
-    @asynccontextmanager
-    async def lifespan(self, services: Services) -> AsyncIterator[None]:
-        services.store.ping()  # the store is open when the runtime starts
-        self.events.append("runtime up")
-        yield
-        services.store.ping()  # and still open when it stops
-        self.events.append("runtime down")
-
-    def readiness(self) -> Mapping[str, bool]:
-        return {"cameras": True, "plc": self.ready}
-
-
-async def test_runtime_routers_lifespan_and_readiness(tmp_path: Path) -> None:
-    events: list[str] = []
-    runtime = EventRuntime(events, ready=False)
-    async with running(create_app(settings(tmp_path), runtime)) as (client, _):
-        assert events == ["runtime up"]
-        assert (await client.get("/api/v1/station/status")).json() == {"station": "station1"}
+    station = StationClient(tmp_path / "nobody-listens.sock")  # the station process is down
+    async with running(create_app(settings(tmp_path), station), ENGINEER) as (client, _):
         r = await client.get("/api/v1/health/ready")
-        assert r.status_code == 503 and "plc" in r.json()["detail"]
-        runtime.ready = True
-        r = await client.get("/api/v1/health/ready")
-        assert r.status_code == 200 and r.json()["checks"]["plc"] is True
-    assert events == ["runtime up", "runtime down"]
-
+        assert r.status_code == 503 and r.json()["checks"]["station"] is False
+        assert "station" in r.json()["detail"]
+        r = await client.get("/api/v1/station/status")
+        assert r.status_code == 503 and "not running" in r.json()["detail"]
+        r = await client.post("/api/v1/station/trigger", json={})
+        assert r.status_code == 503
+        assert (await client.get("/api/v1/measurements")).status_code == 200
+        assert (await client.get("/api/v1/health/live")).status_code == 200
 
 async def test_a_malformed_station_file_stops_start_up(tmp_path: Path) -> None:
     data = yaml.safe_load(STATION1.read_text())
@@ -228,7 +213,8 @@ async def test_requests_are_served_while_another_waits_on_the_store(tmp_path: Pa
         try:
             conn.execute("BEGIN IMMEDIATE")
             upload = asyncio.create_task(client.post(
-                "/api/v1/calibrations/c/versions", json={"content": {"a": 1}}))
+                "/api/v1/calibrations/station1/versions",
+                json={"content": _calibration(fx_more=1.0).model_dump(mode="json")}))
             live = await asyncio.wait_for(client.get("/api/v1/health/live"), timeout=30)
             assert live.status_code == 200 and not upload.done()
         finally:
@@ -246,3 +232,16 @@ async def test_an_unreachable_database_is_503_not_500(tmp_path: Path) -> None:
         r = await client.get("/api/v1/measurements")
         assert r.status_code == 503, r.text
         assert r.headers["content-type"] == PROBLEM and "database" in r.json()["detail"]
+
+
+def _calibration(fx_more: float, camera: str = "top_left") -> Any:
+    """A calibration file of station 1 whose camera ``camera`` has fx ``fx_more`` px more."""
+    from mvpose_core.calibration.files import CameraCalibration, InputsSummary, make_calibration
+    from mvpose_core.station import load_station
+
+    cam = load_station(STATION1).camera("top_left").model
+    measured = CameraCalibration(
+        intrinsics={"fx": cam.fx + fx_more, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy},
+        distortion=list(cam.dist), image_size=(cam.width, cam.height))
+    return make_calibration("intrinsics", InputsSummary(board="test"),
+                            cameras={camera: measured}, station="station1")

@@ -156,6 +156,7 @@ async def test_rest_trigger_teach_and_plc_teach_make_new_recipe_versions(tmp_pat
 
 async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -> None:
     from mvpose_core.calibration.files import (
+        CalibrationFileError,
         CameraCalibration,
         InputsSummary,
         make_calibration,
@@ -184,12 +185,13 @@ async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -
         await move_part(lb.runtime, lb.twin, T)
         status, row = await trigger(lb.twin, recipe, 3, T)
         assert status.result_code == 0 and row is not None
+        lb.runtime.wait_idle()
         rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
         assert (rec.calibration_id, rec.calibration_hash) == (calib.id, calib.sha256)
 
     (tmp_path / "calib.json").write_text((tmp_path / "calib.json").read_text().replace(
         '"fx": ', '"fx": 1', 1))  # tampered: the content hash no longer matches
-    with pytest.raises(RuntimeError, match="failed to start"):
+    with pytest.raises(CalibrationFileError, match="calib.json: content hash"):
         async with running_station(settings, runtime_options(), http_port=0):
             pass
 
@@ -218,6 +220,7 @@ async def test_detection_in_workers_matches_detection_in_process(
         status, row = await trigger(lb.twin, recipe, 5, T)
         assert status.result_code == 0 and row is not None
         assert row.trans_err_mm < recipe.tolerances.translation_mm
+        rt.wait_idle()  # the record is in the database (its id is known once it is committed)
         rec = rt.services.store.measurements.get(rt.last["measurement_id"]).record
         blocks: list[str] = []
         if where == "processes":
@@ -279,3 +282,37 @@ def test_the_store_reserve_is_the_p90_of_recent_writes() -> None:
     for n in (1, 2, 5, 50):
         times = list(rng.exponential(2.0, n))
         assert _p90(times) == pytest.approx(float(np.percentile(times, 90)), abs=1e-12)
+
+
+async def test_a_calibration_activated_over_rest_is_measured_with_and_recorded(
+    tmp_path: Path,
+) -> None:
+    from mvpose_core.calibration.files import CameraCalibration, InputsSummary, make_calibration
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
+    async with running_station(settings, runtime_options()) as lb:
+        assert lb.runtime.status()["calibration"] is None  # the station file names none
+        cam = lb.runtime.station.camera("top_left").model
+        calib = make_calibration("intrinsics", InputsSummary(board="test"), station="station1",
+                                 cameras={"top_left": CameraCalibration(
+                                     intrinsics={"fx": cam.fx + 2.0, "fy": cam.fy,
+                                                 "cx": cam.cx, "cy": cam.cy},
+                                     distortion=list(cam.dist),
+                                     image_size=(cam.width, cam.height))})
+        async with httpx.AsyncClient(base_url=lb.base_url + "/api/v1", timeout=20,
+                                     headers={"Authorization": f"Bearer {ENGINEER}"}) as api:
+            r = await api.post("/calibrations/station1/versions",
+                               json={"content": calib.model_dump(mode="json"), "activate": True})
+            assert r.status_code == 201, r.text
+            # Activation goes to the station at once: the next trigger measures with it.
+            assert lb.runtime.station.camera("top_left").intrinsics.fx == cam.fx + 2.0
+            state = (await api.get("/station/status")).json()
+            assert state["calibration"] == {"id": calib.id, "sha256": calib.sha256, "version": 1}
+        recipe = lb.runtime.active.config
+        T = _at(recipe, np.random.default_rng(9))
+        await move_part(lb.runtime, lb.twin, T)
+        status, _ = await trigger(lb.twin, recipe, 7, T)
+        lb.runtime.wait_idle()
+        rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
+        assert (rec.calibration_id, rec.calibration_hash) == (calib.id, calib.sha256)
+        assert rec.reason_code == status.result_code
