@@ -26,7 +26,7 @@ from server.app import create_app
 from server.state import open_services
 
 #: examples per operation and phase: the whole module stays well under 60 s; a deeper run:
-#: MVPOSE_FUZZ_EXAMPLES=100 pytest tests/server/test_api_fuzz.py
+#: MVPOSE_FUZZ_EXAMPLES=100 pytest --timeout 1800 tests/server/test_api_fuzz.py
 MAX_EXAMPLES = int(os.environ.get("MVPOSE_FUZZ_EXAMPLES", "5"))
 
 # Where the schema cannot say everything that makes a request valid, a schema-valid request may
