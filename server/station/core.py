@@ -105,7 +105,8 @@ class WriterSink:
     def status(self) -> dict[str, Any]:
         st = self.writer.status()
         return {"up": st.up, "head_seq": st.head_seq, "committed_seq": st.committed_seq,
-                "pending": st.pending, "last_error": st.last_error}
+                "pending": st.pending, "oldest_pending_s": st.oldest_pending_s,
+                "last_error": st.last_error, "conflict": st.conflict, "journal": st.journal}
 
     def flush(self, timeout_s: float) -> bool:
         return self.writer.flush(timeout_s)
