@@ -44,6 +44,7 @@ class Site:
     tokens: dict[str, str]
     framed: StoredMeasurement  # newest record with frames when the tests start
     ok_framed: StoredMeasurement
+    app: Any
 
     def page(self, role: str = "engineer") -> Any:
         context = self.browser.new_context(viewport=VIEWPORT)
@@ -97,10 +98,11 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
         tokens = {"engineer": ENGINEER}
         for role in (Role.READ, Role.OPERATOR):
             tokens[role.value] = create_token(writer.store.tokens, f"b-{role.value}", role)[0]
-        with serve(create_app(cfg)) as base, sync_playwright() as pw:
+        app = create_app(cfg)
+        with serve(app) as base, sync_playwright() as pw:
             browser = launch(pw)
             try:
-                yield Site(base, browser, writer, line, tokens, framed, ok_framed)
+                yield Site(base, browser, writer, line, tokens, framed, ok_framed, app)
             finally:
                 browser.close()
     finally:
@@ -164,12 +166,20 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
     assert page.locator('#frames g.missing[data-mark="B2"]').count() == 1
     site.shot(page, "live")
 
-    # A new result is pushed (server-sent events): the page shows it without reloading.
+    # A new result is pushed (server-sent events): the page shows it without reloading. A
+    # second browser gets it from the same single watcher of the store.
+    other = site.page("read")
+    other.wait_for_function("document.getElementById('live').dataset.connected === '1'")
+    feed = site.app.state.web_live
+    assert feed.listeners == 2
     page.evaluate("window.__same_page = 42")
     new = _in_thread(lambda: site.line.store(*site.line.record()))
-    page.wait_for_function(f"document.querySelector('#result').dataset.id === '{new.id}'",
-                           timeout=15000)
+    for p in (page, other):
+        p.wait_for_function(f"document.querySelector('#result').dataset.id === '{new.id}'",
+                            timeout=15000)
     assert page.evaluate("window.__same_page") == 42
+    assert feed.listeners == 2 and feed._task is not None  # one watcher task for both
+    other.context.close()
     assert page.locator("#frames").get_attribute("data-id") == str(site.framed.id)
     framed = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
     page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{framed.id}'",
