@@ -7,9 +7,10 @@ docs/engine.md):
 
 1. **Stereo check** (``stereo_check``): within one view, a mark seen by two or more cameras must
    lie on its epipolar lines (within ``epipolar_px``). An observation that disagrees with every
-   other camera's (both, for a pair) takes the first of its next candidates that agrees; if none
-   does, it is *set aside* (unless more than ``max_dropped`` would be: then the images disagree
-   as a whole, and none is).
+   other camera's (both, for a pair) is *set aside* (unless more than ``max_dropped`` would be:
+   then the images disagree as a whole, and none is). Which of a pair is right, and whether a
+   next candidate is, the pose of the other marks decides (step 3): an epipolar line cannot
+   (a blob anywhere along it agrees, and with a horizontal stereo pair that is a whole row).
 2. The pose is estimated from the observations not set aside (all of them, if those alone do not
    determine a pose).
 3. **Residual rule**, one change at a time, the pose re-estimated after each. Threshold τ: the
@@ -120,7 +121,7 @@ def estimate_pose_robust(
     why_out: dict[int, str] = {}  # set aside or dropped, with the reason
     replaced: dict[int, str] = {}
     if config.stereo_check:
-        _stereo(obs, cands, chosen, by_cam, config.epipolar_px, why_out, replaced)
+        _stereo(obs, by_cam, config.epipolar_px, why_out)
         if len(why_out) > config.max_dropped:
             why_out.clear()  # the images disagree as a whole, not one mark: the gate judges
     used = np.array([k not in why_out for k in range(n)])
@@ -257,67 +258,47 @@ def _skew(t: Array) -> Array:
 
 
 def _stereo(
-    obs: Sequence[Observation], cands: list[list[Array]], chosen: list[int],
-    by_cam: Mapping[tuple[int, str], ViewCamera], limit: float, why_out: dict[int, str],
-    replaced: dict[int, str],
+    obs: Sequence[Observation], by_cam: Mapping[tuple[int, str], ViewCamera], limit: float,
+    why_out: dict[int, str],
 ) -> None:
-    """Step 1 of the rule: epipolar agreement between the cameras of a view, per mark."""
+    """Step 1 of the rule: epipolar agreement between the cameras of a view, per mark; the
+    observations that disagree with every other camera's are set aside in ``why_out``."""
     groups: dict[tuple[int, str], list[int]] = {}
     for k, o in enumerate(obs):
         groups.setdefault((o.view, o.mark_id), []).append(k)
     groups = {g: ks for g, ks in groups.items() if len(ks) > 1}
     if not groups:
         return
-    # Every candidate's normalised ray, one undistortion per camera; essential matrices per pair.
-    rays: dict[int, Array] = {}
+    # Every observation's normalised ray, one undistortion per camera; essential matrices per
+    # camera pair.
     per_cam: dict[tuple[int, str], list[int]] = {}
     for ks in groups.values():
         for k in ks:
             per_cam.setdefault((obs[k].view, obs[k].camera_id), []).append(k)
+    rays: dict[int, Array] = {}
     for key, ks in per_cam.items():
-        uv = np.concatenate([np.asarray(cands[k], dtype=float).reshape(-1, 2) for k in ks])
-        xy = by_cam[key].model.undistort_normalized(uv)
-        first = 0
-        for k in ks:
-            n = len(cands[k])
-            rays[k] = np.concatenate([xy[first : first + n], np.ones((n, 1))], axis=1)
-            first += n
+        xy = by_cam[key].model.undistort_normalized(np.array([obs[k].uv for k in ks], dtype=float))
+        for k, x in zip(ks, xy, strict=True):
+            rays[k] = np.array([x[0], x[1], 1.0])
     essential: dict[tuple[tuple[int, str], tuple[int, str]], Array] = {}
 
-    def dist(a: int, ia: int, b: int, ib: int) -> float:
+    def dist(a: int, b: int) -> float:
         ka, kb = (obs[a].view, obs[a].camera_id), (obs[b].view, obs[b].camera_id)
         E = essential.get((ka, kb))
         if E is None:
             T_b_from_a = compose(invert(by_cam[kb].T_rf_from_cf), by_cam[ka].T_rf_from_cf)
             E = essential[(ka, kb)] = _skew(T_b_from_a[:3, 3]) @ T_b_from_a[:3, :3]
-        xa, xb = rays[a][ia], rays[b][ib]
+        xa, xb = rays[a], rays[b]
         la, lb = E.T @ xb, E @ xa  # epipolar lines in a and in b (x_b^T E x_a = 0)
         da = abs(float(la @ xa)) / np.hypot(la[0], la[1]) * by_cam[ka].model.fx
         db = abs(float(lb @ xb)) / np.hypot(lb[0], lb[1]) * by_cam[kb].model.fx
         return 0.5 * (da + db)
 
     for ks in groups.values():
-        d = {(a, b): dist(a, 0, b, 0) for a in ks for b in ks if a < b}
-        odd = [a for a in ks
-               if all(d[(min(a, b), max(a, b))] > limit for b in ks if b != a)]
-        if not odd:
-            continue
-        # Try the next candidates of the odd ones: one that agrees with another camera's
-        # observation replaces the best candidate.
-        for a in odd:
-            others = [b for b in ks if b != a and (b not in odd or len(ks) == 2)]
-            for ia in range(1, len(cands[a])):
-                agree = [b for b in others if dist(a, ia, b, chosen[b]) <= limit]
-                if agree:
-                    chosen[a] = ia
-                    b = agree[0]
-                    replaced[a] = (f"epipolar {d[(min(a, b), max(a, b))]:.1f} px from "
-                                   f"v{obs[b].view}/{obs[b].camera_id}; candidate {ia} agrees")
-                    break
-        still = [a for a in odd if chosen[a] == 0]
-        if len(ks) == 2 and len(still) < 2:
-            continue  # one of the pair took a candidate that agrees with the other
-        for a in still:
-            b = next(b for b in ks if b != a)
-            why_out[a] = (f"epipolar {d[(min(a, b), max(a, b))]:.1f} px > {limit:g} px from "
-                          f"v{obs[b].view}/{obs[b].camera_id}")
+        d = {(a, b): dist(a, b) for a in ks for b in ks if a < b}
+        for a in ks:
+            others = [b for b in ks if b != a]
+            if all(d[(min(a, b), max(a, b))] > limit for b in others):
+                b = min(others, key=lambda j: d[(min(a, j), max(a, j))])
+                why_out[a] = (f"epipolar {d[(min(a, b), max(a, b))]:.1f} px > {limit:g} px from "
+                              f"v{obs[b].view}/{obs[b].camera_id}")
