@@ -31,8 +31,9 @@ class MqttConfig(_Model):
     password_env: str | None = Field(
         None, max_length=200,
         description="environment variable holding the broker password (never the file)")
-    poll_s: float = Field(0.2, gt=0, le=10,
-                          description="how often the publisher looks for new outbox rows")
+    poll_s: float = Field(1.0, gt=0, le=10,
+                          description="the publisher looks for outbox rows after each "
+                                      "answer and at least this often")
     keep_published_h: float = Field(24.0, ge=0, le=24 * 365,
                                     description="published outbox rows are deleted after this")
 

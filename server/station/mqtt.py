@@ -26,6 +26,8 @@ import time
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 
+from sqlalchemy import Engine
+
 from mvpose_core.plantconfig import MqttConfig, PlantConfig
 from mvpose_core.station import StationConfig
 from server.state import Services
@@ -107,14 +109,19 @@ class MqttPublisher:
     # ------------------------------------------------------------------ life cycle
     def start(self, station: Station) -> None:
         """Connect (in the background: a broker that is down is retried) and start publishing."""
-        import paho.mqtt.client as paho
-
         sink = station.sink
         if not isinstance(sink, OutboxWriterSink):
             raise RuntimeError(f"station {self.station!r}: the MQTT publisher needs the station "
                                f"started with its sink (MqttPublisher.sink)")
         self._station = station
-        self._outbox = Outbox(sink.writer.engine, self.station)
+        self.connect(sink.writer.engine)
+        station.add_listener(lambda _event: self._wake.set())
+
+    def connect(self, engine: Engine) -> None:
+        """Publish the outbox in ``engine``'s database (``start`` does this for a station)."""
+        import paho.mqtt.client as paho
+
+        self._outbox = Outbox(engine, self.station)
         cfg = self.config
         client = paho.Client(paho.CallbackAPIVersion.VERSION2,
                              client_id=f"mvpose/{self.result_topic.rsplit('/', 2)[0]}",
@@ -135,7 +142,6 @@ class MqttPublisher:
         self._client = client
         client.connect_async(cfg.host, cfg.port, keepalive=cfg.keepalive_s)
         client.loop_start()
-        station.add_listener(lambda _event: self._wake.set())
         self._thread = threading.Thread(target=self._run, name="mqtt-publisher", daemon=True)
         self._thread.start()
 

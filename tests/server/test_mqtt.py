@@ -162,3 +162,24 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
     body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])
     assert body == got[("station1", 1)]
+
+
+def test_plant_names_are_single_topic_levels(tmp_path: Path) -> None:
+    from mvpose_core.station import StationFileError, load_station
+
+    def wildcard(data: dict[str, Any]) -> None:
+        data["plant"] = {**PLANT, "line": "l3/#", "mqtt": {"port": 1883}}
+
+    path = station_file(tmp_path, "station1", wildcard)
+    try:
+        load_station(path)
+    except StationFileError as err:
+        assert "plant.line" in str(err) and "l3/#" in str(err), err
+    else:
+        raise AssertionError("a topic wildcard in plant.line was accepted")
+    station = load_station(station_file(tmp_path, "station1", _plant(1883)))
+    from server.station.mqtt import MqttPublisher
+
+    pub = MqttPublisher.for_station(station)
+    assert pub is not None and pub.result_topic == "acme/wob/body/l3/station1/mvpose/result"
+    assert MqttPublisher.for_station(load_station(station_file(tmp_path, "station1"))) is None
