@@ -10,6 +10,13 @@ WORKDIR /web
 COPY server/web/package.json server/web/package-lock.json ./
 RUN npm ci --ignore-scripts --no-audit --no-fund --prefer-offline
 
+# The OPC UA link's Machine Vision information model: the OPC Foundation's NodeSet2 files from
+# the npm package node-opcua-nodesets, pinned by its package-lock.json (checked by SHA256SUMS).
+FROM node:20-slim AS nodesets
+WORKDIR /nodesets
+COPY drivers/links/opcua_nodesets/package.json drivers/links/opcua_nodesets/package-lock.json ./
+RUN npm ci --ignore-scripts --no-audit --no-fund --prefer-offline
+
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -33,6 +40,7 @@ COPY mvpose_core ./mvpose_core
 COPY drivers ./drivers
 COPY server ./server
 COPY --from=web /web/node_modules ./server/web/node_modules
+COPY --from=nodesets /nodesets/node_modules ./drivers/links/opcua_nodesets/node_modules
 # postgres: the psycopg driver for plants that collect every station in one PostgreSQL database.
 RUN python -m pip install --no-cache-dir ".[postgres]"
 COPY deploy/stations /etc/mvpose/examples

@@ -102,14 +102,16 @@ def test_dockerfile_is_slim_non_root_with_healthcheck() -> None:
     assert _pip_commands(ins), "the Dockerfile installs nothing with pip"
 
 
-def _web_stage(ins: list[tuple[str, str]], tmp_path: Path) -> tuple[str, Path]:
-    """Run the operator page's node stage: its COPY lines, then its ``npm ci`` literally
-    (--prefer-offline: from the npm cache `make venv` filled). Returns (WORKDIR, its copy)."""
+def _web_stage(ins: list[tuple[str, str]], tmp_path: Path,
+               name: str = "web") -> tuple[str, Path]:
+    """Run a node stage (the operator page's, the OPC UA NodeSets'): its COPY lines, then its
+    ``npm ci`` literally (--prefer-offline: from the npm cache `make venv` filled). Returns
+    (WORKDIR, its copy)."""
     npm = _npm_commands(ins)
     assert npm and all(argv[:2] == ["npm", "ci"] for argv in npm), \
         f"the web stage must install exactly the lock file's versions (npm ci), got {npm}"
     workdir = next(rest for w, rest in ins if w == "WORKDIR")
-    ctx = tmp_path / "web"
+    ctx = tmp_path / name
     ctx.mkdir()
     for word, rest in ins:
         if word == "COPY":
@@ -126,7 +128,7 @@ def _web_stage(ins: list[tuple[str, str]], tmp_path: Path) -> tuple[str, Path]:
 
 def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
     stages = _stages(_instructions(DOCKERFILE.read_text()))
-    web_dir, web_ctx = _web_stage(stages["web"], tmp_path)
+    node = {name: _web_stage(stages[name], tmp_path, name) for name in ("web", "nodesets")}
     ins = stages[""]
     # Build context: the COPY lines before the first pip install, relative to WORKDIR.
     ctx = tmp_path / "workdir"
@@ -143,8 +145,9 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
                 target = ctx / (Path(src).name if dest in ("./", ".") else dest.removeprefix("./"))
                 origin = ROOT / src
                 if stage is not None:
-                    assert stage == "web", rest
-                    origin = web_ctx / Path(src).relative_to(web_dir)
+                    assert stage in node, rest
+                    stage_dir, stage_ctx = node[stage]
+                    origin = stage_ctx / Path(src).relative_to(stage_dir)
                 if origin.is_dir():
                     # a developer's own server/web/node_modules is not in the image's context
                     shutil.copytree(origin, target, ignore=shutil.ignore_patterns(
@@ -195,6 +198,11 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
     for name, rel in VENDOR.items():
         assert (site / "server" / "web" / "node_modules" / rel).is_file(), (
             f"/static/vendor/{name}: {rel} is not in the image (pyproject package-data?)")
+    # The OPC UA link's NodeSet2 files, as pinned (the installed link verifies them itself)
+    checked = subprocess.run(
+        [str(py), "-c", "from drivers.links.opcua import import_order; print(import_order())"],
+        env=env, capture_output=True, text=True, cwd=tmp_path)
+    assert checked.returncode == 0 and str(site) in checked.stdout, checked.stdout + checked.stderr
     check = subprocess.run(
         [str(py), "-m", "pip", "check"], env=env, capture_output=True, text=True, cwd=tmp_path
     )

@@ -13,6 +13,7 @@ from .base import Link, LinkOutcome, LinkRequest, StationHandler
 
 BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
+    "opcua": ("drivers.links.opcua", "OpcUaLink"),
 }
 
 
