@@ -131,7 +131,7 @@ async def running_server(
             return
         app = create_app(settings, StationClient(settings.resolved_control_socket))
         config = uvicorn.Config(app, host=http_host, port=http_port, log_level="warning",
-                                lifespan="on")
+                                lifespan="on", timeout_graceful_shutdown=3)
         server = uvicorn.Server(config)
         failed: list[str] = []
         thread = threading.Thread(target=_serve, args=(server, failed), name="http",

@@ -36,7 +36,9 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(OSError):  # not permitted: the API runs at the normal priority
         os.nice(API_NICE)
     app = create_app(settings, StationClient(settings.resolved_control_socket))
-    config = uvicorn.Config(app, host=host, port=port, log_level=args.log_level, lifespan="on")
+    # An open Live page streams events: wait for open responses at most 3 s on SIGTERM.
+    config = uvicorn.Config(app, host=host, port=port, log_level=args.log_level, lifespan="on",
+                            timeout_graceful_shutdown=3)
     server = _Server(config, settings.data_dir / API_ADDRESS_FILE)
     server.run()
     # uvicorn returns normally when the lifespan failed at start-up: report it as a failure.

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import sys
 import urllib.request
 
+from server.cli import check_port_free
 from server.commands import options
 
 
@@ -35,8 +35,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rest_yield_ms is not None or args.answer_read_wait_ms is not None:
         print("mvpose serve: --rest-yield-ms and --answer-read-wait-ms are ignored: the API "
               "runs in a process of its own", file=sys.stderr)
-    if port:
-        _check_port_free(host, port)
+    check_port_free(host, port)
     common = ["--station", str(settings.station), "--data-dir", str(settings.data_dir),
               "--log-level", args.log_level]
     station_argv = common + options.forward(args, [*options.LINK_OPTIONS, "detect_processes"])
@@ -73,14 +72,3 @@ def run(args: argparse.Namespace) -> int:
 
 def _connect_host(host: str) -> str:
     return "127.0.0.1" if host in ("0.0.0.0", "") else ("[::1]" if host == "::" else host)
-
-
-def _check_port_free(host: str, port: int) -> None:
-    from server.cli import CliError
-
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind((host, port))
-        except OSError as err:
-            raise CliError(f"REST address {host}:{port} is not free ({err.strerror})") from None
