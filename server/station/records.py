@@ -21,10 +21,12 @@ from server.recipes import ActiveRecipe
 from server.store.schemas import (
     CameraDetections,
     Detection,
+    FlangePose,
     ImageRef,
     MeasurementRecord,
     Offset,
     Residuals,
+    SetAside,
     Uncertainty,
 )
 
@@ -49,11 +51,24 @@ def result_record(prov: Provenance, result: StationResult, *, trigger_id: int,
         for v in result.views for cid, ds in v.detections.items()
     ]
     pose = offset = unc = res = cams = None
+    aside: list[SetAside] | None = None
     if meas is not None:
         cams = record_camera_residuals(result.observations, meas)  # the drift watch's input
+        aside = [SetAside(view=d.view, camera_id=d.camera_id, mark_id=d.mark_id,
+                          reason=d.reason[:200]) for d in meas.dropped]
+        aside += [SetAside(view=r.view, camera_id=r.camera_id, mark_id=r.mark_id,
+                           candidate=r.candidate, reason=r.reason[:200]) for r in meas.replaced]
         pose = MeasurementRecord.matrix(meas.T_rf_from_pf)
         offset = Offset(convention=rc.robot_convention, values=[float(x) for x in meas.offset])
+        parts = meas.uncertainty
         unc = Uncertainty(sigma_mm=float(meas.sigma_trans_mm), sigma_deg=float(meas.sigma_rot_deg))
+        if parts is not None:  # the two parts of the 1σ (docs/engine.md, uncertainty model)
+            unc = unc.model_copy(update={
+                "detector_mm": _part(parts.sigma_detector_trans_mm),
+                "detector_deg": _part(parts.sigma_detector_rot_deg),
+                "calibration_mm": _part(parts.sigma_calibration_trans_mm),
+                "calibration_deg": _part(parts.sigma_calibration_rot_deg),
+                "detector_noise_px": _part(parts.detector_noise_px)})
         r = np.asarray(meas.pose.residuals_px, dtype=float).reshape(-1, 2)
         norms = np.linalg.norm(r, axis=1) if len(r) else np.zeros(1)
         res = Residuals(rms_px=float(np.sqrt(np.mean(norms**2))), max_px=float(norms.max()))
@@ -66,7 +81,9 @@ def result_record(prov: Provenance, result: StationResult, *, trigger_id: int,
         result="OK" if result.code == 0 else "NOK", reason_code=result.code,
         reason=reason_name(result.code), message=result.message[:500] or None,
         detections=dets, T_rf_from_pf=pose, offset=offset, uncertainty=unc, residuals=res,
-        camera_residuals=cams,
+        camera_residuals=cams, pose_valid=result.code == 0, set_aside=aside or None,
+        flange_poses=[FlangePose(view=v.view, T_rf_from_gf=MeasurementRecord.matrix(v.flange_pose))
+                      for v in result.views if v.flange_pose is not None] or None,
         timings_ms={k: round(v, 4) for k, v in result.timings_ms.items()}, images=list(images),
     )
 
@@ -80,10 +97,14 @@ def failure_record(prov: Provenance, *, code: int, message: str, trigger_id: int
         triggered_at=triggered_at, recipe=recipe.config.name, recipe_version=recipe.version,
         calibration_id=prov.calibration[0] if prov.calibration else None,
         calibration_hash=prov.calibration[1] if prov.calibration else None,
-        T_rf_from_pf=None, software_version=prov.software_version, result="NOK",
+        T_rf_from_pf=None, pose_valid=False, software_version=prov.software_version, result="NOK",
         reason_code=code, reason=reason_name(code), message=message[:500] or None,
         timings_ms={"total": round(total_ms, 4)},
     )
+
+
+def _part(x: float | None) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def _finite(x: float) -> float | None:

@@ -62,15 +62,45 @@ class Offset(_Model):
 
 
 class Uncertainty(_Model):
-    """1σ of the result at the grasp point."""
+    """1σ of the result at the grasp point: the total, and (records since the uncertainty
+    model, docs/engine.md) its detector and calibration parts."""
 
     sigma_mm: float = Field(ge=0)
     sigma_deg: float = Field(ge=0)
+    detector_mm: float | None = Field(None, ge=0)
+    detector_deg: float | None = Field(None, ge=0)
+    calibration_mm: float | None = Field(None, ge=0)
+    calibration_deg: float | None = Field(None, ge=0)
+    detector_noise_px: float | None = Field(None, ge=0, description="estimated from the residuals")
 
 
 class Residuals(_Model):
     rms_px: float = Field(ge=0)
     max_px: float = Field(ge=0)
+
+
+Matrix4 = Annotated[
+    list[Annotated[list[float], Field(min_length=4, max_length=4)]],
+    Field(min_length=4, max_length=4),
+]
+
+
+class SetAside(_Model):
+    """An observation the robust rule left out of the pose (``candidate`` 0), or whose best
+    candidate it replaced by the ``candidate``-th next one; and why (docs/engine.md)."""
+
+    view: int = Field(ge=1, le=255)
+    camera_id: Name
+    mark_id: Name
+    candidate: int = Field(0, ge=0, le=255)
+    reason: str = Field(max_length=200)
+
+
+class FlangePose(_Model):
+    """The robot's actual flange pose a view was taken at (robot-mounted rigs)."""
+
+    view: int = Field(ge=1, le=255)
+    T_rf_from_gf: Matrix4
 
 
 class CameraResidual(_Model):
@@ -92,10 +122,6 @@ class ImageRef(_Model):
     path: str = Field(min_length=1, max_length=400)
 
 
-Matrix4 = Annotated[
-    list[Annotated[list[float], Field(min_length=4, max_length=4)]],
-    Field(min_length=4, max_length=4),
-]
 
 
 class MeasurementRecord(_Model):
@@ -129,6 +155,13 @@ class MeasurementRecord(_Model):
     camera_residuals: list[CameraResidual] | None = Field(
         None, description="per camera of the pose fit; absent in records before the drift watch"
     )
+    pose_valid: bool | None = Field(
+        None, description="the pose may be used (OK); a NOK record keeps its pose for diagnosis "
+        "only. Absent in older records: there, an OK result")
+    set_aside: list[SetAside] | None = Field(
+        None, description="observations the robust rule dropped or replaced, and why")
+    flange_poses: list[FlangePose] | None = Field(
+        None, description="the robot's actual flange pose of each view that sent one")
 
     @model_validator(mode="after")
     def _check(self) -> MeasurementRecord:

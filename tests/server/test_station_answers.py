@@ -55,6 +55,7 @@ async def test_a_stuck_trigger_is_answered_with_a_recorded_timeout(tmp_path: Pat
         assert "the trigger thread is stuck" in (recs[0].record.message or "")
         assert [(r.seq, r.record.trigger_id, r.record.reason_code) for r in recs] == [
             (status.result_id, 41, int(Reason.TIMEOUT))]
+        assert recs[0].record.pose_valid is False
         release.set()
         lb.runtime.wait_idle()
         # The late result of trigger 41 is never recorded: the record says what the PLC was told.
@@ -84,6 +85,11 @@ async def test_result_ids_are_the_records_and_survive_a_restart(tmp_path: Path) 
             assert last.camera_residuals is not None
             assert {c.camera_id for c in last.camera_residuals} == {
                 d.camera_id for d in last.detections}
+            # Both parts of the 1σ, and the pose marked usable (OK) or not.
+            assert last.pose_valid is (last.result == "OK")
+            unc = last.uncertainty
+            assert unc is not None and unc.detector_mm is not None
+            assert unc.calibration_mm is not None and unc.detector_noise_px is not None
     ids = [rid for _, rid in seen]
     assert ids == sorted(set(ids)), f"result ids reused or out of order: {ids}"
     assert all(by_seq[rid] == tid for tid, rid in seen)
