@@ -218,11 +218,15 @@ class _Events:
         return await asyncio.wait_for(self.queue.get(), 10)
 
 
-async def _subscribe(client: Client) -> _Events:
+async def _subscribe(client: Client, standard: bool = False) -> _Events:
+    """Result events: of our subtype (every field), or of the standard's ResultReadyEventType
+    (what a generic OPC 40100 client asks for)."""
     await client.load_data_type_definitions()
     vs, mv, own = await _vision_system(client)
-    etype = await client.nodes.base_event_type.get_child(
-        [f"{mv}:ResultReadyEventType", f"{own}:MvposeResultReadyEventType"])
+    path = [f"{mv}:ResultReadyEventType"]
+    if not standard:
+        path.append(f"{own}:MvposeResultReadyEventType")
+    etype = await client.nodes.base_event_type.get_child(path)
     events = _Events()
     sub = await client.create_subscription(50, events)
     await sub.subscribe_events(vs, etype)
@@ -235,6 +239,7 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
     client = await served.client()
     try:
         events = await _subscribe(client)
+        generic = await _subscribe(client, standard=True)
         vs, mv, own = await _vision_system(client)
         rid, code, offset, s_mm, s_deg = await vs.call_method(
             f"{own}:Measure", ua.Variant("VIN-1", ua.VariantType.String),
@@ -246,6 +251,9 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
         assert ev.ResultId.Id == str(out.result_id) and ev.ResultNumber == out.result_id
         assert (ev.PartId.Id, ev.ResultCode, ev.ResultState) == ("VIN-1", 0, 1)
         assert ev.Offset == list(out.offset) and ev.SigmaTranslationMm == 0.05
+        std = await generic.next()
+        assert (std.ResultId.Id, std.PartId.Id, std.ResultState) == (str(out.result_id),
+                                                                     "VIN-1", 1)
 
         # StartSingleJob (the standard's trigger) answers at once; the result follows as event
         auto = await vs.get_child([f"{mv}:VisionStateMachine", f"{mv}:AutomaticModeStateMachine"])
@@ -268,6 +276,38 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
         assert await (await last.get_child(f"{own}:ResultNumber")).read_value() == \
             other.result_id
         assert events.queue.empty()  # one event per record, no more
+    finally:
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_halt_refuses_jobs_until_reset(served: Served) -> None:
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        vs, mv, own = await _vision_system(client)
+        sm = await vs.get_child(f"{mv}:VisionStateMachine")
+        auto = await sm.get_child(f"{mv}:AutomaticModeStateMachine")
+        state = await sm.get_child("0:CurrentState")
+
+        async def job() -> int:
+            _, err = await auto.call_method(
+                f"{mv}:StartSingleJob", ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id="VIN-H"),
+                ua.RecipeIdExternalDataType(Id=""), ua.ProductIdDataType(Id=""), ua.Variant())
+            return int(err)
+
+        before, resets = len(served.handler.records), served.handler.resets
+        assert await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
+                                    ua.Variant("", ua.VariantType.String)) == 0
+        assert (await state.read_value()).Text == "Halted"
+        assert await job() == int(Reason.BUSY)
+        assert await sm.call_method(f"{mv}:SelectModeAutomatic") == int(Reason.BUSY)
+        assert len(served.handler.records) == before
+        assert await sm.call_method(f"{mv}:Reset", ua.Variant(0, ua.VariantType.Int32),
+                                    ua.Variant("", ua.VariantType.String)) == 0
+        assert ((await state.read_value()).Text, served.handler.resets) == ("Operational",
+                                                                           resets + 1)
+        assert await sm.call_method(f"{mv}:SelectModeAutomatic") == 0
     finally:
         await client.disconnect()
 
