@@ -195,8 +195,8 @@ class MqttPublisher:
     def _on_disconnect(self, _client: paho.Client, _userdata: Any, _flags: Any, reason: Any,
                        _props: Any) -> None:
         with self._lock:
-            self._connected = False
-        if not self._stop.is_set():
+            was, self._connected = self._connected, False
+        if was and not self._stop.is_set():  # a refused connect has said why already
             self.last_error = f"disconnected from the broker: {reason}"
             log.warning("station %s: MQTT broker %s:%d lost (%s); reconnecting", self.station,
                         self.config.host, self.config.port, reason)

@@ -1,9 +1,8 @@
 """Mosquitto from Debian's package on a free loopback port, and an independent subscriber.
 
-The broker keeps its state in the test's temp dir (``persistence true``): a plant's broker must,
-or a consumer with a persistent session misses what arrives while the broker restarts. A stop
-with SIGTERM writes that state; the broker comes back on the same port (the stations' files
-name it).
+The broker keeps its state in the test's temp dir (``persistence true``, written after every
+change): a plant's broker must, or a consumer with a persistent session misses what arrives while
+the broker restarts. It comes back on the same port (the stations' files name it).
 """
 
 from __future__ import annotations
@@ -40,15 +39,27 @@ def wait_until(what: str, check: Callable[[], Any], timeout: float = 30.0) -> An
 
 
 class Mosquitto:
-    def __init__(self, tmp: Path) -> None:
-        self.exe = ensure_commands({"mosquitto": "mosquitto"})["mosquitto"]
+    def __init__(self, tmp: Path, users: dict[str, str] | None = None) -> None:
+        """``users``: a password file with these users, and no anonymous clients."""
+        found = ensure_commands({"mosquitto": "mosquitto", "mosquitto_passwd": "mosquitto"})
+        self.exe = found["mosquitto"]
         self.dir = tmp / "mosquitto"
         self.dir.mkdir()
         self.port = _free_port()
+        auth = "allow_anonymous true\n"
+        if users:
+            passwd = self.dir / "passwd"
+            for user, password in users.items():
+                subprocess.run([found["mosquitto_passwd"], "-b"]
+                               + ([] if passwd.exists() else ["-c"])
+                               + [str(passwd), user, password], check=True,
+                               capture_output=True)
+            auth = f"allow_anonymous false\npassword_file {passwd}\n"
         self.conf = self.dir / "mosquitto.conf"
         self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence true\n"
-            f"persistence_location {self.dir}/\nlog_dest file {self.dir}/broker.log\n"
+            f"listener {self.port} 127.0.0.1\n{auth}persistence true\n"
+            f"persistence_location {self.dir}/\nautosave_on_changes true\nautosave_interval 1\n"
+            f"log_dest file {self.dir}/broker.log\n"
             "log_type error\nlog_type warning\nlog_type notice\n"
             # as root it would switch to its own user, who cannot enter pytest's 0700 temp dirs
             + ("user root\n" if os.geteuid() == 0 else ""))
@@ -81,7 +92,8 @@ class Mosquitto:
 class Subscriber:
     """A consumer with a persistent session (QoS 1): every message, duplicates included."""
 
-    def __init__(self, port: int, topics: list[str], client_id: str = "test-consumer") -> None:
+    def __init__(self, port: int, topics: list[str], client_id: str = "test-consumer",
+                 username: str | None = None, password: str | None = None) -> None:
         self.topics = topics
         self.messages: list[tuple[str, dict[str, Any], bool]] = []  # topic, payload, retained
         self.lock = threading.Lock()
@@ -89,6 +101,8 @@ class Subscriber:
         self.client = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=client_id,
                                   protocol=paho.MQTTv311, clean_session=False)
         self.client.reconnect_delay_set(min_delay=1, max_delay=1)
+        if username is not None:
+            self.client.username_pw_set(username, password)
         self.client.on_connect = self._on_connect
         self.client.on_message = self._on_message
         self.client.on_subscribe = lambda *_: self.subscribed.set()

@@ -1,9 +1,10 @@
 """Plant in a box: the three station files of deploy/compose.plant.yaml as three station
 processes, one PostgreSQL 15 server, one Mosquitto, three PLC twins over Modbus/TCP.
 
-Each station's twin triggers it while the others run. Midway the broker is stopped and one
-station is killed with SIGKILL; the other two keep triggering; then both come back and every
-station triggers again. At the end a subscriber has every record of every station exactly once
+Each station's twin triggers it while the others run. Midway the broker is killed (SIGKILL)
+while the stations go on triggering, and one station is killed (SIGKILL) with records its outbox
+has not published; the other two keep triggering; then both come back and every station
+triggers again. At the end a subscriber has every record of every station exactly once
 after deduplication by id, and the database holds exactly those records.
 """
 
@@ -98,19 +99,24 @@ async def test_plant_in_a_box_every_record_once(tmp_path: Path,
             p.start()
         await asyncio.to_thread(_wait_ready, procs)
         await asyncio.gather(*(p.run(4) for p in procs))
+        await asyncio.to_thread(wait_until, "the first 12 records at the subscriber",
+                                lambda: len(sub.results()) == 12, 30)
 
-        # midway: the broker stops, station 2 dies; stations 1 and 3 go on
+        # midway: the broker is killed, the stations go on (their outboxes fill), station 2 is
+        # killed with unpublished rows, stations 1 and 3 go on
+        await asyncio.to_thread(broker.stop, signal.SIGKILL)
+        await asyncio.gather(*(p.run(3) for p in procs))
         down = procs[1]
-        await asyncio.to_thread(broker.stop)
         down.stop(signal.SIGKILL)
-        await asyncio.gather(procs[0].run(4), procs[2].run(4))
+        await asyncio.gather(procs[0].run(3), procs[2].run(3))
+        assert len(sub.results()) == 12
         await asyncio.to_thread(broker.start)
         down.start()
         await asyncio.to_thread(_wait_ready, [down])
-        await asyncio.gather(*(p.run(3) for p in procs))
+        await asyncio.gather(*(p.run(2) for p in procs))
 
         expected = sum(len(p.answers) for p in procs)
-        assert expected == 4 * 3 + 4 * 2 + 3 * 3
+        assert expected == 4 * 3 + 3 * 3 + 3 * 2 + 2 * 3
         await asyncio.to_thread(wait_until, "every record at the subscriber",
                                 lambda: len(sub.results()) == expected, 60)
     finally:
