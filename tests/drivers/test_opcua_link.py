@@ -452,3 +452,33 @@ def _tampered(path: Path, tmp_path: Path) -> Path:
     copy = tmp_path / path.name
     copy.write_bytes(path.read_bytes().replace(b"VisionSystemType", b"VisionSystemTypo", 1))
     return tmp_path
+
+
+@MODULE_LOOP
+async def test_security_none_and_anonymous_readers_only_when_listed(tmp_path: Path) -> None:
+    handler = RecordingHandler()
+    pki = tmp_path / "pki"
+    link = OpcUaLink(_config(pki, security=["None"], allow_anonymous=True), handler)
+    await link.start()
+    try:
+        await link.wait_ready(120)
+        assert not pki.exists()  # no certificate without a secured endpoint
+        url = f"opc.tcp://127.0.0.1:{link.port}/mvpose"
+        probe = Client(url, timeout=10)
+        endpoints = await probe.connect_and_get_server_endpoints()
+        assert {e.SecurityMode for e in endpoints} == {ua.MessageSecurityMode.None_}
+        client = Client(url, timeout=10)  # no user, no certificate
+        await client.connect()
+        try:
+            vs, mv, own = await _vision_system(client)
+            assert (await vs.read_browse_name()).Name == "VisionSystem"
+            with pytest.raises(ua.UaError, match="BadUserAccessDenied"):  # anonymous = read
+                await vs.call_method(f"{own}:Measure", "VIN-A",
+                                     ua.Variant(0, ua.VariantType.UInt16),
+                                     ua.Variant(1, ua.VariantType.UInt32))
+            assert handler.records == []
+        finally:
+            await client.disconnect()
+    finally:
+        await link.stop()
+    assert not link.ready()
