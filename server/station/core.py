@@ -172,6 +172,8 @@ class Station:
         self._thread: threading.Thread | None = None
         self._watch: asyncio.Task[None] | None = None
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
+        self.status_parts: dict[str, Callable[[], dict[str, Any]]] = {}
 
     # ------------------------------------------------------------------ life cycle
     def start(self, services: Services, sink: RecordSink | None = None) -> None:
@@ -754,4 +756,5 @@ class Station:
             "last_result": last,
             "warm_up_ms": {k: round(v, 1) for k, v in self.warmed_ms.items()},
             "store": self.sink.status() if self.sink is not None else None,
+            **{name: part() for name, part in self.status_parts.items()},
         }

@@ -41,6 +41,7 @@ class StationProcess:
                                else None)
             if self.publisher is not None:
                 self.publisher.start(self.station)
+                self.station.status_parts["mqtt"] = self.publisher.status
             control = ControlServer(self.station, self.settings.resolved_control_socket)
             self.station.run_on_loop(control.start(), timeout=10)
             self.control = control

@@ -9,8 +9,8 @@ from typing import Any
 import yaml
 
 from drivers.cameras import RenderOptions
-from server.station.core import StationOptions
 from server.settings import Settings
+from server.station.core import StationOptions
 
 ROOT = Path(__file__).resolve().parents[2]
 STATIONS = ROOT / "deploy" / "stations"

@@ -93,6 +93,8 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
 
         trigger(5)
         wait_until("5 results at the subscriber", lambda: len(sub.results()) == 5)
+        mqtt = client.status()["mqtt"]  # the station's status shows its publisher
+        assert mqtt["connected"] and mqtt["broker"].endswith(f":{broker.port}")
 
         # the broker is killed mid-run (once its state holds what it acknowledged: a crash
         # before that loses it in the broker, docs/integration.md): triggers are answered as
