@@ -47,8 +47,9 @@ COPY deploy/stations /etc/mvpose/examples
 
 USER mvpose
 VOLUME ["/var/lib/mvpose"]
-# 8000 REST API; 5020 Modbus/TCP (an unprivileged port: the compose file maps the PLC's 502 onto it).
-EXPOSE 8000 5020
+# 8000 REST API; 5020 Modbus/TCP (an unprivileged port: the compose file maps the PLC's 502 onto it);
+# 4840 OPC UA when the station file enables it.
+EXPOSE 8000 5020 4840
 
 # Liveness only: readiness (cameras, PLC link) is for the line's monitoring, not for restarts.
 HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \

@@ -231,6 +231,10 @@ class Station:
             if getattr(cfg, "measure_timeout_s", 0) is None:  # a backstop behind the watchdog
                 cfg = cfg.model_copy(update={
                     "measure_timeout_s": self.station.deadline_ms / 1000.0 + margin + 1.0})
+            if getattr(cfg, "pki_dir", "") is None and self.services is not None:
+                # certificates (OPC UA) live in the data directory, with the store
+                cfg = cfg.model_copy(update={
+                    "pki_dir": str(self.services.settings.data_dir / name)})
             configs[name] = cfg
         self.links = open_links(configs, self)
         for link in self.links:
@@ -545,7 +549,7 @@ class Station:
                                     trigger_id=req.trigger_id, part_id=req.part_id or None,
                                     triggered_at=at, recipe=recipe,
                                     total_ms=(time.monotonic() - t0) * 1e3)
-        answer = self._append(record, message, t0)
+        answer = self._append(record, message, t0, req.link)
         if step is not None and step.result is not None:
             self._after(step, answer)
         return answer
@@ -562,9 +566,10 @@ class Station:
         record = failure_record(self.provenance, code=code, message=message,
                                 trigger_id=req.trigger_id, part_id=req.part_id or None,
                                 triggered_at=at, recipe=self._any_recipe(), total_ms=total_ms)
-        return self._append(record, message, time.monotonic() - total_ms / 1e3)
+        return self._append(record, message, time.monotonic() - total_ms / 1e3, req.link)
 
-    def _append(self, record: MeasurementRecord, message: str, t0: float) -> Answer:
+    def _append(self, record: MeasurementRecord, message: str, t0: float,
+                link: str = "") -> Answer:
         """Make ``record`` durable, then build the link's outcome from it (the same code)."""
         assert self.sink is not None
         t = time.monotonic()
@@ -593,7 +598,8 @@ class Station:
             self.last = {
                 "result_id": done.result_id, "measurement_id": done.db_id,
                 "trigger_id": record.trigger_id, "part_id": record.part_id,
-                "recipe": record.recipe, "result": record.result,
+                "recipe": record.recipe, "recipe_version": record.recipe_version,
+                "link": link, "result": record.result,
                 "reason_code": record.reason_code, "reason": reason_name(record.reason_code),
                 "message": message, "processing_ms": outcome.processing_ms,
                 "at": record.triggered_at.isoformat(),
