@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .base import Link, LinkOutcome, LinkRequest, StationHandler
+from .base import Link, LinkOutcome, LinkRequest, StationHandler, relay
 
 BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
@@ -34,4 +34,4 @@ def open_links(configs: dict[str, Any], handler: StationHandler) -> list[Link]:
 
 
 __all__ = ["BACKENDS", "Link", "LinkOutcome", "LinkRequest", "StationHandler", "link_class",
-           "open_links"]
+           "open_links", "relay"]

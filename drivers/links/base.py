@@ -18,12 +18,16 @@ controller and the store never disagree.
 
 from __future__ import annotations
 
+import asyncio
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, TypeVar
 
 from mvpose_core.transforms import RobotConvention
+
+S = TypeVar("S")
+D = TypeVar("D")
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,24 @@ class StationHandler(Protocol):
         dict holds result_id, trigger_id, part_id, recipe, result, reason_code, reason,
         message, processing_ms, at, offset (recipe convention, or None), sigma_mm, sigma_deg."""
         ...
+
+
+def relay(src: asyncio.Future[S], dst: asyncio.Future[D],
+          convert: Callable[[S], D | None]) -> None:
+    """When ``src`` ends, end ``dst`` the same way (its result through ``convert``; a result
+    converted to None leaves ``dst`` to someone else), unless ``dst`` has ended already."""
+
+    def done(f: asyncio.Future[S]) -> None:
+        if dst.done():
+            return
+        if f.cancelled():
+            dst.cancel()
+        elif (err := f.exception()) is not None:
+            dst.set_exception(err)
+        elif (value := convert(f.result())) is not None:
+            dst.set_result(value)
+
+    src.add_done_callback(done)
 
 
 class Link(ABC):

@@ -17,7 +17,7 @@ from drivers.plc.seam import PlcConfig, TriggerOutcome, TriggerRequest
 from drivers.plc.server import PlcServer
 from mvpose_core.linkconfig import ModbusLinkConfig
 
-from .base import Link, LinkOutcome, LinkRequest, StationHandler
+from .base import Link, LinkOutcome, LinkRequest, StationHandler, relay
 
 
 def plc_config(config: ModbusLinkConfig, initial_recipe: int) -> PlcConfig:
@@ -106,18 +106,7 @@ class _Adapter:
         conv = self.station.convention()
         pending = asyncio.ensure_future(self.station.measure(self._request(request)))
         done: asyncio.Future[TriggerOutcome] = asyncio.get_running_loop().create_future()
-
-        def convert(fut: asyncio.Future[LinkOutcome]) -> None:
-            if done.done():
-                return
-            if fut.cancelled():
-                done.cancel()
-            elif (err := fut.exception()) is not None:
-                done.set_exception(err)
-            else:
-                done.set_result(self._outcome(fut.result(), conv))
-
-        pending.add_done_callback(convert)
+        relay(pending, done, lambda out: self._outcome(out, conv))
         done.add_done_callback(lambda f: pending.cancel() if f.cancelled() else None)
         return done
 

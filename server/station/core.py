@@ -35,7 +35,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.cameras import CaptureGroup, make_camera
-from drivers.links import Link, LinkOutcome, LinkRequest, open_links
+from drivers.links import Link, LinkOutcome, LinkRequest, open_links, relay
 from drivers.links.modbus import ModbusLink
 from mvpose_core.reasons import Reason, reason_name
 from mvpose_core.station import StationConfig
@@ -435,20 +435,8 @@ class Station:
     def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
         """Start one trigger on the trigger thread now (on the station loop); the future holds
         its outcome, recorded, within the deadline + answer_margin_s."""
-        answer = self.measure_answer(request)
         out: asyncio.Future[LinkOutcome] = asyncio.get_running_loop().create_future()
-
-        def done(f: asyncio.Future[Answer]) -> None:
-            if out.done():
-                return
-            if f.cancelled():
-                out.cancel()
-            elif (err := f.exception()) is not None:
-                out.set_exception(err)
-            else:
-                out.set_result(f.result().outcome)
-
-        answer.add_done_callback(done)
+        relay(self.measure_answer(request), out, lambda answer: answer.outcome)
         return out
 
     def measure_answer(self, request: LinkRequest) -> asyncio.Future[Answer]:
@@ -460,16 +448,6 @@ class Station:
         out: asyncio.Future[Answer] = loop.create_future()
         work = loop.run_in_executor(self._trigger_exec, self._run, request, t0, at, ticket)
 
-        def finished(f: asyncio.Future[Answer | None]) -> None:
-            watchdog.cancel()
-            if out.done():
-                return
-            if f.cancelled():
-                out.cancel()
-            elif (err := f.exception()) is not None:
-                out.set_exception(err)
-            elif (answer := f.result()) is not None:  # None: the watchdog has answered
-                out.set_result(answer)
 
         def expire() -> None:
             with ticket.lock:
@@ -483,20 +461,12 @@ class Station:
             rec = loop.run_in_executor(self._record_exec, self._record_failure, request,
                                        int(Reason.TIMEOUT), text, (time.monotonic() - t0) * 1e3,
                                        at)
-
-            def recorded(f: asyncio.Future[Answer]) -> None:
-                if out.done():
-                    return
-                if (err := f.exception()) is not None:
-                    out.set_exception(err)
-                else:
-                    out.set_result(f.result())
-
-            rec.add_done_callback(recorded)
+            relay(rec, out, lambda answer: answer)
 
         limit_s = self.station.deadline_ms / 1000.0 + self.options.answer_margin_s
         watchdog = loop.call_later(limit_s, expire)
-        work.add_done_callback(finished)
+        work.add_done_callback(lambda _: watchdog.cancel())
+        relay(work, out, lambda answer: answer)  # None: the watchdog has answered
         return out
 
     async def record_failure(self, request: LinkRequest, code: int, message: str,
