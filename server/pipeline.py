@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.cameras import CaptureGroup, DriverError, Frame
+from drivers.errors import FrameFormatError
 from mvpose_core.detect import (
     DetectOptions,
     MarkDetection,
@@ -46,6 +47,7 @@ from mvpose_core.detect import (
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
 from mvpose_core.reasons import Reason
+from mvpose_core.robust import observations_of
 from mvpose_core.scene import ViewCamera, repose, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
 from mvpose_core.synth import synthetic_observations
@@ -101,10 +103,8 @@ class ViewCapture:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def observations(self) -> list[Observation]:
-        return [
-            Observation(view=self.view, camera_id=cid, mark_id=d.mark_id, uv=d.uv)
-            for cid, dets in self.detections.items() for d in dets if d.found and d.uv is not None
-        ]
+        """The found marks, each with its next candidates (the robust rule's alternates)."""
+        return observations_of(self.view, self.detections)
 
 
 @dataclass(frozen=True)
@@ -225,6 +225,8 @@ class Pipeline:
                     jobs[cid] = self._procs.submit(vc, image, recipe, prior, self.options.detect)
                 else:
                     batch.append((cid, image, vc))
+            elif isinstance(res, FrameFormatError):  # a frame of the wrong format: never
+                self._detect_failed(vcap, recipe, cid, res)  # cropped, DETECTION_FAILED
             else:
                 failed = res if isinstance(res, DriverError) else DriverError(
                     f"camera {cid!r}: no result")

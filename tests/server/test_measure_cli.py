@@ -126,3 +126,20 @@ def test_bad_input_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     (tmp_path / "empty").mkdir()
     assert main(["measure", "--station", station, "--images", str(tmp_path / "empty")]) == 2
     assert "no trigger folders" in capsys.readouterr().err
+
+
+def test_a_frame_of_the_wrong_size_is_refused_naming_camera_and_formats(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    images = tmp_path / "st1"
+    render_triggers("station1", images, 1, seed=5)
+    path = images / "part001" / "top_right.png"
+    frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert cv2.imwrite(str(path), cv2.resize(frame, (2560, 2560)))  # rescaled: never cropped
+    station = STATIONS / "station1.yaml"
+    assert main(["measure", "--station", str(station), "--images", str(images), "--quiet"]) == 0
+    capsys.readouterr()
+    row = read_rows(images / "measured" / "measurements.csv")["part001"]
+    assert int(row["reason_code"]) == Reason.DETECTION_FAILED
+    assert "top_right" in row["message"] and "2560x2560" in row["message"]
+    assert "2048x2048" in row["message"] and row["X"] == ""
