@@ -1,0 +1,381 @@
+"""Observers during a trigger storm: an open Live page, a subscribed OPC UA client.
+
+Issue 17: "an open Live page during a trigger storm does not move the station's p99"; issue 18:
+"an OPC UA client subscribed during a trigger storm does not move the Modbus path's p99 by more
+than 10 %". What runs, each in a process of its own: `mvpose serve` on station1 (deadline 1 s,
+as in bench_station, so a slow trigger on a loaded host stays a sample, not a NOK with archived
+frames; frames of OK results archived at the default 1 in 10, so the Live page has new images to
+load) with its OPC UA link enabled (security "None", anonymous readers: a bench on loopback, no
+certificates); the PLC twin (bench/twin_process.py, one Modbus/TCP connection, triggers back to
+back, status read every 1 ms, trigger written -> RESULT_VALID read measured there).
+
+The observers, in the bench process and Debian's Chromium:
+  live   the operator page's Live view (/, logged in with the token) open in headless Chromium
+         (Playwright), its server-sent events connected; each pushed result counted in the page;
+  opcua  an asyncua Client (anonymous, security None) subscribed to the MvposeResultReadyEvent
+         of the VisionSystem (publishing interval 50 ms); each event counted. It does not call
+         load_data_type_definitions: asyncua 1.x fails on some of the Machine Vision structures
+         (ResultDataType, RecipeTransferOptions: "Unknown datatype for field") and only logs it.
+Between blocks an observer is closed (page closed / client disconnected): the baseline has no
+observer at all. Conditions come in alternating blocks (base, live, opcua, opcua, live, base, ...)
+within one server, so a host that gets busier or quieter counts the same for every condition.
+The observers run on the same host as the server (2 shared cores here): their own CPU counts
+against the station, which a screen or a SCADA client on another machine would not.
+
+Printed per run and condition: p50 / p99 of the roundtrip, the ratio observer / baseline of p99
+(issue 18's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it). A missed
+target is printed as "target missed"; the exit status is non-zero only when something failed.
+
+Environment: MVPOSE_BENCH_OBS_RUNS (fresh servers, default 2), MVPOSE_BENCH_OBS_ROUNDS (rounds of
+base/live/opcua/opcua/live/base per run, default 3: 6 blocks per condition),
+MVPOSE_BENCH_OBS_BLOCK (triggers per block, default 50).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import traceback
+import urllib.request
+from collections.abc import Coroutine
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from server.station.client import StationClient, StationDownError
+
+ROOT = Path(__file__).resolve().parents[1]
+TOKEN = "mvp_bench-observers-token-00000000000000000000"
+RUNS = int(os.environ.get("MVPOSE_BENCH_OBS_RUNS", "2"))
+ROUNDS = int(os.environ.get("MVPOSE_BENCH_OBS_ROUNDS", "3"))
+BLOCK = int(os.environ.get("MVPOSE_BENCH_OBS_BLOCK", "50"))
+CONDITIONS = ("base", "live", "opcua")
+ORDER = ("base", "live", "opcua", "opcua", "live", "base")
+TARGET_RATIO = 1.10
+TWIN_PERIOD_MS = 0.0  # back to back
+TWIN_POLL_MS = 1.0
+
+
+# --------------------------------------------------------------------------- the server
+class Server:
+    """`mvpose serve` (supervisor, station, API) on a temporary data dir, ports found at start."""
+
+    def __init__(self, tmp: Path) -> None:
+        data = yaml.safe_load((ROOT / "deploy" / "stations" / "station1.yaml").read_text())
+        data["deadline_ms"] = 1000.0
+        data.setdefault("links", {})["opcua"] = {
+            "port": 0, "security": ["None"], "allow_anonymous": True}
+        station = tmp / "station1.yaml"
+        station.write_text(yaml.safe_dump(data, sort_keys=False))
+        self.data_dir = tmp / "var"
+        self.data_dir.mkdir()
+        self.log = tmp / "serve.log"
+        env = {**os.environ, "MVPOSE_BOOTSTRAP_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+        with self.log.open("wb") as out:
+            self.proc = subprocess.Popen(  # noqa: S603 - our own interpreter and module
+                [sys.executable, "-m", "server.cli", "serve", "--station", str(station),
+                 "--data-dir", str(self.data_dir), "--host", "127.0.0.1", "--port", "0",
+                 "--plc-host", "127.0.0.1", "--plc-port", "0", "--log-level", "warning"],
+                cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
+        self.client = StationClient(self.data_dir / "station.sock", timeout_s=2.0)
+        t0 = time.monotonic()
+        status = self._wait(lambda s: s["links"].get("opcua", {}).get("running"), 180.0)
+        self.plc_port = int(status["links"]["modbus"]["port"])
+        self.opcua_port = int(status["links"]["opcua"]["port"])
+        self.base_url = self._wait_api(60.0)
+        self.ready_s = time.monotonic() - t0
+
+    def _tail(self) -> str:
+        return self.log.read_text(errors="replace")[-3000:]
+
+    def _wait(self, cond: Any, timeout_s: float) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"mvpose serve exited with {self.proc.returncode}: "
+                                   f"{self._tail()}")
+            with contextlib.suppress(StationDownError):
+                status = self.client.status()
+                if cond(status):
+                    return status
+            time.sleep(0.2)
+        raise TimeoutError(f"mvpose serve: station (with its OPC UA link) not ready within "
+                           f"{timeout_s:.0f} s: {self._tail()}")
+
+    def _wait_api(self, timeout_s: float) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                port = json.loads((self.data_dir / "api.json").read_text())["port"]
+                url = f"http://127.0.0.1:{port}"
+                with urllib.request.urlopen(url + "/api/v1/health/live", timeout=1.0):
+                    return url
+            except (OSError, ValueError, KeyError):
+                time.sleep(0.2)
+        raise TimeoutError(f"mvpose serve: API not ready within {timeout_s:.0f} s: {self._tail()}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class Twin:
+    """bench/twin_process.py: blocks of back-to-back handshakes on one Modbus connection."""
+
+    def __init__(self, port: int, log: Path) -> None:
+        self.log = log
+        with log.open("wb") as err:
+            self.proc = subprocess.Popen(  # noqa: S603
+                [sys.executable, "-m", "bench.twin_process", str(port), str(TWIN_PERIOD_MS),
+                 str(TWIN_POLL_MS)],
+                cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True)
+        self._line()  # "ready"
+
+    def _line(self) -> str:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"PLC twin process failed: {self.log.read_text()[-2000:]}")
+        return line
+
+    def block(self, first_id: int, n: int) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(f"{first_id} {n}\n")
+        self.proc.stdin.flush()
+        return json.loads(self._line())
+
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+# --------------------------------------------------------------------------- the observers
+class LivePage:
+    """The Live view in headless Chromium; opened and closed between blocks."""
+
+    #: counts the result fragments the page swaps in (one per pushed "result" event)
+    COUNT_JS = """() => {
+        window.__results = 0;
+        new MutationObserver((changes) => {
+            for (const c of changes) {
+                for (const n of c.addedNodes) { if (n.id === 'result') window.__results += 1; }
+            }
+        }).observe(document.getElementById('live'), {childList: true, subtree: true});
+    }"""
+
+    def __init__(self, base_url: str) -> None:
+        from playwright.sync_api import sync_playwright
+
+        from server.web.screenshots import VIEWPORT, launch, login
+
+        self.base = base_url
+        self._pw = sync_playwright().start()
+        self.browser = launch(self._pw)
+        self.context = self.browser.new_context(viewport=VIEWPORT)
+        page = self.context.new_page()
+        login(page, base_url, TOKEN)  # the session cookie stays in the context
+        page.close()
+        self.page: Any = None
+        self.errors: list[str] = []
+
+    def open(self) -> None:
+        self.page = self.context.new_page()
+        self.page.on("pageerror", lambda err: self.errors.append(str(err)))
+        self.page.goto(self.base + "/")
+        self.page.wait_for_function(
+            "document.getElementById('live').dataset.connected === '1'", timeout=30000)
+        self.page.evaluate(self.COUNT_JS)
+
+    def close(self) -> int:
+        """Close the page; the results it showed while open."""
+        n = int(self.page.evaluate("window.__results"))
+        self.page.close()
+        self.page = None
+        return n
+
+    def shutdown(self) -> None:
+        with contextlib.suppress(Exception):
+            self.browser.close()
+        self._pw.stop()
+
+
+class OpcUaObserver:
+    """An asyncua Client on a loop of its own thread, subscribed to the result events."""
+
+    def __init__(self, port: int) -> None:
+        logging.getLogger("asyncua").setLevel(logging.ERROR)  # "revised values differ" etc.
+        self.url = f"opc.tcp://127.0.0.1:{port}/mvpose"
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="opcua-observer",
+                                       daemon=True)
+        self.thread.start()
+        self.client: Any = None
+        self.events = 0
+
+    def _run(self, coro: Coroutine[Any, Any, Any]) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(60)
+
+    def event_notification(self, event: Any) -> None:
+        self.events += 1
+
+    async def _open(self) -> None:
+        from asyncua import Client
+
+        from drivers.links.opcua import MV_URI, MVPOSE_URI
+
+        client = Client(self.url, timeout=15)
+        await client.connect()
+        self.client = client
+        mv = await client.get_namespace_index(MV_URI)
+        own = await client.get_namespace_index(MVPOSE_URI)
+        vs = await client.nodes.objects.get_child(f"{mv}:VisionSystem")
+        etype = await client.nodes.base_event_type.get_child(
+            [f"{mv}:ResultReadyEventType", f"{own}:MvposeResultReadyEventType"])
+        sub = await client.create_subscription(50, self)
+        await sub.subscribe_events(vs, etype)
+
+    async def _close(self) -> None:
+        client, self.client = self.client, None
+        if client is not None:
+            await client.disconnect()
+
+    def open(self) -> None:
+        self.events = 0
+        self._run(self._open())
+
+    def close(self) -> int:
+        self._run(self._close())
+        return self.events
+
+    def shutdown(self) -> None:
+        with contextlib.suppress(Exception):
+            self._run(self._close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+# --------------------------------------------------------------------------- one run
+def _pct(a: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(a, dtype=float), q)) if a else float("nan")
+
+
+def one_run(k: int, tmp: Path) -> dict[str, Any]:
+    server = Server(tmp)
+    twin = live = opcua = None
+    rt: dict[str, list[float]] = {c: [] for c in CONDITIONS}
+    seen = {"live": 0, "opcua": 0}
+    nok = 0
+    try:
+        twin = Twin(server.plc_port, tmp / "twin.log")
+        live = LivePage(server.base_url)
+        opcua = OpcUaObserver(server.opcua_port)
+        observers: dict[str, Any] = {"live": live, "opcua": opcua}
+        twin.block(1, 30)  # warm-up, not counted
+        next_id = 100
+        for _ in range(ROUNDS):
+            for cond in ORDER:
+                obs = observers.get(cond)
+                if obs is not None:
+                    obs.open()
+                time.sleep(0.5)  # the observer's start (page load, subscription) settles
+                res = twin.block(next_id, BLOCK)
+                next_id += BLOCK
+                if obs is not None:
+                    time.sleep(0.3)  # the last results reach the observer
+                    seen[cond] += obs.close()
+                rt[cond] += res["roundtrip_ms"]
+                nok += int(res["nok"])
+        if live.errors:
+            raise RuntimeError(f"the Live page raised: {live.errors[:3]}")
+    finally:
+        for obs in (live, opcua):
+            if obs is not None:
+                obs.shutdown()
+        if twin is not None:
+            twin.close()
+        server.stop()
+    return {"run": k, "rt": rt, "seen": seen, "nok": nok, "ready_s": server.ready_s}
+
+
+def report(runs: list[dict[str, Any]]) -> None:
+    n_blocks = ROUNDS * ORDER.count("base")
+    print(f"\n  trigger -> RESULT_VALID seen by the PLC twin (ms), triggers back to back, "
+          f"{n_blocks} blocks of {BLOCK} per condition and run")
+    print(f"    run   {'base p50':>8} {'p99':>6}   {'live p50':>8} {'p99':>6}   "
+          f"{'opcua p50':>9} {'p99':>6}   {'live/base p99':>13}   {'opcua/base p99':>14}   "
+          f"pushed to page / events")
+    ratios: dict[str, list[float]] = {"live": [], "opcua": []}
+    for r in runs:
+        rt = r["rt"]
+        base99 = _pct(rt["base"], 99)
+        cells = []
+        for c in ("live", "opcua"):
+            ratios[c].append(_pct(rt[c], 99) / base99)
+            cells.append(ratios[c][-1])
+        print(f"    {r['run']:3d}   {_pct(rt['base'], 50):8.1f} {base99:6.1f}   "
+              f"{_pct(rt['live'], 50):8.1f} {_pct(rt['live'], 99):6.1f}   "
+              f"{_pct(rt['opcua'], 50):9.1f} {_pct(rt['opcua'], 99):6.1f}   "
+              f"{cells[0]:13.2f}   {cells[1]:14.2f}   "
+              f"{r['seen']['live']} / {r['seen']['opcua']} of {len(rt['live'])} / "
+              f"{len(rt['opcua'])} triggers")
+    pooled = {c: [x for r in runs for x in r["rt"][c]] for c in CONDITIONS}
+    print(f"    all   {_pct(pooled['base'], 50):8.1f} {_pct(pooled['base'], 99):6.1f}   "
+          f"{_pct(pooled['live'], 50):8.1f} {_pct(pooled['live'], 99):6.1f}   "
+          f"{_pct(pooled['opcua'], 50):9.1f} {_pct(pooled['opcua'], 99):6.1f}   "
+          f"{_pct(pooled['live'], 99) / _pct(pooled['base'], 99):13.2f}   "
+          f"{_pct(pooled['opcua'], 99) / _pct(pooled['base'], 99):14.2f}   (pooled)")
+    noks = sum(r["nok"] for r in runs)
+    print(f"    NOK answers: {noks}; server ready (OPC UA listening) after "
+          + ", ".join(f"{r['ready_s']:.1f}" for r in runs) + " s")
+    for c, label in (("live", "issue 17: an open Live page"),
+                     ("opcua", "issue 18: a subscribed OPC UA client")):
+        rs = ratios[c]
+        med = float(np.median(rs))
+        verdict = "OK" if med <= TARGET_RATIO else "target missed"
+        print(f"  {label}: p99 observer / baseline, median of {len(rs)} runs {med:.2f} "
+              f"(runs {min(rs):.2f}-{max(rs):.2f}), target <= {TARGET_RATIO:.2f} ... {verdict}")
+
+
+def main() -> int:
+    if not Path("/usr/bin/chromium").exists():
+        print("bench_observers: /usr/bin/chromium is missing (Debian's chromium; `make test` "
+              "installs it)")
+        return 1
+    runs = []
+    try:
+        for k in range(1, RUNS + 1):
+            with tempfile.TemporaryDirectory(prefix="mvpose-bench-observers-") as t:
+                t0 = time.monotonic()
+                runs.append(one_run(k, Path(t)))
+                print(f"  run {k}: {time.monotonic() - t0:.0f} s", flush=True)
+    except Exception:  # noqa: BLE001 - one line of context, then the failure itself
+        traceback.print_exc()
+        print("bench_observers: failed (above); no numbers")
+        return 1
+    report(runs)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
