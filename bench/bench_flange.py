@@ -5,7 +5,9 @@ station's own pipeline in this process, the part at its reference pose, frames p
 view. Taught: the trigger sends no pose, the station uses the view's taught flange pose. Actual:
 the trigger sends the pose the robot reports (ROBOT_POSE_VALID), here the taught pose in the
 recipe's robot convention with 0.02 mm / 0.002° of jitter, as a robot's repeatability gives,
-so every trigger brings a new pose. The two alternate part by part; the target is the same time
+so every trigger brings a new pose. A third arm runs the actual poses as the code did before
+re-posing (cameras built anew per view, every window prediction computed anew), patched in for
+this comparison only. The three alternate part by part; the target is the same time as taught
 (ratio ≤ 1.1).
 """
 
@@ -25,6 +27,8 @@ def main() -> int:
     from pathlib import Path
 
     from drivers.cameras import CaptureGroup, SimScene, make_camera
+    from mvpose_core.detect import geometry
+    from mvpose_core.scene import view_cameras
     from mvpose_core.station import load_station
     from mvpose_core.transforms import from_robot, to_robot
     from server.pipeline import Pipeline, PipelineOptions
@@ -47,42 +51,65 @@ def main() -> int:
     conv = rc.robot_convention
     rng = np.random.default_rng(1)
 
-    def part(actual: bool) -> tuple[float, dict[str, float], int]:
+    def reported(v: int) -> np.ndarray:
+        """What the robot reports at view ``v``: its pose, in its convention, a little off."""
+        pose = np.array(to_robot(taught[v], conv), dtype=float)
+        pose[:3] += rng.normal(0.0, 0.02, 3)
+        pose[3:] += rng.normal(0.0, 0.002, 3)
+        return from_robot(tuple(pose), conv)
+
+    def part(mode: str) -> tuple[float, dict[str, float], int]:
+        flanges = {v: None if mode == "taught" else reported(v) for v in views}
         t0 = time.monotonic()
         caps = []
         for v in views:
             scene.set_view(v)
-            flange = None
-            if actual:  # what the robot reports: its pose, in its convention, a little off
-                pose = np.array(to_robot(taught[v], conv), dtype=float)
-                pose[:3] += rng.normal(0.0, 0.02, 3)
-                pose[3:] += rng.normal(0.0, 0.002, 3)
-                flange = from_robot(tuple(pose), conv)
-            caps.append(pipeline.capture_view(v, 0, rc, flange, t0))
+            caps.append(pipeline.capture_view(v, 0, rc, flanges[v], t0))
         res = pipeline.conclude(t0=t0, recipe=recipe, views=caps)
         return (time.monotonic() - t0) * 1e3, res.timings_ms, res.code
 
+    def before(mode: str) -> tuple[float, dict[str, float], int]:
+        """The code before re-posing: new cameras built per view, every prediction anew."""
+        reposed = geometry._predict_reposed
+        geometry._predict_reposed = (  # type: ignore[assignment]
+            lambda cam, recipe, T, extra, tol, slack, reach:
+            geometry.predict_marks(cam, recipe, T, tol, slack, reach=reach))
+        built = Pipeline.view_cameras
+        Pipeline.view_cameras = lambda self, view, flange: (  # type: ignore[method-assign]
+            built(self, view, None) if flange is None else
+            {vc.camera_id: vc for vc in view_cameras(station, {view: flange}, [view])})
+        try:
+            return part(mode)
+        finally:
+            geometry._predict_reposed = reposed  # type: ignore[assignment]
+            Pipeline.view_cameras = built  # type: ignore[method-assign]
+
+    modes = {"taught": lambda: part("taught"), "actual": lambda: part("actual"),
+             "actual, before": lambda: before("actual")}
     for _ in range(5):
-        part(False)
-        part(True)
-    times: dict[bool, list[float]] = {False: [], True: []}
-    stages: dict[bool, dict[str, list[float]]] = {False: {}, True: {}}
+        for run in modes.values():
+            run()
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    stages: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     codes = set()
-    for k in range(2 * N_PARTS):
-        actual = k % 2 == 1
-        ms, timings, code = part(actual)
-        codes.add(code)
-        times[actual].append(ms)
-        for key, v in timings.items():
-            stages[actual].setdefault(key, []).append(v)
-    ref = Timing("lab part, 2 views, taught flange poses", np.array(times[False]))
-    act = Timing("lab part, 2 views, actual flange poses", np.array(times[True]))
+    for _ in range(N_PARTS):
+        for mode, run in modes.items():
+            ms, timings, code = run()
+            codes.add(code)
+            times[mode].append(ms)
+            for key, v in timings.items():
+                stages[mode].setdefault(key, []).append(v)
+    ref = Timing("lab part, 2 views, taught flange poses", np.array(times["taught"]))
+    act = Timing("lab part, 2 views, actual flange poses", np.array(times["actual"]))
+    old = Timing("the same before re-posing (new cameras, predictions)",
+                 np.array(times["actual, before"]))
     print(ref.line())
     print(act.line(ref))
-    print("  stages, median ms (taught / actual):")
-    for key in stages[False]:
-        a, b = np.median(stages[False][key]), np.median(stages[True].get(key, [np.nan]))
-        print(f"    {key:<12} {a:7.2f} / {b:7.2f}")
+    print(old.line(ref))
+    print("  stages, median ms (taught / actual / actual before re-posing):")
+    for key in stages["taught"]:
+        cols = " / ".join(f"{np.median(stages[m].get(key, [np.nan])):7.2f}" for m in modes)
+        print(f"    {key:<12} {cols}")
     print(f"  result codes: {sorted(codes)}")
     ok = check("actual-pose part median (x1.1 of taught)", act.median, 1.1 * ref.median)
     ok &= codes == {0}
