@@ -175,7 +175,8 @@ class DurableWriter:
 
     def __init__(self, journal: Journal, repo: MeasurementRepository, engine: Engine,
                  db_wait_s: float, retry_max_s: float, stall_s: float,
-                 pending: list[Link], committed: tuple[int, str] | None) -> None:
+                 pending: list[Link], committed: tuple[int, str] | None,
+                 migrated: bool = False) -> None:
         self.station = repo.station
         self.db_wait_s = db_wait_s
         self.retry_max_s = retry_max_s
@@ -188,8 +189,10 @@ class DurableWriter:
         self._queue: deque[tuple[Link, _Commit, float]] = deque(
             (link, _Commit(), time.monotonic()) for link in pending)
         self._committed = committed
-        self._migrated = committed is not None
-        self._up = committed is not None
+        # migrated at open (a fresh database has no head yet, but its schema is there): the
+        # first insert need not migrate again (it cost the first trigger its commit wait)
+        self._migrated = migrated or committed is not None
+        self._up = self._migrated
         self._last_error: str | None = None
         self._last_error_at: datetime | None = None
         self._conflict = False
@@ -216,9 +219,11 @@ class DurableWriter:
                                 sqlite_busy_timeout_s)
         try:
             repo = MeasurementRepository(engine, station, outbox)
+            migrated = False  # the schema is there and the database answered
             try:
                 migrate(engine)
                 db_head: tuple[int, str] | None = repo.head()
+                migrated = True
             except Exception as err:  # down, unreachable, frozen past the connect timeout
                 db_head, why = None, _one_line(err)
                 where = make_url(url).render_as_string(hide_password=True)
@@ -239,7 +244,7 @@ class DurableWriter:
                 journal.compact(db_head[0])
             journal.links = []  # read once for the replay; the queue holds what is pending
             writer = cls(journal, repo, engine, db_wait_s, retry_max_s, stall_s, pending,
-                         db_head)
+                         db_head, migrated=migrated)
         except BaseException:
             journal.close()
             engine.dispose()

@@ -88,6 +88,7 @@ async def test_unknown_view_and_recipe_are_refused_and_recorded(tmp_path: Path) 
         done = await lb.twin.command(Command.SELECT_RECIPE, 2)
         assert done.has(Status.COMMAND_FAILED)
         assert done.command_result == Reason.UNKNOWN_RECIPE
+        lb.runtime.wait_idle()  # the record's database id is known once it is committed
         rec = lb.runtime.services.store.measurements.get(lb.runtime.last["measurement_id"]).record
         assert (rec.trigger_id, rec.part_id, rec.reason) == (9, "VIN-9", "UNKNOWN_VIEW")
         status, row = await trigger(lb.twin, recipe, 10, T)  # the station still measures
