@@ -41,12 +41,12 @@ from mvpose_core.detect import (
     MarkDetection,
     check_image,
     detect_marks_many,
-    perspective_corrections,
     recorrect,
 )
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
 from mvpose_core.reasons import Reason
+from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.robust import observations_of
 from mvpose_core.scene import ViewCamera, repose, sighted_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
@@ -145,25 +145,39 @@ class Pipeline:
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
 
-    def warm_up(self, recipe: RecipeConfig) -> None:
-        """Run the trigger's computations once on made-up input (blank frames, the recipe's own
-        marks projected at its taught pose; nothing is stored), so that the first real trigger
-        finds its caches filled (window predictions, layouts) and every code path loaded.
-        Measured in `mvpose demo` before this existed: the first trigger after start took
-        46 ms before the store (detect 39, measure 5), the next ones 7-13 ms."""
+    def warm_up(self, recipe: RecipeConfig, passes: int = 2) -> None:
+        """Run a trigger's computations on made-up input before the station is ready (nothing
+        is captured or stored): each camera's view of the recipe's marks at the taught pose,
+        rendered without noise, detected, measured and corrected as a trigger would, ``passes``
+        times, so that the first real trigger finds every cache filled (window predictions,
+        layouts, the fine pass's ray tables, the estimator's tables) and every code path of
+        numpy, OpenCV and scipy loaded. A view that cannot be rendered falls back to blank
+        frames and the recipe's own marks projected (the measurement part still runs)."""
         prior = recipe.T_rf_from_pf0.matrix
-        cams: list[ViewCamera] = []
+        rng = np.random.default_rng(0)
+        clean = RenderOptions(noise_sigma=0.0, shot_noise_gain=0.0, supersample=4)
+        frames: list[tuple[np.ndarray, ViewCamera]] = []
         for view in sorted({s.view for s in recipe.sightings}):
-            posed = self.view_cameras(view, None)
-            frames = [(np.zeros((vc.model.height, vc.model.width), np.uint8), vc)
-                      for cid, vc in posed.items() if sighted_marks(recipe, view, cid)]
-            detect_marks_many(frames, recipe, prior, self.options.detect, map_fn=self._map)
-            cams += [vc for _, vc in frames]
-        obs = synthetic_observations(self.station, recipe, prior, np.random.default_rng(0), 0.0,
-                                     require_in_image=False)
-        meas = measure(self.station, recipe, obs, None, self.options.estimate, cameras=cams)
-        perspective_corrections([(vc, sighted_marks(recipe, vc.view, vc.camera_id))
-                                 for vc in cams], recipe, meas.T_rf_from_pf)
+            for cid, vc in self.view_cameras(view, None).items():
+                if not sighted_marks(recipe, view, cid):
+                    continue
+                try:
+                    image = render_view(vc, recipe, prior, rng, clean).image
+                except Exception:  # noqa: BLE001 - the warm-up must not stop a start
+                    image = np.zeros((vc.model.height, vc.model.width), np.uint8)
+                frames.append((image, vc))
+        cams = [vc for _, vc in frames]
+        for _ in range(passes):
+            found = detect_marks_many(frames, recipe, prior, self.options.detect,
+                                      map_fn=self._map)
+            groups = [(vc, dets) for (_, vc), dets in zip(frames, found, strict=True)]
+            obs = [o for vc, dets in groups for o in observations_of(vc.view, {vc.camera_id: dets})]
+            if len(obs) < 3:  # nothing rendered: the recipe's marks projected instead
+                obs = synthetic_observations(self.station, recipe, prior,
+                                             np.random.default_rng(0), 0.0,
+                                             require_in_image=False)
+            meas = measure(self.station, recipe, obs, None, self.options.estimate, cameras=cams)
+            recorrect(groups, recipe, meas.T_rf_from_pf)
 
     def close(self) -> None:
         if self._pool is not None:
