@@ -23,7 +23,9 @@ The observers run on the same host as the server (2 shared cores here): their ow
 against the station, which a screen or a SCADA client on another machine would not.
 
 Printed per run and condition: p50 / p99 of the roundtrip, the ratio observer / baseline of p99
-(issue 18's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it). A missed
+(issue 18's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it); over all
+runs the p50 ratio and the CPU the station and the API process spent per trigger in each
+condition (what the observer costs the server, apart from the host's noise in p99). A missed
 target is printed as "target missed"; the exit status is non-zero only when something failed.
 
 Environment: MVPOSE_BENCH_OBS_RUNS (fresh servers, default 2), MVPOSE_BENCH_OBS_ROUNDS (rounds of
@@ -93,7 +95,9 @@ class Server:
         status = self._wait(lambda s: s["links"].get("opcua", {}).get("running"), 180.0)
         self.plc_port = int(status["links"]["modbus"]["port"])
         self.opcua_port = int(status["links"]["opcua"]["port"])
+        self.station_pid = int(status["pid"])
         self.base_url = self._wait_api(60.0)
+        self.api_pid = int(json.loads((self.data_dir / "api.json").read_text())["pid"])
         self.ready_s = time.monotonic() - t0
 
     def _tail(self) -> str:
@@ -168,6 +172,38 @@ class Twin:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a running process (Linux /proc; 0 elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def _tree(root: int) -> set[int]:
+    """``root`` and every process below it (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                children.setdefault(ppid, []).append(int(d.name))
+    out, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        out.add(pid)
+        todo += children.get(pid, [])
+    return out
+
+
+def observer_cpu_s(server: Server, twin: Twin) -> float:
+    """CPU of the observers' side: this process (Playwright's client, the asyncua thread) and
+    its children apart from `mvpose serve` and the PLC twin (Playwright's driver, Chromium)."""
+    others = _tree(os.getpid()) - _tree(server.proc.pid) - {twin.proc.pid, os.getpid()}
+    return time.process_time() + sum(cpu_s(pid) for pid in others)
 
 
 # --------------------------------------------------------------------------- the observers
@@ -285,6 +321,8 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
     twin = live = opcua = None
     rt: dict[str, list[float]] = {c: [] for c in CONDITIONS}
     seen = {"live": 0, "opcua": 0}
+    # station, API process, observers' side: CPU s during the blocks
+    cpu = {c: [0.0, 0.0, 0.0] for c in CONDITIONS}
     nok = 0
     try:
         twin = Twin(server.plc_port, tmp / "twin.log")
@@ -299,7 +337,12 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                 if obs is not None:
                     obs.open()
                 time.sleep(0.5)  # the observer's start (page load, subscription) settles
+                c0 = (cpu_s(server.station_pid), cpu_s(server.api_pid),
+                      observer_cpu_s(server, twin))
                 res = twin.block(next_id, BLOCK)
+                cpu[cond][0] += cpu_s(server.station_pid) - c0[0]
+                cpu[cond][1] += cpu_s(server.api_pid) - c0[1]
+                cpu[cond][2] += observer_cpu_s(server, twin) - c0[2]
                 next_id += BLOCK
                 if obs is not None:
                     time.sleep(0.3)  # the last results reach the observer
@@ -315,7 +358,8 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
         if twin is not None:
             twin.close()
         server.stop()
-    return {"run": k, "rt": rt, "seen": seen, "nok": nok, "ready_s": server.ready_s}
+    return {"run": k, "rt": rt, "seen": seen, "nok": nok, "ready_s": server.ready_s,
+            "cpu": cpu}
 
 
 def report(runs: list[dict[str, Any]]) -> None:
@@ -345,6 +389,14 @@ def report(runs: list[dict[str, Any]]) -> None:
           f"{_pct(pooled['opcua'], 50):9.1f} {_pct(pooled['opcua'], 99):6.1f}   "
           f"{_pct(pooled['live'], 99) / _pct(pooled['base'], 99):13.2f}   "
           f"{_pct(pooled['opcua'], 99) / _pct(pooled['base'], 99):14.2f}   (pooled)")
+    print("    per trigger, all runs: p50 observer / baseline "
+          + ", ".join(f"{c} {_pct(pooled[c], 50) / _pct(pooled['base'], 50):.2f}"
+                      for c in ("live", "opcua"))
+          + "; CPU ms of the station / API process / observers' side (bench process, "
+            "Playwright, Chromium) "
+          + ", ".join(f"{c} " + " / ".join(
+              f"{1e3 * sum(r['cpu'][c][i] for r in runs) / len(pooled[c]):.1f}" for i in range(3))
+                      for c in CONDITIONS))
     noks = sum(r["nok"] for r in runs)
     print(f"    NOK answers: {noks}; server ready (OPC UA listening) after "
           + ", ".join(f"{r['ready_s']:.1f}" for r in runs) + " s")
