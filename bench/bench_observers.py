@@ -199,11 +199,18 @@ def _tree(root: int) -> set[int]:
     return out
 
 
-def observer_cpu_s(server: Server, twin: Twin) -> float:
-    """CPU of the observers' side: this process (Playwright's client, the asyncua thread) and
-    its children apart from `mvpose serve` and the PLC twin (Playwright's driver, Chromium)."""
+def observer_cpu(server: Server, twin: Twin) -> dict[int, float]:
+    """CPU s of the observers' side, per process: this one (key 0: Playwright's client, the
+    asyncua thread) and its children apart from `mvpose serve` and the PLC twin (Playwright's
+    driver, Chromium)."""
     others = _tree(os.getpid()) - _tree(server.proc.pid) - {twin.proc.pid, os.getpid()}
-    return time.process_time() + sum(cpu_s(pid) for pid in others)
+    return {0: time.process_time(), **{pid: cpu_s(pid) for pid in others}}
+
+
+def _spent(before: dict[int, float], after: dict[int, float]) -> float:
+    """CPU s between two readings; a process started in between counts from 0, one that ended
+    in between is left out (Chromium's renderer of a page closed just before the block)."""
+    return sum(t - before.get(pid, 0.0) for pid, t in after.items())
 
 
 # --------------------------------------------------------------------------- the observers
@@ -338,11 +345,11 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                     obs.open()
                 time.sleep(0.5)  # the observer's start (page load, subscription) settles
                 c0 = (cpu_s(server.station_pid), cpu_s(server.api_pid),
-                      observer_cpu_s(server, twin))
+                      observer_cpu(server, twin))
                 res = twin.block(next_id, BLOCK)
                 cpu[cond][0] += cpu_s(server.station_pid) - c0[0]
                 cpu[cond][1] += cpu_s(server.api_pid) - c0[1]
-                cpu[cond][2] += observer_cpu_s(server, twin) - c0[2]
+                cpu[cond][2] += _spent(c0[2], observer_cpu(server, twin))
                 next_id += BLOCK
                 if obs is not None:
                     time.sleep(0.3)  # the last results reach the observer
