@@ -150,3 +150,20 @@ async def test_a_frozen_database_never_delays_the_answer(
             assert stored[rid].trigger_id == k and stored[rid].reason_code == code
         assert lb.runtime.services.store.measurements.verify_chain().ok
 
+
+
+async def test_the_apis_status_calls_reach_the_station_at_most_every_quarter_second(
+    tmp_path: Path,
+) -> None:
+    from server.station.client import StationClient
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline),
+                            tmp_path / "var")
+    async with running_server(settings, runtime_options(), http_port=None):
+        client = StationClient(settings.resolved_control_socket, status_max_age_s=0.25)
+        first = await asyncio.to_thread(client.status)
+        again = await asyncio.to_thread(client.status)
+        assert again is first  # served from the last answer: the station was not asked
+        await asyncio.sleep(0.3)
+        fresh = await asyncio.to_thread(client.status)
+        assert fresh is not first and fresh["station"] == "station1"
