@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.bench_station import Twin, station_file
+from bench.bench_station import TWIN_POLL_MS, station_file
 from bench.serve_process import rss_kb, start_serve
+from bench.twin_process import TwinProcess
 
 TRIGGERS = int(os.environ.get("MVPOSE_BENCH_MEMORY_TRIGGERS", "20000"))
 STATION = os.environ.get("MVPOSE_BENCH_MEMORY_STATION", "station1_small")
@@ -38,7 +39,7 @@ def main() -> int:
         rows: list[tuple[int, int, float, float]] = []  # triggers so far, RSS KiB, p50, p99
         nok = 0
         try:
-            twin = Twin(serve.plc_port, tmp / "twin.log", period_ms=0.0)
+            twin = TwinProcess(serve.plc_port, tmp / "twin.log", 0.0, TWIN_POLL_MS)
             try:
                 rows.append((0, rss_kb(serve.station_pid), float("nan"), float("nan")))
                 done = 0

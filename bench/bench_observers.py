@@ -55,6 +55,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from bench.serve_process import cpu_s
+from bench.twin_process import TwinProcess
 from server.station.client import StationClient, StationDownError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,50 +141,6 @@ class Server:
                 self.proc.wait()
 
 
-class Twin:
-    """bench/twin_process.py: blocks of back-to-back handshakes on one Modbus connection."""
-
-    def __init__(self, port: int, log: Path) -> None:
-        self.log = log
-        with log.open("wb") as err:
-            self.proc = subprocess.Popen(  # noqa: S603
-                [sys.executable, "-m", "bench.twin_process", str(port), str(TWIN_PERIOD_MS),
-                 str(TWIN_POLL_MS)],
-                cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True)
-        self._line()  # "ready"
-
-    def _line(self) -> str:
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"PLC twin process failed: {self.log.read_text()[-2000:]}")
-        return line
-
-    def block(self, first_id: int, n: int) -> dict[str, Any]:
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(f"{first_id} {n}\n")
-        self.proc.stdin.flush()
-        return json.loads(self._line())
-
-    def close(self) -> None:
-        if self.proc.stdin is not None:
-            self.proc.stdin.close()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-
-
-def cpu_s(pid: int) -> float:
-    """User + system CPU seconds of a running process (Linux /proc; 0 elsewhere)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
 def _tree(root: int) -> set[int]:
     """``root`` and every process below it (Linux /proc)."""
     children: dict[int, list[int]] = {}
@@ -199,7 +157,7 @@ def _tree(root: int) -> set[int]:
     return out
 
 
-def observer_cpu(server: Server, twin: Twin) -> dict[int, float]:
+def observer_cpu(server: Server, twin: TwinProcess) -> dict[int, float]:
     """CPU s of the observers' side, per process: this one (key 0: Playwright's client, the
     asyncua thread) and its children apart from `mvpose serve` and the PLC twin (Playwright's
     driver, Chromium)."""
@@ -332,7 +290,7 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
     cpu = {c: [0.0, 0.0, 0.0] for c in CONDITIONS}
     nok = 0
     try:
-        twin = Twin(server.plc_port, tmp / "twin.log")
+        twin = TwinProcess(server.plc_port, tmp / "twin.log", TWIN_PERIOD_MS, TWIN_POLL_MS)
         live = LivePage(server.base_url)
         opcua = OpcUaObserver(server.opcua_port)
         observers: dict[str, Any] = {"live": live, "opcua": opcua}

@@ -41,6 +41,7 @@ import numpy as np
 import yaml
 
 from bench.serve_process import ROOT, TOKEN, Serve, cpu_s, rss_kb, start_serve
+from bench.twin_process import TwinProcess
 
 STATIONS = [s for s in os.environ.get("MVPOSE_BENCH_STATIONS", "station1").split(",") if s]
 RUNS = int(os.environ.get("MVPOSE_BENCH_RUNS", "3"))
@@ -58,47 +59,6 @@ TARGET_LOAD = 1.10
 TARGET_STAGE = 1.2
 TARGET_FIRST = 1.2
 STAGE_KEYS = ("capture", "detect", "measure", "correct", "append+record", "total")
-
-
-class Twin:
-    """The PLC twin process: blocks of handshakes on one connection."""
-
-    def __init__(self, port: int, log: Path, period_ms: float = TRIGGER_PERIOD_S * 1e3) -> None:
-        self.log = log
-        with log.open("wb") as err:
-            self.proc = subprocess.Popen(  # noqa: S603
-                [sys.executable, "-m", "bench.twin_process", str(port), str(period_ms),
-                 str(TWIN_POLL_MS)],
-                cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True)
-        self._line()  # "ready"
-
-    def _line(self) -> str:
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"PLC twin process failed: {self.log.read_text()[-2000:]}")
-        return line
-
-    def block(self, first_id: int, n: int) -> dict[str, Any]:
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(f"{first_id} {n}\n")
-        self.proc.stdin.flush()
-        return json.loads(self._line())
-
-    def send(self, first_id: int, n: int) -> None:
-        """Start a block without waiting for it (the SIGTERM-with-backlog check)."""
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(f"{first_id} {n}\n")
-        self.proc.stdin.flush()
-
-    def close(self) -> None:
-        if self.proc.stdin is not None:
-            self.proc.stdin.close()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
 
 
 class Mes:
@@ -183,7 +143,8 @@ def one_run(name: str, k: int, tmp: Path, alone: Any) -> Run:
 
 
 def _measure(name: str, serve: Serve, alone: Any) -> Run:
-    twin = Twin(serve.plc_port, serve.data_dir / "twin.log")
+    twin = TwinProcess(serve.plc_port, serve.data_dir / "twin.log",
+                       TRIGGER_PERIOD_S * 1e3, TWIN_POLL_MS)
     mes = Mes(serve.base_url)
     conds = [Condition(r, 100_000 * (i + 1)) for i, r in enumerate(RATES)]
     alone_rows: list[dict[str, float]] = []

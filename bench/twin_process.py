@@ -13,12 +13,59 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
 import sys
 import time
+from pathlib import Path
+from typing import Any
 
 from drivers.plc.registers import Status
 from drivers.plc.twin import PlcTwin
 from server.loopback import attach_twin, detach_twin
+
+ROOT = Path(__file__).resolve().parents[1]  # the child runs as `python -m bench.twin_process`
+
+
+class TwinProcess:
+    """The parent's side of this module: the twin started as a process of its own; blocks of
+    handshakes on one connection, one JSON line back per block."""
+
+    def __init__(self, port: int, log: Path, period_ms: float, poll_ms: float) -> None:
+        self.log = log
+        with log.open("wb") as err:
+            self.proc = subprocess.Popen(  # noqa: S603
+                [sys.executable, "-m", "bench.twin_process", str(port), str(period_ms),
+                 str(poll_ms)],
+                cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True)
+        self._line()  # "ready"
+
+    def _line(self) -> str:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"PLC twin process failed: {self.log.read_text()[-2000:]}")
+        return line
+
+    def block(self, first_id: int, n: int) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(f"{first_id} {n}\n")
+        self.proc.stdin.flush()
+        return json.loads(self._line())  # type: ignore[no-any-return]
+
+    def send(self, first_id: int, n: int) -> None:
+        """Start a block without waiting for it (the SIGTERM-with-backlog check)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(f"{first_id} {n}\n")
+        self.proc.stdin.flush()
+
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
 
 
 async def _block(twin: PlcTwin, first_id: int, n: int, period_s: float) -> dict:
