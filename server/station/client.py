@@ -8,13 +8,12 @@ to 503 and readiness reports as ``station: false``.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import socket
 import threading
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -118,20 +117,3 @@ class StationClient:
     def reload_recipes(self) -> None:
         with contextlib.suppress(StationDownError):
             self.call("reload_recipes", timeout_s=35.0)
-
-    async def events(self) -> AsyncIterator[dict[str, Any]]:
-        """Recorded answers as they happen (live pages); ends when the station goes away."""
-        try:
-            reader, writer = await asyncio.open_unix_connection(str(self.path))
-        except OSError as err:
-            raise StationDownError(f"the station process is not running ({err})") from None
-        try:
-            writer.write(b'{"id":1,"op":"subscribe"}\n')
-            await writer.drain()
-            await reader.readline()  # the subscription's acknowledgement
-            while line := await reader.readline():
-                yield json.loads(line)
-        finally:
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()

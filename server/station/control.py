@@ -8,8 +8,7 @@ readiness, and a stream of results for live pages. One request per line::
     → {"id": 7, "ok": true, "result": {...}}
     → {"id": 7, "ok": false, "error": {"kind": "not_found", "message": "..."}}
 
-``subscribe`` turns the connection into a stream: one ``{"event": "result", ...}`` line per
-recorded answer until the client closes it. The socket lives in the data directory (mode 0600,
+The socket lives in the data directory (mode 0600,
 so only the station's own user reaches it); a deployment with two containers shares it through
 the data volume. This module is the only one that knows the wire format.
 """
@@ -46,7 +45,6 @@ class ControlServer:
         self.station = station
         self.path = Path(path)
         self._server: asyncio.AbstractServer | None = None
-        self._streams: set[asyncio.Queue[dict[str, Any] | None]] = set()
 
     async def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -55,16 +53,8 @@ class ControlServer:
         self._server = await asyncio.start_unix_server(self._serve, path=str(self.path),
                                                        limit=MAX_LINE)
         os.chmod(self.path, 0o600)
-        loop = asyncio.get_running_loop()
-
-        def listen(event: dict[str, Any]) -> None:  # on the trigger or recorder thread
-            loop.call_soon_threadsafe(self._publish, event)
-
-        self.station.add_listener(listen)
 
     async def stop(self) -> None:
-        for q in list(self._streams):
-            q.put_nowait(None)
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
@@ -72,11 +62,6 @@ class ControlServer:
             self._server = None
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
-
-    def _publish(self, event: dict[str, Any]) -> None:
-        for q in self._streams:
-            if q.qsize() < 100:  # a slow subscriber loses events, never the station's time
-                q.put_nowait({"event": "result", **event})
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -96,9 +81,6 @@ class ControlServer:
                     await _send(writer, {"id": None, "ok": False, "error": {
                         "kind": "invalid", "message": "not a control request"}})
                     return
-                if op == "subscribe":
-                    await self._stream(rid, reader, writer)
-                    return
                 await _send(writer, await self._handle(rid, op, args))
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
@@ -106,27 +88,6 @@ class ControlServer:
             writer.close()
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
-
-    async def _stream(self, rid: Any, reader: asyncio.StreamReader,
-                      writer: asyncio.StreamWriter) -> None:
-        q: asyncio.Queue[dict[str, Any] | None] = asyncio.Queue()
-        self._streams.add(q)
-        closed = asyncio.ensure_future(reader.read())  # ends when the client goes away
-        try:
-            await _send(writer, {"id": rid, "ok": True, "result": {"subscribed": True}})
-            while True:
-                get = asyncio.ensure_future(q.get())
-                done, _ = await asyncio.wait({get, closed}, return_when=asyncio.FIRST_COMPLETED)
-                if get not in done:
-                    get.cancel()
-                    return
-                event = get.result()
-                if event is None:
-                    return
-                await _send(writer, event)
-        finally:
-            closed.cancel()
-            self._streams.discard(q)
 
     async def _handle(self, rid: Any, op: str, args: dict[str, Any]) -> dict[str, Any]:
         st = self.station

@@ -7,7 +7,6 @@ order); every view but the last answers VIEW_DONE, the last one measures from al
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 from drivers.links import LinkRequest
@@ -68,6 +67,3 @@ class ViewSequence:
         result = self.pipeline.conclude(t0=t0, recipe=recipe, views=gathered)
         return Step(recipe, True, len(gathered), result=result)
 
-    @staticmethod
-    def elapsed_ms(t0: float) -> float:
-        return (time.monotonic() - t0) * 1e3
