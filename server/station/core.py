@@ -623,6 +623,20 @@ class Station:
             log.exception("measurement %d: archiving its frames failed", measurement_id)
 
     # ------------------------------------------------------------------ control (any thread)
+    def trigger(self, part_id: str | None = None, view_index: int = 0,
+                trigger_id: int = 0, timeout_s: float = 10.0) -> Answer:
+        """A commissioning trigger (control channel): the same thread and record as any link."""
+        if self._loop is None or self.active is None:
+            raise RuntimeError("the station is not running")
+        req = LinkRequest(link="rest", trigger_id=trigger_id, view_index=view_index,
+                          robot_pose=None, part_id=part_id or "", recipe=0)
+
+        async def run() -> Answer:
+            return await self.measure_answer(req)
+
+        result: Answer = self.run_on_loop(run(), timeout=timeout_s)
+        return result
+
     def arm_teach(self, by: str) -> ActiveRecipe:
         """The next final OK result becomes the selected recipe's reference."""
         assert self.active is not None
