@@ -99,6 +99,7 @@ class ViewCapture:
     cameras: dict[str, ViewCamera]
     detections: dict[str, list[MarkDetection]] = field(default_factory=dict)
     camera_errors: dict[str, str] = field(default_factory=dict)
+    refused: set[str] = field(default_factory=set)  # cameras whose frame had the wrong format
     frames: dict[str, np.ndarray] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -266,6 +267,7 @@ class Pipeline:
     @staticmethod
     def _detect_failed(vcap: ViewCapture, recipe: RecipeConfig, cid: str, err: Exception) -> None:
         vcap.camera_errors[cid] = f"detection: {err}"
+        vcap.refused.add(cid)
         vcap.detections[cid] = [
             MarkDetection.missing(m, f"detection: {err}")
             for m in sighted_marks(recipe, vcap.view, cid)
@@ -318,8 +320,7 @@ class Pipeline:
         failed_cams = {cid for v in views for cid in v.camera_errors}
         if code in (Reason.MARKS_MISSING, Reason.TOO_FEW_MARKS) and failed_cams:
             errs = "; ".join(e for v in views for e in v.camera_errors.values())
-            detect_only = all(e.startswith("detection:") for v in views
-                              for e in v.camera_errors.values())
+            detect_only = all(set(v.camera_errors) <= v.refused for v in views)
             code = int(Reason.DETECTION_FAILED if detect_only else Reason.CAMERA_FAILED)
             message = f"{message}; {errs}"
         if code == 0 and meas is not None and not _finite_measurement(meas):
