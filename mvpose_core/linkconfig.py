@@ -37,7 +37,8 @@ class ModbusLinkConfig(_Model):
                                   description="TRIGGER high this long after the answer = error")
     measure_timeout_s: float | None = Field(
         None, gt=0, le=600,
-        description="the link's own backstop; default: the station deadline + 1 s")
+        description="the link's own backstop; default: the station deadline + 2 s, a second "
+                    "behind the station's own watchdog")
 
     @field_validator("allowlist")
     @classmethod
@@ -124,7 +125,8 @@ class OpcUaLinkConfig(_Model):
                                  description="the server's ApplicationUri (in its certificate)")
     measure_timeout_s: float | None = Field(
         None, gt=0, le=600,
-        description="the link's own backstop; default: the station deadline + 1 s")
+        description="the link's own backstop; default: the station deadline + 2 s, a second "
+                    "behind the station's own watchdog")
 
     @field_validator("security")
     @classmethod
