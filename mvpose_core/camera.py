@@ -16,6 +16,8 @@ from numpy.typing import ArrayLike, NDArray
 
 Array = NDArray[np.float64]
 
+_NO_MOTION = np.zeros(3)  # rvec and tvec of cv2.projectPoints: the points are in CF already
+_NO_MOTION.flags.writeable = False
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
 
 
@@ -31,6 +33,8 @@ class CameraModel:
     height: int
     dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     _k: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    #: K and the eight coefficients as arrays for cv2.projectPoints, read-only
+    _cv: tuple[Array, Array] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy"):
@@ -50,6 +54,10 @@ class CameraModel:
             raise ValueError(f"distortion coefficients must be finite, got {list(self.dist)}")
         k = tuple(float(x) for x in self.dist) + (0.0,) * (8 - len(self.dist))
         object.__setattr__(self, "_k", k)
+        K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        d = np.array(k)
+        K.flags.writeable = d.flags.writeable = False
+        object.__setattr__(self, "_cv", (K, d))
 
     # ------------------------------------------------------------------ OpenCV interop
     @property
@@ -85,10 +93,12 @@ class CameraModel:
         Points must be in front of the camera (z > 0); callers at the public edge check it
         (see :func:`check_in_front`). Matches ``cv2.projectPoints`` to floating-point precision.
         """
-        p = np.asarray(p_cf, dtype=float).reshape(-1, 3)
-        xy = p[:, :2] / p[:, 2:3]
-        d = self.distort_normalized(xy)
-        return np.stack([self.fx * d[:, 0] + self.cx, self.fy * d[:, 1] + self.cy], axis=1)
+        p = np.ascontiguousarray(p_cf, dtype=float).reshape(-1, 3)
+        if p.shape[0] == 0:
+            return np.empty((0, 2))
+        # One OpenCV call: the same model, a few µs instead of a few tens for numpy's steps.
+        uv, _ = cv2.projectPoints(p, _NO_MOTION, _NO_MOTION, *self._cv)
+        return np.asarray(uv, dtype=np.float64).reshape(-1, 2)
 
     def project_with_jacobian(self, p_cf: ArrayLike) -> tuple[Array, Array]:
         """Pixels ``["N", 2]`` and their Jacobian ``["N", 2, 3]`` with respect to the 3D point."""

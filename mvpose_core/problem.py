@@ -50,13 +50,11 @@ class Observation:
 
 
 @dataclass(frozen=True)
-class CameraTable:
-    """Every view camera's pose and lens as arrays, indexed by (view, camera_id)."""
+class Lenses:
+    """What a camera list fixes apart from the poses: the index of each (view, camera_id), the
+    lens of each camera as arrays, which cameras lead their rig."""
 
     index: dict[tuple[int, str], int]
-    R_cf_from_rf: Array  # [C, 3, 3]
-    t_cf_from_rf: Array  # [C, 3]
-    T_rf_from_cf: Array  # [C, 4, 4]
     f: Array  # [C, 2]
     c: Array  # [C, 2]
     k: Array  # [C, 8]
@@ -65,37 +63,78 @@ class CameraTable:
     lens: tuple[Array, Array] | None
 
     @classmethod
-    def of(cls, cameras: Sequence[ViewCamera]) -> CameraTable:
+    def of(cls, cameras: Sequence[ViewCamera]) -> Lenses:
         index = {(c.view, c.camera_id): i for i, c in enumerate(cameras)}
         if len(index) != len(cameras):
             keys = [c.key for c in cameras]
             raise PoseInputError(f"a camera is listed twice: {sorted(set(keys), key=keys.index)}")
-        T = np.asarray([c.T_rf_from_cf for c in cameras], dtype=float)
-        if T.shape != (len(cameras), 4, 4) or not np.all(np.isfinite(T)):
-            raise PoseInputError("every camera needs a finite 4x4 T_rf_from_cf")
-        R = np.transpose(T[:, :3, :3], (0, 2, 1))
         m = [c.model for c in cameras]
         lens = {(x.fx, x.fy, x.cx, x.cy, tuple(x.dist) + (0.0,) * (8 - len(x.dist))) for x in m}
         one = (m[0].K, m[0].dist_array) if len(lens) == 1 else None
-        for a in one or ():
-            a.flags.writeable = False  # shared by every problem packed from this table
-        return cls(
+        out = cls(
             index=index,
-            R_cf_from_rf=R,
-            t_cf_from_rf=-np.einsum("cij,cj->ci", R, T[:, :3, 3]),
-            T_rf_from_cf=T,
             f=np.array([(x.fx, x.fy) for x in m]),
             c=np.array([(x.cx, x.cy) for x in m]),
             k=np.array([tuple(x.dist) + (0.0,) * (8 - len(x.dist)) for x in m]),
             left=np.array([c.rig_position == 0 for c in cameras]),
             lens=one,
         )
+        # shared by every table and problem packed with these lenses
+        for a in (out.f, out.c, out.k, out.left, *(one or ())):
+            a.flags.writeable = False
+        return out
+
+
+_LENSES: IdentityCache[Lenses] = IdentityCache(16)
+
+
+def _lenses(cameras: Sequence[ViewCamera]) -> Lenses:
+    """:meth:`Lenses.of`, remembered for the same lens model objects at the same places.
+
+    A robot-mounted camera re-posed to the robot's actual flange pose
+    (:func:`mvpose_core.scene.repose`) keeps its lens model object, so its lenses are found
+    again although the camera object is new.
+    """
+    return _LENSES.get(tuple(c.model for c in cameras),
+                       tuple((c.view, c.camera_id, c.rig_position) for c in cameras),
+                       lambda: Lenses.of(cameras))
+
+
+@dataclass(frozen=True)
+class CameraTable:
+    """Every view camera's pose and lens as arrays, indexed by (view, camera_id)."""
+
+    lenses: Lenses
+    R_cf_from_rf: Array  # [C, 3, 3]
+    t_cf_from_rf: Array  # [C, 3]
+    T_rf_from_cf: Array  # [C, 4, 4]
+
+    @property
+    def index(self) -> dict[tuple[int, str], int]:
+        return self.lenses.index
+
+    @property
+    def left(self) -> NDArray[np.bool_]:
+        return self.lenses.left
+
+    @property
+    def lens(self) -> tuple[Array, Array] | None:
+        return self.lenses.lens
+
+    @classmethod
+    def of(cls, cameras: Sequence[ViewCamera], lenses: Lenses | None = None) -> CameraTable:
+        lenses = lenses if lenses is not None else Lenses.of(cameras)
+        T = np.asarray([c.T_rf_from_cf for c in cameras], dtype=float)
+        if T.shape != (len(cameras), 4, 4) or not np.all(np.isfinite(T)):
+            raise PoseInputError("every camera needs a finite 4x4 T_rf_from_cf")
+        R = np.transpose(T[:, :3, :3], (0, 2, 1))
+        return cls(lenses, R, -np.einsum("cij,cj->ci", R, T[:, :3, 3]), T)
 
     def rows(self, ci: NDArray[np.intp], p_pf: Array, uv: Array, weight: Array) -> Packed:
-        k = self.k[ci]
+        k = self.lenses.k[ci]
         return Packed(
             self.R_cf_from_rf[ci], self.t_cf_from_rf[ci], p_pf, uv, weight,
-            self.f[ci], self.c[ci], k, bool(np.any(k[:, 5:])), self.lens,
+            self.lenses.f[ci], self.lenses.c[ci], k, bool(np.any(k[:, 5:])), self.lenses.lens,
         )  # fmt: skip
 
 
@@ -124,9 +163,10 @@ def _camera_table(cameras: Sequence[ViewCamera]) -> CameraTable:
 
     A station measures with the same posed cameras trigger after trigger; gathering them into
     arrays is a fifth of an estimate's time. An entry is used only for the very same (frozen)
-    camera objects, so a new flange pose or calibration never meets a stale table.
+    camera objects, so a new flange pose or calibration never meets a stale table; cameras
+    re-posed to a new flange pose find their lenses again and gather only their poses.
     """
-    return _TABLES.get(tuple(cameras), None, lambda: CameraTable.of(cameras))
+    return _TABLES.get(tuple(cameras), None, lambda: CameraTable.of(cameras, _lenses(cameras)))
 
 
 def _marks(marks_pf: Mapping[str, np.ndarray], ids: Sequence[str]) -> Array:
@@ -153,40 +193,65 @@ def _name(key: tuple[int, str, str]) -> str:
 
 @dataclass(frozen=True)
 class _Layout:
-    """What a problem's structure fixes: which camera and mark each row has, the packed
-    camera and mark arrays, and that the marks fix a pose. The pixels are not part of it."""
+    """What a problem's structure fixes: which camera and mark each row has, the packed lens
+    and mark arrays, and that the marks fix a pose. Neither the camera poses nor the pixels
+    are part of it."""
 
-    table: CameraTable
     keys: list[tuple[int, str, str]]
     ci: NDArray[np.intp]
     mi: NDArray[np.intp]
     mark_ids: list[str]
     P: Array  # [M, 3]
-    template: Packed  # zero pixels, unit weights
-    centres_rf: Array  # [N, 3]
-    R_rf_from_cf: Array  # [N, 3, 3]
+    template: Packed  # zero pixels, unit weights (poses: those of the table it was made with)
     max_views_per_mark: int
     mark_rows: Array  # [M, N]
 
 
+@dataclass(frozen=True)
+class _Posed:
+    """A layout's rows at one camera table's poses."""
+
+    template: Packed
+    centres_rf: Array  # [N, 3]
+    R_rf_from_cf: Array  # [N, 3, 3]
+
+
 _LAYOUTS: IdentityCache[_Layout] = IdentityCache(32)
+_POSED: IdentityCache[_Posed] = IdentityCache(32)
 
 
 def _layout(
     table: CameraTable, keys: list[tuple[int, str, str]], marks_pf: Mapping[str, np.ndarray]
-) -> _Layout:
-    """The layout of ``keys``, remembered for the last few (camera table, keys, positions).
+) -> tuple[_Layout, _Posed]:
+    """The layout of ``keys`` and its rows at ``table``'s poses, remembered for the last few.
 
     A station sees the same marks in the same cameras trigger after trigger; checking and
-    packing that structure is half of :func:`build_problem`. An entry is used only for the very
-    same camera table object, the same observation keys and the same mark positions.
+    packing that structure is half of :func:`build_problem`. A layout is used only for the
+    very same lenses object, the same observation keys and the same mark positions; its rows at
+    the poses of a camera table only for that very table (a robot's new flange pose is a new
+    table, which gathers its camera poses row by row and nothing else).
     """
     try:
         P = _marks(marks_pf, sorted({m for _, _, m in keys}))
     except PoseInputError:  # built (and refused, in the order of its checks) uncached
-        return _new_layout(table, keys, marks_pf)
-    return _LAYOUTS.get((table,), (tuple(keys), P.tobytes()),
-                        lambda: _new_layout(table, keys, marks_pf))
+        layout = _new_layout(table, keys, marks_pf)
+        return layout, _posed(table, layout)
+    layout = _LAYOUTS.get((table.lenses,), (tuple(keys), P.tobytes()),
+                          lambda: _new_layout(table, keys, marks_pf))
+    return layout, _POSED.get((table, layout), None, lambda: _posed(table, layout))
+
+
+def _posed(table: CameraTable, layout: _Layout) -> _Posed:
+    ci = layout.ci
+    template = layout.template.with_poses(table.R_cf_from_rf[ci], table.t_cf_from_rf[ci])
+    T = table.T_rf_from_cf[ci]
+    posed = _Posed(template, T[:, :3, 3].copy(), T[:, :3, :3].copy())
+    # Every problem at these poses shares these arrays: an in-place change would corrupt the
+    # next trigger's, so it raises instead.
+    for a in (template.R_cf_from_rf, template.t_cf_from_rf, posed.centres_rf,
+              posed.R_rf_from_cf):
+        a.flags.writeable = False
+    return posed
 
 
 def _new_layout(
@@ -219,14 +284,11 @@ def _new_layout(
     mi = np.array([pos[m] for _, _, m in keys], dtype=np.intp)
     ci = np.array(cams, dtype=np.intp)
     template = table.rows(ci, P[mi], np.zeros((n, 2)), np.ones(n))
-    T = table.T_rf_from_cf[ci]
-    layout = _Layout(table, list(keys), ci, mi, mark_ids, P, template, T[:, :3, 3].copy(),
-                     T[:, :3, :3].copy(), int(np.bincount(mi).max()),
+    layout = _Layout(list(keys), ci, mi, mark_ids, P, template, int(np.bincount(mi).max()),
                      group_matrix(mi, len(mark_ids)))
     # Every problem with this layout shares these arrays: an in-place change would corrupt the
     # next trigger's, so it raises instead.
-    for a in (*vars(template).values(), ci, mi, P, layout.centres_rf, layout.R_rf_from_cf,
-              layout.mark_rows):
+    for a in (*vars(template).values(), ci, mi, P, layout.mark_rows):
         if isinstance(a, np.ndarray):
             a.flags.writeable = False
     return layout
@@ -244,7 +306,7 @@ def build_problem(
     table = _camera_table(cameras)
     n = len(observations)
     keys = [(o.view, o.camera_id, o.mark_id) for o in observations]
-    layout = _layout(table, keys, marks_pf)
+    layout, posed = _layout(table, keys, marks_pf)
     try:
         uv = np.array([o.uv for o in observations], dtype=float).reshape(n, 2)
         ok = bool(np.isfinite(uv).all())
@@ -265,9 +327,9 @@ def build_problem(
             if not (np.isfinite(o.sigma_px) and o.sigma_px > 0):
                 raise PoseInputError(f"{_name(keys[i])}: sigma_px must be > 0, got {o.sigma_px}")
             weight[i] = 1.0 / o.sigma_px
-    return Problem(layout.template.with_measurements(uv, weight), layout.ci, layout.mi,
-                   layout.mark_ids, layout.P, table, layout.keys, layout.centres_rf,
-                   layout.R_rf_from_cf, layout.max_views_per_mark, layout.mark_rows)
+    return Problem(posed.template.with_measurements(uv, weight), layout.ci, layout.mi,
+                   layout.mark_ids, layout.P, table, layout.keys, posed.centres_rf,
+                   posed.R_rf_from_cf, layout.max_views_per_mark, layout.mark_rows)
 
 
 def pack_layout(

@@ -65,6 +65,12 @@ class Packed:
         out.__dict__.update(self.__dict__, uv=uv, weight=weight)
         return out
 
+    def with_poses(self, R_cf_from_rf: Array, t_cf_from_rf: Array) -> Packed:
+        """The same rows (lenses, marks, pixels) seen from other camera poses."""
+        out = object.__new__(Packed)
+        out.__dict__.update(self.__dict__, R_cf_from_rf=R_cf_from_rf, t_cf_from_rf=t_cf_from_rf)
+        return out
+
     def subset(self, rows: NDArray[np.intp] | NDArray[np.bool_]) -> Packed:
         return Packed(
             self.R_cf_from_rf[rows],

@@ -32,6 +32,12 @@ def test_project_matches_opencv(dist: tuple[float, ...]) -> None:
     p = points(np.random.default_rng(0))
     ref, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), cam.K, np.asarray(dist))
     assert np.max(np.abs(cam.project(p) - ref.reshape(-1, 2))) < 1e-8
+    # the model's own numpy form (the Jacobian's pixels, distort_normalized) is the same model
+    uv, _ = cam.project_with_jacobian(p)
+    assert np.max(np.abs(uv - ref.reshape(-1, 2))) < 1e-8
+    d = cam.distort_normalized(p[:, :2] / p[:, 2:3])
+    assert np.max(np.abs(d * [cam.fx, cam.fy] + [cam.cx, cam.cy] - ref.reshape(-1, 2))) < 1e-8
+    assert cam.project(np.empty((0, 3))).shape == (0, 2)
 
 
 @pytest.mark.parametrize("dist", DISTORTIONS)
