@@ -119,3 +119,29 @@ def test_detection_with_reposed_cameras_equals_fresh_cameras(lab):
                 found += 1
                 np.testing.assert_allclose(g.uv, w.uv, atol=1e-3)
     assert found == 4
+
+
+def test_a_reposed_problem_equals_one_packed_from_scratch(lab):
+    """The packed problem of re-posed cameras reuses the taught lenses and layout and has the
+    new poses row by row: the same arrays as a problem built from freshly made cameras."""
+    from mvpose_core.problem import Observation, build_problem
+
+    station, recipe = lab
+    taught = view_cameras(station)
+    marks = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
+    obs = [Observation(c.view, c.camera_id, m, np.array([1000.0 + i, 900.0 - i]))
+           for i, (c, m) in enumerate((c, m) for c in taught for m in sorted(marks)[:3])]
+    first = build_problem(obs, taught, marks, 0.1)
+    actual = {1: _nudged(station, 1, 0.5, 0.05)}
+    moved = build_problem(obs, repose(taught, station, actual), marks, 0.1)
+    fresh = build_problem(obs, view_cameras(station, flange_poses=actual), marks, 0.1)
+    assert moved.table.lenses is first.table.lenses  # found again by the lens objects
+    for name in ("R_cf_from_rf", "t_cf_from_rf", "p_pf", "uv", "weight", "f", "c", "k"):
+        np.testing.assert_allclose(getattr(moved.pk, name), getattr(fresh.pk, name), atol=1e-9,
+                                   err_msg=name)
+    np.testing.assert_allclose(moved.centres_rf, fresh.centres_rf, atol=1e-9)
+    np.testing.assert_allclose(moved.R_rf_from_cf, fresh.R_rf_from_cf, atol=1e-12)
+    view1 = [k for k, (v, _, _) in enumerate(moved.keys) if v == 1]
+    assert np.abs(moved.centres_rf[view1] - first.centres_rf[view1]).max() > 0.1
+    with pytest.raises(ValueError):  # shared with the next trigger's problem: read-only
+        moved.pk.R_cf_from_rf[0, 0, 0] = 1.0
