@@ -22,6 +22,7 @@ import asyncio
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any, ClassVar, Protocol, TypeVar
 
 from mvpose_core.transforms import RobotConvention
@@ -54,6 +55,67 @@ class LinkOutcome:
     processing_ms: float = 0.0
     views_done: int = 1
     final: bool = True  # False: an intermediate view of a robot-mounted rig is done
+
+
+@dataclass(frozen=True)
+class StoredResult:
+    """One stored record as a link reports it when asked (OPC UA GetResultById ...)."""
+
+    result_id: int  # the record's seq
+    trigger_id: int
+    part_id: str
+    recipe: str
+    recipe_version: int
+    ok: bool
+    reason_code: int
+    message: str
+    triggered_at: datetime
+    total_ms: float | None  # the trigger's processing time, when the record has it
+    calibration_id: str | None
+    calibration_sha256: str | None
+    convention: str | None  # the offset's robot convention (None unless OK)
+    offset: tuple[float, ...] | None  # recipe convention, full precision; None unless OK
+    sigma_mm: float
+    sigma_deg: float
+
+
+@dataclass(frozen=True)
+class ResultQuery:
+    """Which stored records a link asks for: every filter optional (None), oldest first from
+    ``start`` (0-based), at most ``limit``."""
+
+    part_id: str | None = None
+    recipe: str | None = None  # recipe name
+    trigger_id: int | None = None
+    ok: bool | None = None
+    reason_code: int | None = None
+    start: int = 0
+    limit: int = 100
+
+
+@dataclass(frozen=True)
+class RecipeInfo:
+    """One recipe of the station as it is now."""
+
+    number: int  # what a controller selects it by
+    name: str
+    version: int  # the active stored version
+    sha256: str
+    selected: bool
+
+
+@dataclass(frozen=True)
+class CalibrationInfo:
+    """One stored version of the station's calibration (the one named after the station)."""
+
+    version: int
+    calibration_id: str  # the calibration file's own id
+    sha256: str  # the calibration file's content hash
+    created_at: datetime
+    created_by: str
+    comment: str
+    active: bool  # the store's active version (the station measures with it from the next trigger)
+    in_use: bool  # the version the station measures with now
 
 
 class StationHandler(Protocol):
@@ -89,6 +151,33 @@ class StationHandler(Protocol):
 
     def selected_recipe(self) -> int:
         """The selected recipe's number (0: none)."""
+        ...
+
+    async def unselect_recipe(self) -> int:
+        """0 when no recipe is selected any more (a trigger naming no recipe is then refused
+        with UNKNOWN_RECIPE until one is selected), else a Reason code."""
+        ...
+
+    async def recipes(self) -> list[RecipeInfo]:
+        """Every recipe of the station, by number."""
+        ...
+
+    async def get_result(self, result_id: int) -> StoredResult | None:
+        """The stored record with seq ``result_id``, None if there is none. Queries run off the
+        station's loop and trigger thread (they never delay a trigger)."""
+        ...
+
+    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+        """The page of stored records ``query`` asks for, and how many match in all."""
+        ...
+
+    async def calibrations(self) -> list[CalibrationInfo]:
+        """Every stored version of the station's calibration, oldest first."""
+        ...
+
+    async def activate_calibration(self, version: int, by: str) -> tuple[int, str]:
+        """Activate stored calibration ``version`` (checked as an upload is), measured with
+        from the next trigger: (0, "") or (a Reason code, what is wrong)."""
         ...
 
     def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:

@@ -43,6 +43,7 @@ from mvpose_core.transforms import RobotConvention
 from server.pipeline import Pipeline, PipelineOptions
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
+from server.station.queries import StationQueries
 from server.station.records import Provenance, failure_record, result_record
 from server.station.sequence import Step, ViewSequence
 from server.store.schemas import MeasurementRecord
@@ -142,8 +143,9 @@ def _lower_priority() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
 
 
-class Station:
-    """One station's hardware, links and pipeline; the links' StationHandler."""
+class Station(StationQueries):
+    """One station's hardware, links and pipeline; the links' StationHandler (its queries:
+    server.station.queries)."""
 
     def __init__(self, station: StationConfig, options: StationOptions | None = None) -> None:
         self.file_station = station  # as the station file says, before any calibration

@@ -9,10 +9,14 @@ SignAndEncrypt, the client's certificate trusted the way an engineer trusts one 
 from __future__ import annotations
 
 import asyncio
+import json
 import shutil
 import socket
+import sys
 import threading
 from collections.abc import AsyncIterator, Callable
+from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +29,14 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from pydantic import ValidationError
 
 from drivers.links import link_class
-from drivers.links.base import LinkOutcome, LinkRequest
+from drivers.links.base import (
+    CalibrationInfo,
+    LinkOutcome,
+    LinkRequest,
+    RecipeInfo,
+    ResultQuery,
+    StoredResult,
+)
 from drivers.links.opcua import (
     MV_URI,
     MVPOSE_URI,
@@ -40,7 +51,8 @@ from mvpose_core.transforms import RobotConvention
 
 MODULE_LOOP = pytest.mark.asyncio(loop_scope="module")  # the one server's loop
 
-PASSWORDS = {"olga": "operator-pw", "rita": "reader-pw"}
+PASSWORDS = {"olga": "operator-pw", "rita": "reader-pw", "erik": "engineer-pw"}
+AT = datetime(2026, 11, 23, 23, 0, tzinfo=UTC)
 CLIENT_URI = "urn:mvpose:test:client"
 
 
@@ -51,19 +63,28 @@ class RecordingHandler:
     def __init__(self) -> None:
         self.seq = 100
         self.records: list[tuple[LinkRequest, LinkOutcome]] = []
+        self.stored: dict[int, StoredResult] = {}
+        self.calibs = [CalibrationInfo(1, "cal-a", "aa" * 32, AT, "eve", "first", False, False),
+                       CalibrationInfo(2, "cal-b", "bb" * 32, AT, "eve", "second", True, True)]
+        self.queries = 0
         self.listeners: list[Callable[[dict[str, Any]], None]] = []
         self.recipe = 1
         self.gate: asyncio.Event | None = None
+        self.permits: asyncio.Queue[None] | None = None  # one per measurement, when set
         self.started = asyncio.Event()
         self.resets = 0
+        self.entered = 0  # measurements begun
 
     def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
         return asyncio.ensure_future(self._measure(request))
 
     async def _measure(self, request: LinkRequest) -> LinkOutcome:
         self.started.set()
+        self.entered += 1
         if self.gate is not None:
             await self.gate.wait()
+        if self.permits is not None:
+            await self.permits.get()
         t = request.trigger_id
         out = LinkOutcome(0, 0, offset=(t * 0.5, -1.0, 2.0, 0.1, 0.2, -0.3),
                           sigma_trans_mm=0.05, sigma_rot_deg=0.01, processing_ms=12.0)
@@ -74,6 +95,10 @@ class RecordingHandler:
         out = LinkOutcome(out.result_code, self.seq, out.offset, out.sigma_trans_mm,
                           out.sigma_rot_deg, out.processing_ms)
         self.records.append((request, out))
+        self.stored[self.seq] = StoredResult(
+            self.seq, request.trigger_id, request.part_id, f"recipe-{self.recipe}", 1,
+            out.result_code == 0, out.result_code, "", AT, 12.0, "cal-b", "bb" * 32,
+            "fanuc" if out.offset else None, out.offset, out.sigma_trans_mm, out.sigma_rot_deg)
         event = {
             "result_id": self.seq, "trigger_id": request.trigger_id, "part_id": request.part_id,
             "recipe": f"recipe-{self.recipe}", "result": result, "reason_code": out.result_code,
@@ -113,6 +138,39 @@ class RecordingHandler:
     def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
         self.listeners.append(listen)
 
+    async def unselect_recipe(self) -> int:
+        self.recipe = 0
+        return 0
+
+    async def recipes(self) -> list[RecipeInfo]:
+        return [RecipeInfo(n, f"recipe-{n}", n + 2, f"{n:02d}" * 32, n == self.recipe)
+                for n in (1, 2)]
+
+    async def get_result(self, result_id: int) -> StoredResult | None:
+        self.queries += 1
+        return self.stored.get(result_id)
+
+    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+        self.queries += 1
+        q = query
+        found = [r for r in self.stored.values()
+                 if (q.part_id is None or r.part_id == q.part_id)
+                 and (q.recipe is None or r.recipe == q.recipe)
+                 and (q.trigger_id is None or r.trigger_id == q.trigger_id)
+                 and (q.ok is None or r.ok == q.ok)
+                 and (q.reason_code is None or r.reason_code == q.reason_code)]
+        return found[q.start:q.start + q.limit], len(found)
+
+    async def calibrations(self) -> list[CalibrationInfo]:
+        return list(self.calibs)
+
+    async def activate_calibration(self, version: int, by: str) -> tuple[int, str]:
+        if version == 1 and by == "opcua":
+            self.calibs = [replace(c, active=c.version == 1, in_use=c.version == 1)
+                           for c in self.calibs]
+            return 0, ""
+        return int(Reason.BAD_ARGUMENT), f"version {version} does not fit"
+
 
 class Served:
     def __init__(self, link: OpcUaLink, handler: RecordingHandler, pki: Path, certs: Path):
@@ -150,7 +208,9 @@ class Served:
 
 def _config(pki: Path, **extra: Any) -> OpcUaLinkConfig:
     users = {"olga": {"role": "operator", "password_hash": hash_password("operator-pw", 10_000)},
-             "rita": {"role": "read", "password_hash": hash_password("reader-pw", 10_000)}}
+             "rita": {"role": "read", "password_hash": hash_password("reader-pw", 10_000)},
+             "erik": {"role": "engineer",
+                      "password_hash": hash_password("engineer-pw", 10_000)}}
     return OpcUaLinkConfig.model_validate({"port": 0, "pki_dir": str(pki), "users": users,
                                            "measure_timeout_s": 5.0, **extra})
 
@@ -251,6 +311,7 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
         assert ev.ResultId.Id == str(out.result_id) and ev.ResultNumber == out.result_id
         assert (ev.PartId.Id, ev.ResultCode, ev.ResultState) == ("VIN-1", 0, 1)
         assert ev.Offset == list(out.offset) and ev.SigmaTranslationMm == 0.05
+        assert [c.Value for c in ev.ResultContent] == [*out.offset, 0.05, 0.01]  # offset, 1σ
         std = await generic.next()
         assert (std.ResultId.Id, std.PartId.Id, std.ResultState) == (str(out.result_id),
                                                                      "VIN-1", 1)
@@ -271,7 +332,8 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
             LinkOutcome(int(Reason.MARKS_MISSING), 0), "NOK")
         ev = await events.next()
         assert (ev.ResultId.Id, ev.ResultCode, ev.ResultState, ev.Reason) == (
-            str(other.result_id), int(Reason.MARKS_MISSING), 2, "MARKS_MISSING")
+            str(other.result_id), int(Reason.MARKS_MISSING), -int(Reason.MARKS_MISSING),
+            "MARKS_MISSING")
         last = await vs.get_child([f"{mv}:ResultManagement", f"{own}:LastResult"])
         assert await (await last.get_child(f"{own}:ResultNumber")).read_value() == \
             other.result_id
@@ -482,3 +544,436 @@ async def test_security_none_and_anonymous_readers_only_when_listed(tmp_path: Pa
     finally:
         await link.stop()
     assert not link.ready()
+
+
+# ---------------------------------------------------------------------------- management
+async def _parts(client: Client) -> dict[str, Any]:
+    vs, mv, own = await _vision_system(client)
+    sm = await vs.get_child(f"{mv}:VisionStateMachine")
+    auto = await sm.get_child(f"{mv}:AutomaticModeStateMachine")
+    return {"vs": vs, "mv": mv, "own": own, "sm": sm, "auto": auto,
+            "auto_state": await auto.get_child("0:CurrentState"),
+            "rm": await vs.get_child(f"{mv}:RecipeManagement"),
+            "res": await vs.get_child(f"{mv}:ResultManagement"),
+            "cm": await vs.get_child(f"{mv}:ConfigurationManagement")}
+
+
+def _timeout() -> ua.Variant:
+    return ua.Variant(0, ua.VariantType.Int32)
+
+
+def _u32(n: int) -> ua.Variant:
+    return ua.Variant(n, ua.VariantType.UInt32)
+
+
+async def _results(p: dict[str, Any], state: int = 0, meas: str = "", part: str = "",
+                   ext_recipe: str = "", recipe: str = "", config: str = "", job: str = "",
+                   max_results: int = 0, start: int = 0) -> list[Any]:
+    return list(await p["res"].call_method(
+        f"{p['mv']}:GetResultListFiltered", ua.Variant(state, ua.VariantType.Int32),
+        ua.MeasIdDataType(Id=meas), ua.PartIdDataType(Id=part),
+        ua.RecipeIdExternalDataType(Id=ext_recipe), ua.RecipeIdInternalDataType(Id=recipe),
+        ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=config),
+        ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id=job), _u32(max_results), _u32(start),
+        _timeout()))
+
+
+def _store(h: RecordingHandler, trigger_id: int, part: str, code: int = 0) -> LinkOutcome:
+    req = LinkRequest("modbus", trigger_id, 0, None, part, 0)
+    offset = (1.0, 2.0, 3.0, 0.1, 0.2, 0.3) if code == 0 else None
+    return h.record(req, LinkOutcome(code, 0, offset, 0.05, 0.01), "OK" if code == 0 else "NOK")
+
+
+@MODULE_LOOP
+async def test_a_result_is_read_by_its_id_whole_or_in_components(served: Served) -> None:
+    h = served.handler
+    ok = _store(h, 501, "VIN-ID")
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        p = await _parts(client)
+        handle, result, err = await p["res"].call_method(
+            f"{p['mv']}:GetResultById", ua.ResultIdDataType(Id=str(ok.result_id)), _timeout())
+        assert (handle, err) == (0, 0)
+        assert isinstance(result, ua.ResultDataType)
+        assert (result.ResultId.Id, result.MeasId.Id, result.JobId.Id, result.PartId.Id) == (
+            str(ok.result_id), "501", "501", "VIN-ID")
+        assert (result.ResultState, result.IsPartial) == (1, False)
+        assert (result.InternalRecipeId.Id, result.InternalRecipeId.Version) == ("recipe-1", "1")
+        assert (result.InternalConfigurationId.Id, result.InternalConfigurationId.Version) == (
+            "cal-b", "2")
+        assert result.InternalConfigurationId.Hash == bytes.fromhex("bb" * 32)
+        assert [c.Value for c in result.ResultContent] == [*ok.offset, 0.05, 0.01]
+        assert result.CreationTime == AT and result.ProcessingTimes.ProcessingDuration == 12.0
+
+        out = await p["res"].call_method(
+            f"{p['mv']}:GetResultComponentsById", ua.ResultIdDataType(Id=str(ok.result_id)),
+            _timeout())
+        assert len(out) == 17 and out[-1] == 0
+        assert (out[4], out[5].Id, out[6].Id, out[8].Id, out[12].Id) == (
+            1, "501", "VIN-ID", "recipe-1", "501")
+        assert [c.Value for c in out[15]] == [*ok.offset, 0.05, 0.01]
+
+        nok = _store(h, 502, "VIN-ID", int(Reason.MARKS_MISSING))
+        _, result, err = await p["res"].call_method(
+            f"{p['mv']}:GetResultById", ua.ResultIdDataType(Id=str(nok.result_id)), _timeout())
+        assert (err, result.ResultState, result.ResultContent) == (
+            0, -int(Reason.MARKS_MISSING), None)
+
+        for unknown in ("999999", "abc", ""):
+            before = len(served.link.last_errors)
+            handle, result, err = await p["res"].call_method(
+                f"{p['mv']}:GetResultById", ua.ResultIdDataType(Id=unknown), _timeout())
+            assert (handle, err, result.ResultId.Id) == (0, int(Reason.BAD_ARGUMENT), "")
+            assert f"no result with ResultId {unknown!r}" in served.link.last_errors[-1]
+            assert len(served.link.last_errors) == before + 1
+            out = await p["res"].call_method(
+                f"{p['mv']}:GetResultComponentsById", ua.ResultIdDataType(Id=unknown),
+                _timeout())
+            assert out[-1] == int(Reason.BAD_ARGUMENT)
+    finally:
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_the_result_list_filters_and_pages(served: Served) -> None:
+    h = served.handler
+    made = [_store(h, 600 + i, "VIN-LIST", 0 if i % 3 else int(Reason.TOO_FEW_MARKS))
+            for i in range(7)]  # 600, 603, 606 NOK
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        p = await _parts(client)
+        complete, count, handle, items, err = await _results(p, part="VIN-LIST")
+        assert (complete, count, handle, err) == (True, 7, 0, 0)
+        assert [r.ResultId.Id for r in items] == [str(o.result_id) for o in made]  # oldest first
+
+        pages = []
+        for start in (0, 3, 6):
+            complete, count, _, items, err = await _results(p, part="VIN-LIST", max_results=3,
+                                                            start=start)
+            pages.append((complete, count, [int(r.MeasId.Id) for r in items]))
+        assert pages == [(False, 3, [600, 601, 602]), (False, 3, [603, 604, 605]),
+                         (True, 1, [606])]
+        _, count, _, items, _ = await _results(p, part="VIN-LIST", start=50)
+        assert (count, items) == (0, [])
+
+        nok = [r.MeasId.Id for r in (await _results(p, part="VIN-LIST", state=4))[3]]
+        assert nok == ["600", "603", "606"]
+        assert len((await _results(p, part="VIN-LIST", state=1))[3]) == 4
+        by_reason = await _results(p, part="VIN-LIST", state=-int(Reason.TOO_FEW_MARKS))
+        assert by_reason[1] == 3
+        assert (await _results(p, part="VIN-LIST", state=2))[1] == 0  # nothing is Processing
+        assert [r.PartId.Id for r in (await _results(p, meas="604"))[3]] == ["VIN-LIST"]
+        assert (await _results(p, job="605", part="VIN-LIST"))[1] == 1
+        assert (await _results(p, meas="604", job="605"))[1] == 0
+        assert (await _results(p, part="VIN-LIST", recipe="recipe-1"))[1] == 7
+        assert (await _results(p, part="VIN-LIST", ext_recipe="1"))[1] == 7
+        assert (await _results(p, part="VIN-LIST", ext_recipe="2"))[1] == 0
+        *_, err = await _results(p, ext_recipe="9")
+        assert err == int(Reason.UNKNOWN_RECIPE)
+        *_, err = await _results(p, config="cal-b")
+        assert err == int(Reason.BAD_ARGUMENT)
+        assert "not filtered by configuration" in served.link.last_errors[-1]
+    finally:
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_the_read_role_calls_no_method_and_only_an_engineer_activates(
+        served: Served) -> None:
+    reader = await served.client("rita")
+    operator = await served.client("olga")
+    try:
+        await reader.load_data_type_definitions()
+        p = await _parts(reader)
+        before = served.handler.queries
+        with pytest.raises(ua.UaError, match="BadUserAccessDenied"):
+            await p["res"].call_method(f"{p['mv']}:GetResultById",
+                                       ua.ResultIdDataType(Id="1"), _timeout())
+        with pytest.raises(ua.UaError, match="BadUserAccessDenied"):
+            await p["rm"].call_method(
+                f"{p['mv']}:UnprepareRecipe", ua.RecipeIdExternalDataType(Id="1"),
+                ua.RecipeIdInternalDataType(Id=""))
+        assert served.handler.queries == before and served.handler.recipe == 1
+        await operator.load_data_type_definitions()
+        o = await _parts(operator)
+        with pytest.raises(ua.UaError, match="BadUserAccessDenied"):
+            await o["cm"].call_method(f"{o['mv']}:ActivateConfiguration",
+                                      ua.ConfigurationIdDataType(Id="", Version="1"))
+        assert [c.version for c in served.handler.calibs if c.active] == [2]
+        # the operator's other calls still work
+        _, _, err = await o["res"].call_method(
+            f"{o['mv']}:GetResultById", ua.ResultIdDataType(Id="1"), _timeout())
+        assert err == int(Reason.BAD_ARGUMENT)
+    finally:
+        await reader.disconnect()
+        await operator.disconnect()
+
+
+@MODULE_LOOP
+async def test_configurations_are_the_calibration_versions(served: Served) -> None:
+    h = served.handler
+    client = await served.client("erik")
+    try:
+        await client.load_data_type_definitions()
+        p = await _parts(client)
+        mv = p["mv"]
+        active = await (await p["cm"].get_child(f"{mv}:ActiveConfiguration")).read_value()
+        assert isinstance(active, ua.ConfigurationDataType)
+        assert (active.InternalId.Id, active.InternalId.Version) == ("cal-b", "2")
+        complete, count, handle, items, err = await p["cm"].call_method(
+            f"{mv}:GetConfigurationList", _u32(0), _u32(0), _timeout())
+        assert (complete, count, handle, err) == (True, 2, 0, 0)
+        assert [(c.InternalId.Id, c.InternalId.Version) for c in items] == [
+            ("cal-a", "1"), ("cal-b", "2")]
+        complete, count, _, items, _ = await p["cm"].call_method(
+            f"{mv}:GetConfigurationList", _u32(1), _u32(0), _timeout())
+        assert (complete, count) == (False, 1)
+        _, config, err = await p["cm"].call_method(
+            f"{mv}:GetConfigurationById", ua.ConfigurationIdDataType(Id="", Version="1"),
+            _timeout())
+        assert (err, config.InternalId.Id, config.LastModified) == (0, "cal-a", AT)
+        for wrong in (ua.ConfigurationIdDataType(Id="", Version="7"),
+                      ua.ConfigurationIdDataType(Id="cal-b", Version="1"),
+                      ua.ConfigurationIdDataType(Id="cal-a")):
+            _, config, err = await p["cm"].call_method(
+                f"{mv}:GetConfigurationById", wrong, _timeout())
+            assert (err, config.InternalId.Id) == (int(Reason.BAD_ARGUMENT), "")
+            assert await p["cm"].call_method(f"{mv}:ActivateConfiguration", wrong) == \
+                int(Reason.BAD_ARGUMENT)
+        # the station refuses version 2 (in this handler): its reason is the Error
+        assert await p["cm"].call_method(
+            f"{mv}:ActivateConfiguration", ua.ConfigurationIdDataType(Id="", Version="2")) == \
+            int(Reason.BAD_ARGUMENT)
+        assert "does not fit" in served.link.last_errors[-1]
+        assert await p["cm"].call_method(
+            f"{mv}:ActivateConfiguration",
+            ua.ConfigurationIdDataType(Id="cal-a", Version="1")) == 0
+        assert [c.version for c in h.calibs if c.active] == [1]
+        active = await (await p["cm"].get_child(f"{mv}:ActiveConfiguration")).read_value()
+        assert (active.InternalId.Id, active.InternalId.Version) == ("cal-a", "1")
+    finally:
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_recipes_are_listed_and_unprepared(served: Served) -> None:
+    h = served.handler
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        p = await _parts(client)
+        mv, rm = p["mv"], p["rm"]
+
+        async def listed(external: str = "", prepared: int = 2, max_results: int = 0,
+                         start: int = 0) -> tuple[bool, int, list[tuple[str, str, str]], int]:
+            complete, count, handle, items, err = await rm.call_method(
+                f"{mv}:GetRecipeListFiltered", ua.RecipeIdExternalDataType(Id=external),
+                ua.ProductIdDataType(Id=""), ua.Variant(prepared, ua.VariantType.Int32),
+                _u32(max_results), _u32(start), _timeout())
+            assert handle == 0
+            return complete, count, [(r.Id, r.Version, r.Description.Text) for r in items], err
+
+        assert await listed() == (True, 2, [("recipe-1", "3", "recipe number 1"),
+                                            ("recipe-2", "4", "recipe number 2")], 0)
+        assert await listed(prepared=1) == (True, 1, [("recipe-1", "3", "recipe number 1")], 0)
+        assert (await listed(prepared=0))[2][0][0] == "recipe-2"
+        assert (await listed(external="2"))[2][0][0] == "recipe-2"
+        assert (await listed(external="9"))[:2] == (True, 0)
+        assert (await listed(max_results=1))[:2] == (False, 1)
+        assert (await listed(max_results=1, start=1))[:3] == (
+            True, 1, [("recipe-2", "4", "recipe number 2")])
+
+        async def unprepare(external: str) -> tuple[str, int]:
+            out, err = await rm.call_method(
+                f"{mv}:UnprepareRecipe", ua.RecipeIdExternalDataType(Id=external),
+                ua.RecipeIdInternalDataType(Id=""))
+            return out.Id, err
+
+        assert await unprepare("9") == ("", int(Reason.UNKNOWN_RECIPE))
+        assert await unprepare("2") == ("recipe-2", int(Reason.BAD_ARGUMENT))  # not prepared
+        assert h.recipe == 1
+        assert await unprepare("1") == ("recipe-1", 0)
+        assert h.recipe == 0
+        assert (await p["auto_state"].read_value()).Text == "Initialized"
+        assert (await listed(prepared=1))[1] == 0
+        # continuous mode needs a recipe: refused up front, nothing recorded
+        before = len(h.records)
+        job, err = await p["auto"].call_method(
+            f"{mv}:StartContinuous", ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id="VIN-U"),
+            ua.RecipeIdExternalDataType(Id=""), ua.ProductIdDataType(Id=""), ua.Variant())
+        assert (job.Id, err, len(h.records)) == ("", int(Reason.UNKNOWN_RECIPE), before)
+        _, done, err = await rm.call_method(
+            f"{mv}:PrepareRecipe", ua.RecipeIdExternalDataType(Id="1"),
+            ua.RecipeIdInternalDataType(Id=""))
+        assert (done, err, h.recipe) == (True, 0, 1)
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+    finally:
+        await client.disconnect()
+
+
+async def _until(condition: Callable[[], bool]) -> None:
+    async def wait() -> None:
+        while not condition():
+            await asyncio.sleep(0.005)  # polling the test handler's counters
+    await asyncio.wait_for(wait(), 10)
+
+
+def _permits(n: int) -> asyncio.Queue[None]:
+    """Measurements the test handler may finish, one token each."""
+    q: asyncio.Queue[None] = asyncio.Queue()
+    for _ in range(n):
+        q.put_nowait(None)
+    return q
+
+
+async def _start_continuous(p: dict[str, Any], meas: str, part: str) -> tuple[str, int]:
+    job, err = await p["auto"].call_method(
+        f"{p['mv']}:StartContinuous", ua.MeasIdDataType(Id=meas), ua.PartIdDataType(Id=part),
+        ua.RecipeIdExternalDataType(Id=""), ua.ProductIdDataType(Id=""), ua.Variant())
+    return job.Id, int(err)
+
+
+async def _wait_records(h: RecordingHandler, part: str, n: int) -> list[LinkOutcome]:
+    await _until(lambda: len([1 for req, _ in h.records if req.part_id == part]) >= n)
+    return [out for req, out in h.records if req.part_id == part]
+
+
+@MODULE_LOOP
+async def test_continuous_mode_measures_back_to_back_until_stop(served: Served) -> None:
+    h = served.handler
+    h.permits = _permits(0)
+    entered = h.entered
+    client = await served.client()
+    try:
+        events = await _subscribe(client)
+        p = await _parts(client)
+        mv = p["mv"]
+        assert await _start_continuous(p, "700", "VIN-C") == ("700", 0)
+        assert (await p["auto_state"].read_value()).Text == "ContinuousExecution"
+        assert await _start_continuous(p, "", "VIN-X") == ("", int(Reason.BUSY))
+        job, err = await p["auto"].call_method(
+            f"{mv}:StartSingleJob", ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id="VIN-X"),
+            ua.RecipeIdExternalDataType(Id=""), ua.ProductIdDataType(Id=""), ua.Variant())
+        assert err == int(Reason.BUSY)
+        for _ in range(5):
+            h.permits.put_nowait(None)
+        outs = await _wait_records(h, "VIN-C", 5)
+        got = [await events.next() for _ in range(5)]
+        assert [e.ResultId.Id for e in got] == [str(o.result_id) for o in outs]
+        triggers = [req.trigger_id for req, _ in h.records if req.part_id == "VIN-C"]
+        assert triggers[0] == 700 and len(set(triggers)) == 5
+        assert {req.link for req, _ in h.records if req.part_id == "VIN-C"} == {"opcua"}
+        # the sixth job waits inside the station; Stop lets it finish, then Ready
+        await _until(lambda: h.entered == entered + 6)
+        stop = asyncio.ensure_future(p["auto"].call_method(
+            f"{mv}:Stop", ua.Variant(0, ua.VariantType.Int32),
+            ua.Variant("", ua.VariantType.String)))
+        await _until(lambda: served.link._stop_requested)
+        assert not stop.done()  # Stop waits for the running job
+        h.permits.put_nowait(None)
+        assert await asyncio.wait_for(stop, 10) == 0
+        assert len(await _wait_records(h, "VIN-C", 6)) == 6
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+        assert served.link._continuous is None and not served.link.jobs
+        assert (await events.next()).PartId.Id == "VIN-C"  # the sixth's event
+        assert len([1 for req, _ in h.records if req.part_id == "VIN-C"]) == 6  # no seventh
+        assert await p["auto"].call_method(
+            f"{mv}:Stop", ua.Variant(0, ua.VariantType.Int32),
+            ua.Variant("", ua.VariantType.String)) == int(Reason.BAD_ARGUMENT)  # nothing runs
+    finally:
+        h.permits = None
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_abort_is_ready_at_once_and_the_running_job_keeps_its_record(
+        served: Served) -> None:
+    h = served.handler
+    h.permits = _permits(1)
+    entered = h.entered
+    resets = h.resets
+    client = await served.client()
+    try:
+        p = await _parts(client)
+        mv = p["mv"]
+        assert (await _start_continuous(p, "", "VIN-A"))[1] == 0
+        await _until(lambda: h.entered == entered + 2)  # the second job is inside the station
+        assert await p["auto"].call_method(
+            f"{mv}:Abort", ua.Variant(0, ua.VariantType.Int32),
+            ua.Variant("", ua.VariantType.String)) == 0
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+        assert h.resets == resets + 1  # a half-done multi-view sequence is dropped
+        assert len([1 for req, _ in h.records if req.part_id == "VIN-A"]) == 1
+        h.permits.put_nowait(None)
+        outs = await _wait_records(h, "VIN-A", 2)  # the aborted job's record still comes
+        assert outs[1].result_code == 0
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+        assert served.link._continuous is None
+    finally:
+        h.permits = None
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_halt_ends_continuous_mode(served: Served) -> None:
+    h = served.handler
+    h.permits = _permits(2)
+    entered = h.entered
+    client = await served.client()
+    try:
+        p = await _parts(client)
+        mv, sm = p["mv"], p["sm"]
+        assert (await _start_continuous(p, "", "VIN-HC"))[1] == 0
+        await _until(lambda: h.entered == entered + 3)  # the third waits inside the station
+        assert await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
+                                    ua.Variant("", ua.VariantType.String)) == 0
+        assert (await (await sm.get_child("0:CurrentState")).read_value()).Text == "Halted"
+        assert served.link._continuous is None
+        h.permits.put_nowait(None)  # the job waiting inside the station ends with its record
+        done = await _wait_records(h, "VIN-HC", 3)
+        assert len(done) == 3
+        assert await _start_continuous(p, "", "VIN-HC") == ("", int(Reason.BUSY))
+        assert await sm.call_method(f"{mv}:Reset", ua.Variant(0, ua.VariantType.Int32),
+                                    ua.Variant("", ua.VariantType.String)) == 0
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+    finally:
+        h.permits = None
+        await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_a_client_of_its_own_decodes_the_machine_vision_structures(
+        served: Served) -> None:
+    """A client in another process (no types from our server in its asyncua.ua) decodes
+    ResultDataType, ConfigurationDataType and RecipeIdInternalDataType, with the workaround
+    for FreeOpcUa/opcua-asyncio#1693 (tests/drivers/opcua_client.py) and not without it."""
+    ok = _store(served.handler, 801, "VIN-OWN")
+    key, cert = served.default_cert
+    script = Path(__file__).with_name("opcua_client.py")
+
+    async def run(*extra: str) -> dict[str, Any]:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, str(script), served.url, str(key), str(cert), "olga",
+            PASSWORDS["olga"], str(ok.result_id), *extra,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+        assert proc.returncode == 0, err.decode()[-2000:]
+        decoded: dict[str, Any] = json.loads(out)
+        return decoded
+
+    plain, fixed = await asyncio.gather(run("--no-workaround"), run())
+    using = next(c for c in served.handler.calibs if c.in_use)
+    # if this fails, asyncua loads these types now: drop load_machine_vision_types
+    assert plain["known"]["ResultDataType"] is False, plain
+    assert fixed == {
+        "known": {"ResultDataType": True, "ConfigurationDataType": True,
+                  "RecipeIdInternalDataType": True},
+        "error": 0, "type": "ResultDataType", "result_id": str(ok.result_id),
+        "part_id": "VIN-OWN", "recipe": ["recipe-1", "1"],
+        "configuration": ["cal-b", "2"], "state": 1,
+        "content": [*(ok.offset or ()), 0.05, 0.01],
+        "active_configuration": [using.calibration_id, str(using.version)],
+        "recipes": ["recipe-1", "recipe-2"],
+    }

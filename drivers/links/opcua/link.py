@@ -1,26 +1,26 @@
-"""The OPC UA backend of the link seam: a Machine Vision server (OPC 40100-1) with asyncua.
+"""The OPC UA link itself: the server, the VisionSystem object, its states, triggers and events.
 
-The information model is the OPC Foundation's own NodeSet2 file, installed from the npm package
-``node-opcua-nodesets`` (pinned by ``opcua_nodesets/package-lock.json``) and checked against
-``opcua_nodesets/SHA256SUMS`` before it is imported: nothing of the model is typed in here. One
-``VisionSystem`` object (``VisionSystemType``) stands for the station:
+One ``VisionSystem`` object (``VisionSystemType`` of the OPC Foundation's Machine Vision NodeSet,
+:mod:`.nodesets`) stands for the station:
 
 - ``VisionStateMachine``: Operational with its automatic mode (Initialized: no recipe selected,
-  Ready, SingleExecution while a job of this link runs), Halted after ``Halt`` until ``Reset``;
-- ``RecipeManagement.PrepareRecipe``: selects a recipe by number (``ExternalId.Id``); the active
-  recipe's number, name and version are variables next to it;
+  Ready, SingleExecution while a single job of this link runs, ContinuousExecution between
+  ``StartContinuous`` and ``Stop`` / ``Abort``), Halted after ``Halt`` until ``Reset``;
 - ``AutomaticModeStateMachine.StartSingleJob``: one trigger (the same ``StationHandler.measure``
   as Modbus), answered at once with its JobId; the result follows as a ``ResultReadyEvent``;
+  ``StartContinuous``: triggers back to back, each a normal trigger with its record and event;
   ``VisionSystem.Measure`` (mvpose's own method) triggers and waits for the outcome;
-- ``ResultManagement``: a ``ResultReadyEvent`` (our subtype ``MvposeResultReadyEventType``) for
-  every recorded answer whichever link or client caused it, ``ResultId`` = the record's seq; the
-  last result also as variables (``ResultManagement/LastResult``).
+- ``RecipeManagement``, ``ResultManagement``, ``ConfigurationManagement``: :mod:`.management`;
+  a ``ResultReadyEvent`` (our subtype ``MvposeResultReadyEventType``) for every recorded answer
+  whichever link or client caused it, ``ResultId`` = the record's seq; the last result also as
+  variables (``ResultManagement/LastResult``).
 
-Security: Basic256Sha256 Sign / SignAndEncrypt by default with a server certificate made at the
-first start in ``pki_dir``; client certificates must be in ``<pki_dir>/trusted`` (refused ones
-land in ``<pki_dir>/rejected``); users log in with a name and password checked against the
-station file's pbkdf2 hashes and get the read, operator (may call methods) or engineer role.
-The server runs on the station's event loop, like the Modbus link.
+Security (:mod:`.access`): Basic256Sha256 Sign / SignAndEncrypt by default with a server
+certificate made at the first start in ``pki_dir``; client certificates must be in
+``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in with a name
+and password checked against the station file's pbkdf2 hashes and get the read, operator (may
+call methods) or engineer role (also ActivateConfiguration, writes). The server runs on the
+station's event loop, like the Modbus link.
 """
 
 from __future__ import annotations
@@ -28,11 +28,9 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-import os
 import socket
 import threading
 import time
-import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -41,31 +39,22 @@ from typing import Any
 from asyncua import Node, Server, ua
 from asyncua.common.utils import ServiceError
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
 from asyncua.crypto.truststore import TrustStore
 from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
-from asyncua.server.user_managers import UserManager
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from mvpose_core.linkconfig import OpcUaLinkConfig, check_password
+from mvpose_core.linkconfig import OpcUaLinkConfig
 from mvpose_core.reasons import Reason, reason_name
 
-from .base import Link, LinkOutcome, LinkRequest, StationHandler
+from ..base import Link, LinkOutcome, LinkRequest, StationHandler
+from . import values as v
+from .access import Roles, Users, default_pki_dir
+from .management import Management
+from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, import_order
 
 log = logging.getLogger(__name__)
-
-NODESET_DIR = Path(__file__).resolve().parent / "opcua_nodesets"
-NODESET_FILES = NODESET_DIR / "node_modules" / "node-opcua-nodesets" / "nodesets"
-MACHINE_VISION = "Opc.Ua.MachineVision.NodeSet2.xml"
-MODEL_FILES = {  # ModelUri -> the NodeSet2 file that defines it
-    "http://opcfoundation.org/UA/MachineVision": MACHINE_VISION,
-    "http://opcfoundation.org/UA/DI/": "Opc.Ua.Di.NodeSet2.xml",
-}
-MV_URI = "http://opcfoundation.org/UA/MachineVision"
-MVPOSE_URI = "urn:mvpose:opcua"  # mvpose's own nodes: our event subtype, Measure, LastResult
-UA_NS = "{http://opcfoundation.org/UA/2011/03/UANodeSet.xsd}"
 
 POLICIES = {
     "Basic256Sha256_Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,
@@ -73,124 +62,8 @@ POLICIES = {
     "None": ua.SecurityPolicyType.NoSecurity,
 }
 _UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
-RESULT_STATE_OK, RESULT_STATE_NOK = 1, 2  # ResultState (vendor-defined in OPC 40100-1)
 
 
-class NodeSetError(RuntimeError):
-    """A NodeSet2 file is missing or is not the pinned one."""
-
-
-def _pinned() -> dict[str, str]:
-    """File name -> sha256 from SHA256SUMS (``sha256sum -c`` format)."""
-    sums = NODESET_DIR / "SHA256SUMS"
-    out: dict[str, str] = {}
-    for line in sums.read_text().splitlines():
-        if line.strip():
-            digest, _, rel = line.partition("  ")
-            out[Path(rel).name] = digest
-    return out
-
-
-def nodeset_path(name: str, folder: Path = NODESET_FILES) -> Path:
-    """``name`` from the npm package (``folder``), verified against the pinned sha256."""
-    path = folder / name
-    pinned = _pinned().get(name)
-    if pinned is None:
-        raise NodeSetError(f"{name} has no pinned hash in {NODESET_DIR / 'SHA256SUMS'}")
-    if not path.is_file():
-        raise NodeSetError(
-            f"{path} is missing: install the NodeSets with `npm ci --prefix {NODESET_DIR}` "
-            "(make venv does)")
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    if digest != pinned:
-        raise NodeSetError(f"{path}: sha256 {digest} is not the pinned {pinned} (SHA256SUMS)")
-    return path
-
-
-def required_models(path: Path) -> list[str]:
-    """The ModelUris a NodeSet2 file says it needs (its <RequiredModel> elements)."""
-    root = ET.parse(path).getroot()
-    return [req.get("ModelUri", "") for req in root.iter(f"{UA_NS}RequiredModel")]
-
-
-def import_order(model: str = MV_URI) -> list[Path]:
-    """The NodeSet2 files to import for ``model``, each after the models it requires (the
-    base namespace is built into asyncua)."""
-    order: list[Path] = []
-
-    def visit(uri: str) -> None:
-        if uri not in MODEL_FILES:
-            if uri.rstrip("/") != "http://opcfoundation.org/UA":
-                raise NodeSetError(f"model {uri} is required but no NodeSet2 file provides it")
-            return
-        path = nodeset_path(MODEL_FILES[uri])
-        for dep in required_models(path):
-            visit(dep)
-        if path not in order:
-            order.append(path)
-
-    visit(model)
-    return order
-
-
-def default_pki_dir() -> Path:
-    """``<data_dir>/opcua`` when the station file names no pki_dir (MVPOSE_DATA_DIR, else var)."""
-    return Path(os.environ.get("MVPOSE_DATA_DIR", "var")) / "opcua"
-
-
-# ---------------------------------------------------------------------------- users and roles
-class _Users(UserManager):
-    """asyncua's user manager: user name + password against the station file's hashes."""
-
-    def __init__(self, config: OpcUaLinkConfig) -> None:
-        self.config = config
-        self._good: set[tuple[str, str]] = set()  # (name, sha256 of a checked password)
-
-    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
-                 certificate: Any = None) -> User | None:
-        if username is None:
-            return User(role=UserRole.Anonymous) if self.config.allow_anonymous else None
-        user = self.config.users.get(username)
-        if user is None or password is None:
-            log.warning("OPC UA: login refused for unknown user %r", username)
-            return None
-        key = (username, hashlib.sha256(password.encode()).hexdigest())
-        if key not in self._good:
-            if not check_password(password, user.password_hash):
-                log.warning("OPC UA: wrong password for user %r", username)
-                return None
-            self._good.add(key)  # pbkdf2 runs on the station loop: once per user and password
-        return User(role=UserRole.User, name=username)
-
-
-class _Roles(SimpleRoleRuleset):
-    """read: browse, read, subscribe; operator: + call methods; engineer: + write."""
-
-    CALL = _UA.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
-    WRITE = _UA.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
-
-    def __init__(self, config: OpcUaLinkConfig) -> None:
-        super().__init__()
-        self.config = config
-        every = {_UA.NodeId(t) for t in USER_TYPES}
-        read = every - {self.CALL, self.WRITE}
-        self.allowed = {"read": read, "operator": read | {self.CALL}, "engineer": every}
-
-    def role(self, user: User | None) -> str | None:
-        if user is None:
-            return None
-        if user.name is not None and user.name in self.config.users:
-            return self.config.users[user.name].role
-        if user.role == UserRole.Anonymous and self.config.allow_anonymous:
-            return "read"
-        return None
-
-    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
-        role = self.role(user)
-        return role is not None and action_type_id in self.allowed[role]
-
-
-# ---------------------------------------------------------------------------- the link
 class OpcUaLink(Link):
     """OPC UA server with the station's VisionSystem object."""
 
@@ -204,7 +77,7 @@ class OpcUaLink(Link):
         self.load_s: dict[str, float] = {}
         self.state = "Preoperational"
         self.auto_state = "Initialized"
-        self.jobs = 0  # OPC UA jobs running
+        self.jobs = 0  # single jobs of this link running (StartSingleJob, Measure)
         self.results = 0  # ResultReadyEvents sent
         self.triggers = 0
         self.last_errors: list[str] = []
@@ -223,6 +96,10 @@ class OpcUaLink(Link):
         self.started = threading.Event()  # the endpoint listens (for threads and other loops)
         self.failed: str | None = None
         self._made: Server | None = None
+        self._roles = Roles(config)
+        self.management = Management(handler, self._show_recipe, self._error)
+        self._continuous: asyncio.Task[None] | None = None  # StartContinuous's loop
+        self._stop_requested = False
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
@@ -246,14 +123,14 @@ class OpcUaLink(Link):
         cfg = self.config
         try:
             t = time.monotonic()
-            server = self._made = Server(user_manager=_Users(cfg))
+            server = self._made = Server(user_manager=Users(cfg))
             await server.init()
             self.load_s["init"] = time.monotonic() - t
             server.set_server_name("mvpose station")
             await server.set_application_uri(cfg.application_uri)
             server.set_endpoint(f"opc.tcp://{cfg.host}:{cfg.port}/mvpose")
             server.set_security_policy([POLICIES[p] for p in cfg.security],
-                                       permission_ruleset=_Roles(cfg))
+                                       permission_ruleset=self._roles)
             tokens: list[type] = [ua.UserNameIdentityToken]
             if cfg.allow_anonymous:
                 tokens.append(ua.AnonymousIdentityToken)
@@ -276,6 +153,7 @@ class OpcUaLink(Link):
         self.port_bound = server.bserver.port if server.bserver is not None else cfg.port
         self.state = "Operational"
         await self._show_recipe()
+        await self.management.show_configuration()
         self._listening = True
         self.handler.add_listener(self._on_result)
         self.load_s["total"] = time.monotonic() - self._t0
@@ -286,6 +164,7 @@ class OpcUaLink(Link):
 
     async def stop(self) -> None:
         self._listening = False  # the station has no remove_listener: the callback goes quiet
+        await self._end_continuous()
         tasks = list(self._tasks)
         for task in tasks:
             task.cancel()
@@ -310,6 +189,7 @@ class OpcUaLink(Link):
         return {
             "running": True, "port": self.port_bound, "security": list(self.config.security),
             "state": self.state, "automatic_mode": self.auto_state, "triggers": self.triggers,
+            "continuous": self._continuous is not None,
             "results_published": self.results, "start_s": {k: round(v, 2)
                                                            for k, v in self.load_s.items()},
             "last_errors": self.last_errors[-5:],
@@ -318,6 +198,8 @@ class OpcUaLink(Link):
     def recipe_changed(self) -> None:
         if self.server is not None:
             self._spawn(self._show_recipe())
+            # a calibration activated elsewhere (REST) comes with the same call
+            self._spawn(self.management.show_configuration())
 
     # ------------------------------------------------------------------ security
     async def _make_certificate(self) -> None:
@@ -382,22 +264,28 @@ class OpcUaLink(Link):
         n["vs"], n["sm"], n["auto"] = vs, sm, auto
         n["sm_state"] = await sm.get_child("0:CurrentState")
         n["auto_state"] = await auto.get_child("0:CurrentState")
-        sm_type = server.get_node(_typedef(await sm.read_type_definition()))
-        auto_type = server.get_node(_typedef(await auto.read_type_definition()))
+        sm_type = server.get_node(v.typedef(await sm.read_type_definition()))
+        auto_type = server.get_node(v.typedef(await auto.read_type_definition()))
         for state in ("Preoperational", "Halted", "Error", "Operational"):
             self._state_ids[state] = (await sm_type.get_child(f"{mv}:{state}")).nodeid
         for state in ("Initialized", "Ready", "SingleExecution", "ContinuousExecution"):
             self._state_ids[state] = (await auto_type.get_child(f"{mv}:{state}")).nodeid
 
-        # methods of the standard: Halt, Reset, SelectModeAutomatic, StartSingleJob, PrepareRecipe
+        # methods of the standard: the state machines and PrepareRecipe here, the rest of the
+        # management objects in .management
         links: dict[tuple[Node, str], Callable[..., Any]] = {
             (sm, "Halt"): self._halt, (sm, "Reset"): self._reset,
             (sm, "SelectModeAutomatic"): self._select_auto,
             (auto, "StartSingleJob"): self._start_single_job,
+            (auto, "StartContinuous"): self._start_continuous,
+            (auto, "Stop"): self._stop_continuous, (auto, "Abort"): self._abort,
             (rm, "PrepareRecipe"): self._prepare_recipe,
         }
         for (parent, method), fn in links.items():
             server.link_method(await parent.get_child(f"{mv}:{method}"), fn)
+        await self.management.build(server, vs, mv)
+        self._roles.engineer_methods = self.management.engineer_methods
+        await _not_implemented(server, vs)
 
         # mvpose's own: the active recipe, the last result, Measure, the event subtype
         recipe = await rm.add_object(idx, "ActiveRecipe")
@@ -411,12 +299,12 @@ class OpcUaLink(Link):
             n[f"last.{name}"] = await last.add_variable(idx, name, ua.Variant(value, vt))
         measure = await vs.add_method(
             idx, "Measure", self._measure,
-            [_arg("PartId", ua.ObjectIds.String), _arg("RecipeNumber", ua.ObjectIds.UInt16),
-             _arg("TriggerId", ua.ObjectIds.UInt32)],
-            [_arg("ResultId", ua.ObjectIds.UInt32), _arg("ResultCode", ua.ObjectIds.Int32),
-             _arg("Offset", ua.ObjectIds.Double, rank=1),
-             _arg("SigmaTranslationMm", ua.ObjectIds.Double),
-             _arg("SigmaRotationDeg", ua.ObjectIds.Double)])
+            [v.arg("PartId", ua.ObjectIds.String), v.arg("RecipeNumber", ua.ObjectIds.UInt16),
+             v.arg("TriggerId", ua.ObjectIds.UInt32)],
+            [v.arg("ResultId", ua.ObjectIds.UInt32), v.arg("ResultCode", ua.ObjectIds.Int32),
+             v.arg("Offset", ua.ObjectIds.Double, rank=1),
+             v.arg("SigmaTranslationMm", ua.ObjectIds.Double),
+             v.arg("SigmaRotationDeg", ua.ObjectIds.Double)])
         n["measure"] = measure
         rre = await types.get_child(["0:BaseEventType", f"{mv}:ResultReadyEventType"])
         props = [(name, vt) for name, _, vt in self._result_fields()
@@ -442,7 +330,8 @@ class OpcUaLink(Link):
     # ------------------------------------------------------------------ states
     async def _show_states(self) -> None:
         if self.state == "Operational":
-            self.auto_state = ("SingleExecution" if self.jobs else
+            self.auto_state = ("ContinuousExecution" if self._continuous is not None else
+                               "SingleExecution" if self.jobs else
                                "Ready" if self.handler.selected_recipe() else "Initialized")
         for key, state in (("sm_state", self.state), ("auto_state", self.auto_state)):
             node = self._nodes[key]
@@ -454,7 +343,7 @@ class OpcUaLink(Link):
 
     async def _show_recipe(self) -> None:
         number = self.handler.selected_recipe()
-        name, version = _recipe_label(self.handler)
+        name, version = v.recipe_label(self.handler)
         n = self._nodes
         await n["recipe.Number"].write_value(ua.Variant(number, ua.VariantType.UInt16))
         await n["recipe.Name"].write_value(ua.Variant(name, ua.VariantType.String))
@@ -467,44 +356,109 @@ class OpcUaLink(Link):
     # ------------------------------------------------------------------ methods
     async def _halt(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
         self.state = "Halted"
+        await self._end_continuous()
         await self._show_states()
-        return [_int32(0)]
+        return [v.int32(0)]
 
     async def _reset(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
+        await self._end_continuous()
         await self.handler.reset()
         self.state = "Operational"
         await self._show_states()
-        return [_int32(0)]
+        return [v.int32(0)]
 
     async def _select_auto(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
         if self.state == "Halted":
-            return [_int32(int(Reason.BUSY))]
+            return [v.int32(int(Reason.BUSY))]
         self.state = "Operational"  # automatic is the station's only mode
         await self._show_states()
-        return [_int32(0)]
+        return [v.int32(0)]
 
     async def _prepare_recipe(self, parent: ua.NodeId, external: ua.Variant,
                               internal: ua.Variant, *rest: ua.Variant) -> list[ua.Variant]:
-        wanted = _struct_id(external.Value) or _struct_id(internal.Value)
+        wanted = v.struct_id(external.Value) or v.struct_id(internal.Value)
         code = int(Reason.BAD_ARGUMENT)
         if wanted.isdigit() and 0 < int(wanted) <= 65535:
             code = await self.handler.select_recipe(int(wanted))
         if code == 0:
             await self._show_recipe()
-        out = _recipe_id(ua, "RecipeIdInternalDataType", *_recipe_label(self.handler))
-        return [ua.Variant(out), ua.Variant(code == 0, ua.VariantType.Boolean), _int32(code)]
+        out = v.recipe_id("RecipeIdInternalDataType", *v.recipe_label(self.handler))
+        return [ua.Variant(out), ua.Variant(code == 0, ua.VariantType.Boolean), v.int32(code)]
 
     async def _start_single_job(self, parent: ua.NodeId, meas: ua.Variant, part: ua.Variant,
                                 recipe: ua.Variant, *rest: ua.Variant) -> list[ua.Variant]:
-        number = _struct_id(recipe.Value)
-        if self.state != "Operational":
-            return [ua.Variant(_UA.JobIdDataType(Id="")), _int32(int(Reason.BUSY))]
+        number = v.struct_id(recipe.Value)
+        if self.state != "Operational" or self._continuous is not None:
+            return [ua.Variant(_UA.JobIdDataType(Id="")), v.int32(int(Reason.BUSY))]
         if number and not number.isdigit():
-            return [ua.Variant(_UA.JobIdDataType(Id="")), _int32(int(Reason.BAD_ARGUMENT))]
-        trigger_id = self._next_trigger(_struct_id(meas.Value))
-        req = self._request(trigger_id, _struct_id(part.Value), int(number or 0))
+            return [ua.Variant(_UA.JobIdDataType(Id="")), v.int32(int(Reason.BAD_ARGUMENT))]
+        trigger_id = self._next_trigger(v.struct_id(meas.Value))
+        req = self._request(trigger_id, v.struct_id(part.Value), int(number or 0))
         self._spawn(self._job(req))
-        return [ua.Variant(_UA.JobIdDataType(Id=str(trigger_id))), _int32(0)]
+        return [ua.Variant(_UA.JobIdDataType(Id=str(trigger_id))), v.int32(0)]
+
+    # ------------------------------------------------------------------ continuous mode
+    async def _start_continuous(self, parent: ua.NodeId, meas: ua.Variant, part: ua.Variant,
+                                recipe: ua.Variant, *rest: ua.Variant) -> list[ua.Variant]:
+        """Triggers back to back until Stop, Abort, Halt or Reset: each one a normal trigger
+        (its record, its event), the next one asked for once the station has answered the
+        last, so a trigger of another link (Modbus) waits for one job at most."""
+        none = ua.Variant(_UA.JobIdDataType(Id=""))
+        number = v.struct_id(recipe.Value)
+        if self.state != "Operational" or self._continuous is not None or self.jobs:
+            return [none, v.int32(int(Reason.BUSY))]
+        if number and not number.isdigit():
+            return [none, v.int32(int(Reason.BAD_ARGUMENT))]
+        known = {r.number for r in await self.handler.recipes()}
+        if (int(number) not in known) if number else not self.handler.selected_recipe():
+            # refused here rather than recorded over and over as UNKNOWN_RECIPE
+            self._error(f"StartContinuous: no recipe {number or '(none selected)'}")
+            return [none, v.int32(int(Reason.UNKNOWN_RECIPE))]
+        first = self._next_trigger(v.struct_id(meas.Value))
+        self._stop_requested = False
+        self._continuous = asyncio.ensure_future(
+            self._run_continuous(first, v.struct_id(part.Value), int(number or 0)))
+        await self._show_states()
+        return [ua.Variant(_UA.JobIdDataType(Id=str(first))), v.int32(0)]
+
+    async def _run_continuous(self, first: int, part_id: str, recipe: int) -> None:
+        trigger_id = first
+        try:
+            while not self._stop_requested and self.state == "Operational":
+                # its own task, shielded: Abort ends the loop, never a job inside the station
+                job = self._spawn(self._job(self._request(trigger_id, part_id, recipe),
+                                            single=False))
+                await asyncio.shield(job)
+                trigger_id = self._next_trigger("")
+        finally:
+            self._continuous = None
+            if self.server is not None:
+                await self._show_states()
+
+    async def _stop_continuous(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
+        """The running job ends with its record; then Ready (the call returns then)."""
+        task = self._continuous
+        if task is None:
+            return [v.int32(int(Reason.BAD_ARGUMENT))]  # nothing runs
+        self._stop_requested = True
+        await asyncio.shield(task)
+        return [v.int32(0)]
+
+    async def _abort(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
+        """Ready at once; a half-done multi-view sequence is dropped (as Reset); a job already
+        in the station still ends with its record and event."""
+        if self._continuous is None:
+            return [v.int32(int(Reason.BAD_ARGUMENT))]
+        await self._end_continuous()
+        await self.handler.reset()
+        await self._show_states()
+        return [v.int32(0)]
+
+    async def _end_continuous(self) -> None:
+        task = self._continuous
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
 
     async def _measure(self, parent: ua.NodeId, part: ua.Variant, recipe: ua.Variant,
                        trigger: ua.Variant) -> list[ua.Variant]:
@@ -516,7 +470,7 @@ class OpcUaLink(Link):
             # shielded: a client that goes away mid-measurement does not cancel the record
             out = await asyncio.shield(self._spawn(self._job(req)))
         offset = list(out.offset) if out.offset is not None else []
-        return [ua.Variant(out.result_id, ua.VariantType.UInt32), _int32(out.result_code),
+        return [ua.Variant(out.result_id, ua.VariantType.UInt32), v.int32(out.result_code),
                 ua.Variant(offset, ua.VariantType.Double),
                 ua.Variant(out.sigma_trans_mm, ua.VariantType.Double),
                 ua.Variant(out.sigma_rot_deg, ua.VariantType.Double)]
@@ -531,10 +485,10 @@ class OpcUaLink(Link):
         return LinkRequest(link="opcua", trigger_id=trigger_id, view_index=0, robot_pose=None,
                            part_id=part_id, recipe=recipe)
 
-    async def _job(self, req: LinkRequest) -> LinkOutcome:
+    async def _job(self, req: LinkRequest, single: bool = True) -> LinkOutcome:
         """One trigger through the station, with the link's own recorded backstop."""
         self.triggers += 1
-        self.jobs += 1
+        self.jobs += single
         await self._show_states()
         t0 = time.monotonic()
         try:
@@ -551,7 +505,7 @@ class OpcUaLink(Link):
             rid = await self.handler.record_failure(req, code, text, ms)
             return LinkOutcome(code, rid, processing_ms=ms)
         finally:
-            self.jobs -= 1
+            self.jobs -= single
             if self.server is not None:
                 await self._show_states()
 
@@ -566,7 +520,7 @@ class OpcUaLink(Link):
         if self.server is None or self._evgen is None:
             return
         ok = r.get("reason_code", 0) == 0 and r.get("result") == "OK"
-        at = _time(r.get("at"))
+        at = v.when(r.get("at"))
         offset = [float(v) for v in (r.get("offset") or [])]
         values: dict[str, Any] = {
             "ResultNumber": int(r["result_id"]), "TriggerId": int(r.get("trigger_id") or 0),
@@ -590,13 +544,14 @@ class OpcUaLink(Link):
             ev.PartId = _UA.PartIdDataType(Id=values["PartId"])
             ev.MeasId = _UA.MeasIdDataType(Id=str(values["TriggerId"]))
             ev.JobId = _UA.JobIdDataType(Id=str(values["TriggerId"]))
-            ev.InternalRecipeId = _recipe_id(ua, "RecipeIdInternalDataType", values["Recipe"],
+            ev.InternalRecipeId = v.recipe_id("RecipeIdInternalDataType", values["Recipe"],
                                              int(r.get("recipe_version") or 0))
             ev.IsPartial = False
-            ev.ResultState = ua.Variant(RESULT_STATE_OK if ok else RESULT_STATE_NOK,
-                                        ua.VariantType.Int32)
+            ev.ResultState = v.int32(v.result_state(ok, values["ResultCode"]))
             ev.CreationTime = at
-            ev.ResultContent = ua.Variant(offset, ua.VariantType.Double)
+            ev.ResultContent = ua.Variant(
+                v.result_content(offset if ok else None, values["SigmaTranslationMm"],
+                                 values["SigmaRotationDeg"]), ua.VariantType.Variant)
             ev.Severity = 100 if ok else 500
             await self._evgen.trigger(
                 time_attr=at, message=f"result {values['ResultNumber']}: {values['Reason']}")
@@ -620,73 +575,21 @@ class OpcUaLink(Link):
         self.last_errors = [*self.last_errors[-19:], text]
 
 
-def _arg(name: str, datatype: int, rank: int = -1) -> ua.Argument:
-    arg = ua.Argument()
-    arg.Name = name
-    arg.DataType = _UA.NodeId(datatype)
-    arg.ValueRank = rank
-    arg.Description = ua.LocalizedText(name)
-    return arg
+async def _not_implemented(server: Server, root: Node) -> None:
+    """The model's optional methods mvpose does not implement (AddRecipe, ConfirmAll,
+    SimulationMode ...) answer BadNotImplemented (asyncua would say BadNothingToDo)."""
 
+    async def refuse(parent: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:
+        return _UA.StatusCode(ua.StatusCodes.BadNotImplemented)
 
-def _typedef(nodeid: ua.NodeId | None) -> ua.NodeId:
-    if nodeid is None:
-        raise RuntimeError("an instance of the Machine Vision model has no type definition")
-    return nodeid
-
-
-def _int32(value: int) -> ua.Variant:
-    return ua.Variant(int(value), ua.VariantType.Int32)
-
-
-def _struct_id(value: Any) -> str:
-    """The Id field of an OPC 40100 id structure (MeasId, PartId, RecipeId ...), or ''."""
-    got = getattr(value, "Id", None)
-    if got is None and isinstance(value, str):
-        got = value
-    return str(got or "").strip()
-
-
-def _recipe_id(mod: Any, cls: str, name: str, version: int) -> Any:
-    return getattr(mod, cls)(Id=name, Version=str(version) if version else None)
-
-
-def _recipe_label(handler: StationHandler) -> tuple[str, int]:
-    """The selected recipe's name and version. The StationHandler seam gives only the number;
-    a station (server.station.core.Station) also has ``active`` (name, version)."""
-    active = getattr(handler, "active", None)
-    if active is None:
-        number = handler.selected_recipe()
-        return (str(number) if number else "", 0)
-    return active.config.name, int(active.version)
-
-
-def _time(value: Any) -> datetime:
-    if isinstance(value, datetime):
-        return value
-    if isinstance(value, str):
-        try:
-            return datetime.fromisoformat(value)
-        except ValueError:
-            pass
-    return datetime.now(UTC)
-
-
-async def load_times() -> dict[str, float]:
-    """Seconds to build asyncua's base address space and to import the pinned NodeSets: what
-    every start of the link costs (``python -m drivers.links.opcua``)."""
-    t = time.monotonic()
-    server = Server()
-    await server.init()
-    out = {"init": time.monotonic() - t}
-    for path in import_order():
-        t = time.monotonic()
-        await server.import_xml(str(path))
-        out[path.name] = time.monotonic() - t
-    return out
-
-
-if __name__ == "__main__":
-    logging.basicConfig(level=logging.ERROR)
-    for name, seconds in asyncio.run(load_times()).items():
-        print(f"{name}: {seconds:.2f} s")
+    space = server.iserver.aspace
+    todo = [root]
+    while todo:
+        node = todo.pop()
+        for child in await node.get_children(refs=ua.ObjectIds.HierarchicalReferences):
+            cls = await child.read_node_class()
+            if cls == ua.NodeClass.Method:
+                if space[child.nodeid].call is None:
+                    server.link_method(child, refuse)
+            elif cls == ua.NodeClass.Object:
+                todo.append(child)

@@ -1,0 +1,93 @@
+"""Who may do what on the OPC UA link: users from the station file, roles per service and method."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from asyncua import ua
+from asyncua.common.utils import Buffer
+from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
+from asyncua.server.user_managers import UserManager
+from asyncua.ua.ua_binary import struct_from_binary
+
+from mvpose_core.linkconfig import OpcUaLinkConfig, check_password
+
+log = logging.getLogger(__name__)
+_UA: Any = ua
+
+
+def default_pki_dir() -> Path:
+    """``<data_dir>/opcua`` when the station file names no pki_dir (MVPOSE_DATA_DIR, else var)."""
+    return Path(os.environ.get("MVPOSE_DATA_DIR", "var")) / "opcua"
+
+
+# ---------------------------------------------------------------------------- users and roles
+class Users(UserManager):
+    """asyncua's user manager: user name + password against the station file's hashes."""
+
+    def __init__(self, config: OpcUaLinkConfig) -> None:
+        self.config = config
+        self._good: set[tuple[str, str]] = set()  # (name, sha256 of a checked password)
+
+    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
+                 certificate: Any = None) -> User | None:
+        if username is None:
+            return User(role=UserRole.Anonymous) if self.config.allow_anonymous else None
+        user = self.config.users.get(username)
+        if user is None or password is None:
+            log.warning("OPC UA: login refused for unknown user %r", username)
+            return None
+        key = (username, hashlib.sha256(password.encode()).hexdigest())
+        if key not in self._good:
+            if not check_password(password, user.password_hash):
+                log.warning("OPC UA: wrong password for user %r", username)
+                return None
+            self._good.add(key)  # pbkdf2 runs on the station loop: once per user and password
+        return User(role=UserRole.User, name=username)
+
+
+class Roles(SimpleRoleRuleset):
+    """read: browse, read, subscribe; operator: + call methods; engineer: + write, and the
+    methods in ``engineer_methods`` (ActivateConfiguration), which an operator's call is
+    refused (BadUserAccessDenied, the whole call) like a reader's."""
+
+    CALL = _UA.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+    WRITE = _UA.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+
+    def __init__(self, config: OpcUaLinkConfig) -> None:
+        super().__init__()
+        self.config = config
+        every = {_UA.NodeId(t) for t in USER_TYPES}
+        read = every - {self.CALL, self.WRITE}
+        self.allowed = {"read": read, "operator": read | {self.CALL}, "engineer": every}
+        self.engineer_methods: set[ua.NodeId] = set()  # filled once the model is built
+
+    def role(self, user: User | None) -> str | None:
+        if user is None:
+            return None
+        if user.name is not None and user.name in self.config.users:
+            return self.config.users[user.name].role
+        if user.role == UserRole.Anonymous and self.config.allow_anonymous:
+            return "read"
+        return None
+
+    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
+        role = self.role(user)
+        if role is None or action_type_id not in self.allowed[role]:
+            return False
+        if action_type_id == self.CALL and role != "engineer" and self.engineer_methods:
+            return not self._calls_engineer_method(body)
+        return True
+
+    def _calls_engineer_method(self, body: Any) -> bool:
+        """Whether a CallRequest's body (its parameters, not read yet) calls one of the
+        engineer's methods; read from a copy, the server decodes the body itself after us."""
+        if not isinstance(body, Buffer):
+            return True  # not what asyncua hands us: refuse rather than guess
+        params = struct_from_binary(ua.CallParameters, body.copy())
+        return any(m.MethodId in self.engineer_methods for m in params.MethodsToCall or [])
+

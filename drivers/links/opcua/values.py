@@ -1,0 +1,142 @@
+"""Small conversions between OPC UA values and the station's terms, shared by the link's modules."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from asyncua import ua
+
+from ..base import CalibrationInfo, StationHandler, StoredResult
+
+_UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
+RESULT_STATE_COMPLETED = 1  # ResultStateDataType (OPC 40100-1 §12.19): processing completed
+RESULT_STATE_FAILED = 4  # failed; as a filter value: every not-OK result
+NO_HANDLE = 0  # mvpose hands out no handles: every query's data is in its answer
+
+
+def arg(name: str, datatype: int, rank: int = -1) -> ua.Argument:
+    out = ua.Argument()
+    out.Name = name
+    out.DataType = _UA.NodeId(datatype)
+    out.ValueRank = rank
+    out.Description = ua.LocalizedText(name)
+    return out
+
+
+def typedef(nodeid: ua.NodeId | None) -> ua.NodeId:
+    if nodeid is None:
+        raise RuntimeError("an instance of the Machine Vision model has no type definition")
+    return nodeid
+
+
+def int32(value: int) -> ua.Variant:
+    return ua.Variant(int(value), ua.VariantType.Int32)
+
+
+def uint32(value: int) -> ua.Variant:
+    return ua.Variant(int(value), ua.VariantType.UInt32)
+
+
+def boolean(value: bool) -> ua.Variant:
+    return ua.Variant(bool(value), ua.VariantType.Boolean)
+
+
+def struct_id(value: Any) -> str:
+    """The Id field of an OPC 40100 id structure (MeasId, PartId, RecipeId ...), or ''."""
+    got = getattr(value, "Id", None)
+    if got is None and isinstance(value, str):
+        got = value
+    return str(got or "").strip()
+
+
+def struct_version(value: Any) -> str:
+    """The Version field of a RecipeId or ConfigurationId structure, or ''."""
+    return str(getattr(value, "Version", None) or "").strip()
+
+
+def recipe_id(cls: str, name: str, version: int, sha256: str = "",
+              number: int = 0) -> Any:
+    """A RecipeIdInternalDataType (``cls``): Id = recipe name, Version = the store's version,
+    Hash = the content's sha256, Description = the number controllers select it by."""
+    return getattr(_UA, cls)(
+        Id=name, Version=str(version) if version else None,
+        Hash=bytes.fromhex(sha256) if sha256 else None,
+        HashAlgorithm="SHA-256" if sha256 else None,
+        Description=ua.LocalizedText(f"recipe number {number}") if number else None)
+
+
+def recipe_label(handler: StationHandler) -> tuple[str, int]:
+    """The selected recipe's name and version. The StationHandler seam gives only the number;
+    a station (server.station.core.Station) also has ``active`` (name, version)."""
+    active = getattr(handler, "active", None)
+    if active is None:
+        number = handler.selected_recipe()
+        return (str(number) if number else "", 0)
+    return active.config.name, int(active.version)
+
+
+def configuration_id(calibration_id: str | None, sha256: str | None,
+                     version: int | None) -> Any:
+    """A ConfigurationIdDataType: Id = the calibration file's id, Version = the store's version,
+    Hash = the calibration's sha256."""
+    return _UA.ConfigurationIdDataType(
+        Id=calibration_id or "", Version=str(version) if version else None,
+        Hash=bytes.fromhex(sha256) if sha256 else None,
+        HashAlgorithm="SHA-256" if sha256 else None)
+
+
+def configuration(c: CalibrationInfo) -> Any:
+    return _UA.ConfigurationDataType(
+        InternalId=configuration_id(c.calibration_id, c.sha256, c.version),
+        LastModified=c.created_at)
+
+
+def result_state(ok: bool, reason_code: int) -> int:
+    """1 (Completed) for an OK result; a not-OK one: minus its reason code (values below 0 are
+    the system's own in OPC 40100-1)."""
+    return RESULT_STATE_COMPLETED if ok else -abs(int(reason_code) or RESULT_STATE_FAILED)
+
+
+def result_content(offset: Any, sigma_mm: float, sigma_deg: float) -> list[ua.Variant]:
+    """ResultContent: the offset (6 Doubles, recipe convention) and 1σ in mm and degrees: 8
+    Doubles; empty unless the result is OK."""
+    if not offset:
+        return []
+    return [ua.Variant(float(v), ua.VariantType.Double)
+            for v in (*offset, sigma_mm, sigma_deg)]
+
+
+def result_data(r: StoredResult, config_versions: dict[str, int]) -> Any:
+    """A stored record as the standard's ResultDataType."""
+    processing = None
+    if r.total_ms is not None:
+        processing = _UA.ProcessingTimesDataType(
+            StartTime=r.triggered_at,
+            EndTime=r.triggered_at + timedelta(milliseconds=r.total_ms),
+            ProcessingDuration=float(r.total_ms))
+    return _UA.ResultDataType(
+        ResultId=_UA.ResultIdDataType(Id=str(r.result_id)),
+        IsPartial=False,
+        ResultState=result_state(r.ok, r.reason_code),
+        MeasId=_UA.MeasIdDataType(Id=str(r.trigger_id)),
+        PartId=_UA.PartIdDataType(Id=r.part_id),
+        InternalRecipeId=recipe_id("RecipeIdInternalDataType", r.recipe, r.recipe_version),
+        InternalConfigurationId=configuration_id(
+            r.calibration_id, r.calibration_sha256,
+            config_versions.get(r.calibration_sha256 or "")),
+        JobId=_UA.JobIdDataType(Id=str(r.trigger_id)),
+        CreationTime=r.triggered_at,
+        ProcessingTimes=processing,
+        ResultContent=result_content(r.offset, r.sigma_mm, r.sigma_deg) or None)
+
+
+def when(value: Any) -> datetime:
+    if isinstance(value, datetime):
+        return value
+    if isinstance(value, str):
+        try:
+            return datetime.fromisoformat(value)
+        except ValueError:
+            pass
+    return datetime.now(UTC)

@@ -1,0 +1,148 @@
+"""What a link may ask the station besides triggers: stored results, recipes, calibration versions.
+
+The query half of :class:`drivers.links.base.StationHandler`, mixed into
+:class:`server.station.core.Station`. Reads of the store run in a worker thread
+(``asyncio.to_thread``) on a pooled connection of their own, never on the station's loop or its
+trigger thread, and decode only the page asked for (record summaries, no detections): the trigger
+path shares the process's GIL with them. Changes (deselecting the recipe) run on the trigger
+thread between triggers; activating a calibration goes the way a REST activation goes (the
+store's active version, then the station's reload on the trigger thread).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import TYPE_CHECKING, cast
+
+from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, StoredResult
+from mvpose_core.reasons import Reason
+from server.errors import NotFoundError
+from server.store.schemas import MeasurementFilter, MeasurementSummary
+
+if TYPE_CHECKING:
+    from server.station.core import Station
+    from server.store import Store
+
+MAX_PAGE = 1000  # the most records one query returns (a bigger ask gets this many)
+
+
+def stored_result(s: MeasurementSummary) -> StoredResult:
+    ok = s.result == "OK"
+    offset = s.offset if ok else None
+    unc = s.uncertainty
+    return StoredResult(
+        result_id=s.seq, trigger_id=s.trigger_id, part_id=s.part_id or "", recipe=s.recipe,
+        recipe_version=s.recipe_version, ok=ok, reason_code=s.reason_code,
+        message=s.message or "", triggered_at=s.triggered_at, total_ms=s.total_ms,
+        calibration_id=s.calibration_id, calibration_sha256=s.calibration_hash,
+        convention=offset.convention.value if offset is not None else None,
+        offset=tuple(offset.values) if offset is not None else None,
+        sigma_mm=unc.sigma_mm if unc else 0.0, sigma_deg=unc.sigma_deg if unc else 0.0)
+
+
+class StationQueries:
+    """The StationHandler's queries, for :class:`server.station.core.Station`."""
+
+    def _me(self) -> Station:
+        return cast("Station", self)
+
+    # ------------------------------------------------------------------ results
+    async def get_result(self, result_id: int) -> StoredResult | None:
+        return await asyncio.to_thread(self._get_result, result_id)
+
+    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+        return await asyncio.to_thread(self._find_results, query)
+
+    def _get_result(self, result_id: int) -> StoredResult | None:
+        repo = self._store().measurements
+        rows, _ = repo.summary_page(MeasurementFilter(result_id=result_id), None, 1)
+        return stored_result(rows[0]) if rows else None
+
+    def _find_results(self, q: ResultQuery) -> tuple[list[StoredResult], int]:
+        from sqlalchemy import func
+
+        from server.store.measurements import M, _summary
+
+        repo = self._store().measurements
+        result = None if q.ok is None else ("OK" if q.ok else "NOK")
+        query = repo._filtered(MeasurementFilter(result=result, reason_code=q.reason_code,
+                                                 recipe=q.recipe, part_id=q.part_id))
+        if q.trigger_id is not None:
+            query = query.where(M.c.trigger_id == q.trigger_id)
+        limit = min(max(q.limit, 0), MAX_PAGE)
+        # oldest first: a StartIndex keeps its meaning while new records arrive at the end
+        page = query.order_by(M.c.seq).offset(max(q.start, 0)).limit(limit)
+        with repo._engine.connect() as conn:
+            total = int(conn.execute(query.with_only_columns(func.count())).scalar_one())
+            rows = conn.execute(page).all() if limit else []
+        return [stored_result(_summary(r)) for r in rows], total
+
+    # ------------------------------------------------------------------ recipes
+    async def recipes(self) -> list[RecipeInfo]:
+        book = self._me().book
+        if book is None:
+            return []
+        selected = book.selected
+        return sorted((RecipeInfo(r.number, r.config.name, r.version, r.sha256,
+                                  selected is not None and selected.number == r.number)
+                       for r in book.recipes.values()), key=lambda r: r.number)
+
+    async def unselect_recipe(self) -> int:
+        st = self._me()
+
+        def unselect() -> None:
+            assert st.book is not None and st.sequence is not None
+            st.sequence.clear()
+            st.book.selected = None
+
+        await asyncio.get_running_loop().run_in_executor(st._trigger_exec, unselect)
+        st._recipe_changed()
+        return 0
+
+    # ------------------------------------------------------------------ calibration
+    async def calibrations(self) -> list[CalibrationInfo]:
+        return await asyncio.to_thread(self._calibrations)
+
+    async def activate_calibration(self, version: int, by: str) -> tuple[int, str]:
+        return await asyncio.to_thread(self._activate_calibration, version, by)
+
+    def _calibrations(self) -> list[CalibrationInfo]:
+        st = self._me()
+        versions = self._store().versions
+        name = st.file_station.name
+        try:
+            infos = versions.versions("calibration", name)
+        except NotFoundError:
+            return []
+        out = []
+        for info in infos:
+            _, content = versions.content("calibration", name, info.version)
+            out.append(CalibrationInfo(
+                version=info.version, calibration_id=str(content.get("id", "")),
+                sha256=str(content.get("sha256", "")), created_at=info.created_at,
+                created_by=info.created_by, comment=info.comment, active=info.active,
+                in_use=info.version == st.calibration_version))
+        return out
+
+    def _activate_calibration(self, version: int, by: str) -> tuple[int, str]:
+        # the REST upload's own check (content hash, fits the station), loaded only when used
+        from server.api.versions import check_calibration
+        from server.errors import InvalidInputError
+
+        st = self._me()
+        versions = self._store().versions
+        name = st.file_station.name
+        try:
+            _, content = versions.content("calibration", name, version)
+            check_calibration(name, content, st.file_station)
+        except (NotFoundError, InvalidInputError) as err:
+            return int(Reason.BAD_ARGUMENT), str(err)
+        versions.activate("calibration", name, version, by)
+        st.reload_recipes()  # on the trigger thread, between triggers
+        return 0, ""
+
+    def _store(self) -> Store:
+        services = self._me().services
+        if services is None:
+            raise RuntimeError("the station is not started")
+        return services.store
