@@ -49,6 +49,11 @@ def add_station_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detect-processes", type=int, default=None,
                         help="worker processes for mark detection (0 = in the station process; "
                         "default: none below 4 cores, else half the cores, at most 4)")
+    parser.add_argument("--trigger-priority", type=int, default=None,
+                        help="real-time (SCHED_FIFO) priority of the station process's trigger "
+                        "path, 1-99, 0 = the normal scheduler (default: "
+                        "$MVPOSE_TRIGGER_PRIORITY, else 10; needs CAP_SYS_NICE, else the "
+                        "station runs at normal priority and says so in its status)")
 
 
 def add_api_options(parser: argparse.ArgumentParser) -> None:

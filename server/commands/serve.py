@@ -38,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
     check_port_free(host, port)
     common = ["--station", str(settings.station), "--data-dir", str(settings.data_dir),
               "--log-level", args.log_level]
-    station_argv = common + options.forward(args, [*options.LINK_OPTIONS, "detect_processes"])
+    station_argv = common + options.forward(args, [*options.LINK_OPTIONS, "detect_processes",
+                                                     "trigger_priority"])
     api_argv = common + ["--host", host, "--port", str(port)]
     client = StationClient(settings.resolved_control_socket, timeout_s=1.0)
 

@@ -17,6 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from server.pipeline import PipelineOptions, auto_detect_processes
+    from server.station import scheduling
     from server.station.core import StationOptions
     from server.station.process import run_station
 
@@ -28,5 +29,11 @@ def run(args: argparse.Namespace) -> int:
         procs = auto_detect_processes()
     if procs < 0:
         raise CliError(f"--detect-processes must be >= 0, got {procs}")
+    priority = options.number(args.trigger_priority, "MVPOSE_TRIGGER_PRIORITY",
+                              scheduling.DEFAULT_PRIORITY, int, "an integer 0-99")
+    if not 0 <= priority <= 99:
+        raise CliError(f"--trigger-priority must be 0-99 (0: normal scheduler), got {priority}")
+    # before anything starts: every thread and worker process inherits the policy
+    cpu = scheduling.enter(priority)
     return run_station(settings, station, StationOptions(
-        sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)))
+        sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)), cpu)

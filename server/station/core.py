@@ -43,6 +43,7 @@ from mvpose_core.transforms import RobotConvention
 from server.pipeline import Pipeline, PipelineOptions
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
+from server.station import scheduling
 from server.station.queries import StationQueries
 from server.station.records import Provenance, failure_record, result_record
 from server.station.sequence import Step, ViewSequence
@@ -136,13 +137,6 @@ class _Ticket:
         self.state = "running"  # -> "recording" (trigger thread) | "expired" (watchdog)
 
 
-def _lower_priority() -> None:
-    """Nice the calling thread (Linux: a thread is a task with its own nice value): PNG encoding
-    of archived frames releases the GIL and must yield the CPU to the next trigger."""
-    with contextlib.suppress(AttributeError, OSError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-
-
 class Station(StationQueries):
     """One station's hardware, links and pipeline; the links' StationHandler (its queries:
     server.station.queries)."""
@@ -215,7 +209,7 @@ class Station(StationQueries):
         self._trigger_exec = ThreadPoolExecutor(1, thread_name_prefix="trigger")
         self._record_exec = ThreadPoolExecutor(1, thread_name_prefix="recorder")
         self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive",
-                                                initializer=_lower_priority)
+                                                initializer=scheduling.background)
         ready = threading.Event()
         self._thread = threading.Thread(target=self._loop_main, args=(ready,),
                                         name="station-loop", daemon=True)

@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Any
 
 from mvpose_core.station import StationConfig
 from server.settings import Settings
@@ -65,12 +66,16 @@ class StationProcess:
             self._services = None
 
 
-def run_station(settings: Settings, station: StationConfig, options: StationOptions) -> int:
-    """Run until SIGTERM/SIGINT; 0 on a clean stop."""
+def run_station(settings: Settings, station: StationConfig, options: StationOptions,
+                cpu: dict[str, Any] | None = None) -> int:
+    """Run until SIGTERM/SIGINT; 0 on a clean stop. ``cpu``: the scheduling policy the process
+    runs under (server.station.scheduling), shown in the status."""
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     proc = StationProcess(settings, station, options)
+    if cpu is not None:
+        proc.station.status_parts["cpu"] = lambda: cpu
     t = time.monotonic()
     proc.start()
     st = proc.station

@@ -1,0 +1,97 @@
+"""The station process's trigger path under the real-time FIFO policy (server.station.scheduling).
+
+`mvpose station` is started as it is deployed (its own process, the command line); the threads
+are looked up in /proc. The thread that did the triggers' work (the one with the most CPU time
+after a few triggers: detection, estimation) must run at the configured priority; with priority 0
+every thread runs under the normal scheduler and the status says why.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from stations import relaxed_deadline, station_file
+
+from server.station.client import StationClient, StationDownError
+
+START_S = 90.0
+
+
+def _start(tmp_path: Path, *extra: str,
+           env: dict[str, str] | None = None) -> tuple[subprocess.Popen[bytes], StationClient]:
+    path = station_file(tmp_path, "station1", relaxed_deadline)
+    data = tmp_path / "var"
+    log = (tmp_path / "station.log").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server.cli", "station", "--station", str(path), "--data-dir",
+         str(data), "--plc-port", "0", "--log-level", "warning", *extra],
+        stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, **(env or {})))
+    client = StationClient(data / "station.sock")
+    deadline = time.monotonic() + START_S
+    while True:
+        assert proc.poll() is None, (tmp_path / "station.log").read_text()[-2000:]
+        try:
+            client.call("ping", timeout_s=1.0)
+            return proc, client
+        except StationDownError:
+            assert time.monotonic() < deadline, "the station process did not answer"
+            time.sleep(0.1)
+
+
+def _threads(pid: int) -> list[dict[str, Any]]:
+    """Each task of ``pid``: its id, policy, real-time priority and CPU ticks so far."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        tid = int(task.name)
+        fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        out.append({"tid": tid, "policy": os.sched_getscheduler(tid),
+                    "priority": os.sched_getparam(tid).sched_priority,
+                    "ticks": int(fields[11]) + int(fields[12])})  # utime + stime
+    return out
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    proc.terminate()
+    assert proc.wait(timeout=30) == 0
+
+
+def test_the_trigger_path_runs_under_the_fifo_policy(tmp_path: Path) -> None:
+    proc, client = _start(tmp_path, "--trigger-priority", "12")
+    try:
+        assert client.status()["cpu"] == {"policy": "fifo", "priority": 12}
+        for k in range(8):
+            assert client.trigger(trigger_id=k + 1)["result_code"] == 0
+        busiest = max(_threads(proc.pid), key=lambda t: t["ticks"])
+        assert busiest["ticks"] > 0
+        assert (busiest["policy"], busiest["priority"]) == (os.SCHED_FIFO, 12), busiest
+    finally:
+        _stop(proc)
+
+
+def test_priority_zero_keeps_the_normal_scheduler_and_says_so(tmp_path: Path) -> None:
+    # the environment variable, as a container sets it
+    proc, client = _start(tmp_path, env={"MVPOSE_TRIGGER_PRIORITY": "0"})
+    try:
+        cpu = client.status()["cpu"]
+        assert cpu["policy"] == "normal" and "off" in cpu["why"]
+        assert {t["policy"] for t in _threads(proc.pid)} == {os.SCHED_OTHER}
+    finally:
+        _stop(proc)
+
+
+@pytest.mark.parametrize("value", ["100", "-1", "high"])
+def test_a_bad_priority_is_a_one_line_start_up_error(tmp_path: Path, value: str) -> None:
+    path = station_file(tmp_path, "station1", relaxed_deadline)
+    done = subprocess.run(
+        [sys.executable, "-m", "server.cli", "station", "--station", str(path), "--data-dir",
+         str(tmp_path / "var"), "--plc-port", "0", "--trigger-priority", value],
+        capture_output=True, text=True, timeout=60)
+    assert done.returncode != 0
+    assert "trigger-priority" in done.stderr or "TRIGGER_PRIORITY" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
