@@ -413,6 +413,7 @@ class Station(StationQueries):
             return int(Reason.UNKNOWN_RECIPE)
         await asyncio.get_running_loop().run_in_executor(
             self._trigger_exec, self._select, found.config.name, None, "plc")
+        self._recipe_changed()  # every link shows it (Modbus: INITIALIZED -> READY)
         return 0
 
     def _select(self, name: str, version: int | None, by: str) -> ActiveRecipe:

@@ -10,15 +10,18 @@ import socket
 from pathlib import Path
 from typing import Any
 
+import pytest
 from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
-from stations import runtime_options, settings_for, station_file
+from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
 from drivers.links.opcua import MV_URI, MVPOSE_URI, OpcUaLink
+from drivers.plc.registers import Status
 from mvpose_core.linkconfig import hash_password
-from server.loopback import running_server
+from mvpose_core.reasons import Reason
+from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter
 
 CLIENT_URI = "urn:mvpose:test:station-client"
@@ -101,3 +104,224 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
             assert events.queue.empty()
         finally:
             await client.disconnect()
+
+
+def _opcua(pki: Path) -> Any:
+    def edit(data: dict[str, Any]) -> None:
+        data.setdefault("links", {})["opcua"] = {
+            "port": 0, "pki_dir": str(pki), "security": ["Basic256Sha256_SignAndEncrypt"],
+            "users": {"olga": {"role": "operator", "password_hash": hash_password("pw", 10_000)},
+                      "erik": {"role": "engineer",
+                               "password_hash": hash_password("pw", 10_000)}}}
+    return edit
+
+
+async def _client(link: OpcUaLink, tmp_path: Path, user: str) -> Client:
+    key, cert = tmp_path / "client.pem", tmp_path / "client.der"
+    if not cert.exists():
+        await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
+                                            [ExtendedKeyUsageOID.CLIENT_AUTH],
+                                            {"commonName": "t"})
+        trusted = tmp_path / "pki" / "trusted"
+        trusted.mkdir(parents=True, exist_ok=True)
+        (trusted / "client.der").write_bytes(cert.read_bytes())
+    client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15)
+    client.application_uri = CLIENT_URI
+    await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
+                              private_key=str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    client.set_user(user)
+    client.set_password("pw")
+    await client.connect()
+    await client.load_data_type_definitions()  # the station's server put them in ua already
+    return client
+
+
+def _opcua_link(station: Any) -> OpcUaLink:
+    return next(lk for lk in station.links if isinstance(lk, OpcUaLink))
+
+
+async def test_results_by_id_are_the_stations_records_and_plc_triggers_interleave_with_continuous_mode(  # noqa: E501
+        tmp_path: Path) -> None:
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline,
+                                         _opcua(tmp_path / "pki")), tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        station = lb.runtime
+        link = _opcua_link(station)
+        assert await asyncio.to_thread(link.started.wait, 120), link.status()
+        recipe = station.active.config
+        await move_part(station, lb.twin, recipe.T_rf_from_pf0.matrix)
+        client = await _client(link, tmp_path, "olga")
+        try:
+            mv = await client.get_namespace_index(MV_URI)
+            own = await client.get_namespace_index(MVPOSE_URI)
+            vs = await client.nodes.objects.get_child(f"{mv}:VisionSystem")
+            res = await vs.get_child(f"{mv}:ResultManagement")
+            auto = await vs.get_child([f"{mv}:VisionStateMachine",
+                                       f"{mv}:AutomaticModeStateMachine"])
+
+            # a PLC trigger over Modbus: its record, read over OPC UA by the same id
+            status, _ = await trigger(lb.twin, recipe, 41, None, part_id="VIN-MB")
+            station.wait_idle()
+            store = station.services.store.measurements
+            rec = next(iter(store.iterate(MeasurementFilter(result_id=status.result_id))))
+            handle, result, err = await res.call_method(
+                f"{mv}:GetResultById", ua.ResultIdDataType(Id=str(status.result_id)),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert (handle, err) == (0, 0)
+            assert (result.ResultId.Id, result.MeasId.Id, result.PartId.Id) == (
+                str(rec.seq), "41", "VIN-MB")
+            assert (result.InternalRecipeId.Id, result.InternalRecipeId.Version) == (
+                rec.record.recipe, str(rec.record.recipe_version))
+            code = rec.record.reason_code
+            assert code == status.result_code
+            assert result.ResultState == (1 if code == 0 else -code)
+            if code == 0:
+                unc = rec.record.uncertainty
+                assert [c.Value for c in result.ResultContent] == [
+                    *rec.record.offset.values, unc.sigma_mm, unc.sigma_deg]
+            _, result, err = await res.call_method(
+                f"{mv}:GetResultById", ua.ResultIdDataType(Id=str(rec.seq + 1000)),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert (err, result.ResultId.Id) == (int(Reason.BAD_ARGUMENT), "")
+
+            # continuous mode; a PLC trigger meanwhile queues on the one trigger thread
+            etype = await client.nodes.base_event_type.get_child(
+                [f"{mv}:ResultReadyEventType", f"{own}:MvposeResultReadyEventType"])
+            events = _Events()
+            sub = await client.create_subscription(20, events)
+            await sub.subscribe_events(vs, etype)
+            job, err = await auto.call_method(
+                f"{mv}:StartContinuous", ua.MeasIdDataType(Id="9000"),
+                ua.PartIdDataType(Id="VIN-CONT"), ua.RecipeIdExternalDataType(Id=""),
+                ua.ProductIdDataType(Id=""), ua.Variant())
+            assert (job.Id, err) == ("9000", 0)
+            parts = [(await events.next()).PartId.Id for _ in range(2)]
+            plc, _ = await trigger(lb.twin, recipe, 42, None, part_id="VIN-PLC")
+            assert plc.result_id > 0  # answered while continuous mode runs
+            while "VIN-PLC" not in parts or parts[-1] != "VIN-CONT":
+                parts.append((await events.next()).PartId.Id)
+            assert await auto.call_method(f"{mv}:Stop", ua.Variant(0, ua.VariantType.Int32),
+                                          ua.Variant("", ua.VariantType.String)) == 0
+            state = await (await auto.get_child("0:CurrentState")).read_value()
+            assert state.Text == "Ready"
+            station.wait_idle()
+            rows = list(store.iterate(MeasurementFilter()))
+            cont = [r.seq for r in rows if r.record.part_id == "VIN-CONT"]
+            assert min(cont) < plc.result_id < max(cont)  # between two continuous jobs
+            assert len(cont) >= 3 and len(set(cont)) == len(cont)
+            assert [r.record.trigger_id for r in rows if r.seq == min(cont)] == [9000]
+            # each continuous job has its record and its event (the last one's may still be
+            # on its way: events go out with the subscription's publishing interval)
+            while parts.count("VIN-CONT") < len(cont):
+                parts.append((await events.next()).PartId.Id)
+            assert parts.count("VIN-PLC") == 1
+            complete, count, _, items, err = await res.call_method(
+                f"{mv}:GetResultListFiltered", ua.Variant(0, ua.VariantType.Int32),
+                ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id="VIN-CONT"),
+                ua.RecipeIdExternalDataType(Id=""), ua.RecipeIdInternalDataType(Id=""),
+                ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=""),
+                ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id=""),
+                ua.Variant(2, ua.VariantType.UInt32), ua.Variant(1, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert (err, count, complete) == (0, 2, len(cont) <= 3)
+            assert [int(r.ResultId.Id) for r in items] == cont[1:3]
+        finally:
+            await client.disconnect()
+
+
+async def test_unprepare_and_the_calibration_versions_go_through_the_station(
+        tmp_path: Path) -> None:
+    from mvpose_core.calibration.files import CameraCalibration, InputsSummary, make_calibration
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline,
+                                         _opcua(tmp_path / "pki")), tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        station = lb.runtime
+        link = _opcua_link(station)
+        assert await asyncio.to_thread(link.started.wait, 120), link.status()
+        recipe = station.active.config
+        cam = station.station.camera("top_left").model
+        calibs = [make_calibration("intrinsics", InputsSummary(board="test"), station="station1",
+                                   cameras={"top_left": CameraCalibration(
+                                       intrinsics={"fx": cam.fx + d, "fy": cam.fy,
+                                                   "cx": cam.cx, "cy": cam.cy},
+                                       distortion=list(cam.dist),
+                                       image_size=(cam.width, cam.height))})
+                  for d in (1.0, 2.0)]
+        versions = station.services.store.versions
+        edited = calibs[0].model_dump(mode="json")
+        edited["cameras"]["top_left"]["intrinsics"]["fx"] += 5.0  # no longer its sha256
+        for content in [c.model_dump(mode="json") for c in calibs] + [edited]:
+            versions.add("calibration", "station1", content, "test", comment="stored")
+        engineer = await _client(link, tmp_path, "erik")
+        operator = await _client(link, tmp_path, "olga")
+        try:
+            mv = await engineer.get_namespace_index(MV_URI)
+            vs = await engineer.nodes.objects.get_child(f"{mv}:VisionSystem")
+            cm = await vs.get_child(f"{mv}:ConfigurationManagement")
+            active = await cm.get_child(f"{mv}:ActiveConfiguration")
+            assert (await active.read_value()).InternalId.Id == ""  # the station file has none
+            complete, count, _, items, err = await cm.call_method(
+                f"{mv}:GetConfigurationList", ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.Int32))
+            assert (complete, count, err) == (True, 3, 0)
+            assert [(c.InternalId.Id, c.InternalId.Version) for c in items] == [
+                (calibs[0].id, "1"), (calibs[1].id, "2"), (calibs[0].id, "3")]
+            assert items[1].InternalId.Hash == bytes.fromhex(calibs[1].sha256)
+
+            assert await cm.call_method(f"{mv}:ActivateConfiguration",
+                                        ua.ConfigurationIdDataType(Id="", Version="2")) == 0
+            # measured with from the next trigger on, as after a REST activation
+            assert station.station.camera("top_left").intrinsics.fx == cam.fx + 2.0
+            assert station.status()["calibration"] == {
+                "id": calibs[1].id, "sha256": calibs[1].sha256, "version": 2}
+            shown = await active.read_value()
+            assert (shown.InternalId.Id, shown.InternalId.Version) == (calibs[1].id, "2")
+            # the edited version is refused with the REST upload's own check
+            assert await cm.call_method(
+                f"{mv}:ActivateConfiguration",
+                ua.ConfigurationIdDataType(Id="", Version="3")) == int(Reason.BAD_ARGUMENT)
+            assert "does not match its sha256" in link.last_errors[-1]
+            assert station.status()["calibration"]["version"] == 2
+            ovs = await operator.nodes.objects.get_child(f"{mv}:VisionSystem")
+            ocm = await ovs.get_child(f"{mv}:ConfigurationManagement")
+            with pytest.raises(ua.UaError, match="BadUserAccessDenied"):
+                await ocm.call_method(f"{mv}:ActivateConfiguration",
+                                      ua.ConfigurationIdDataType(Id="", Version="1"))
+            assert station.status()["calibration"]["version"] == 2
+
+            # the recipe: listed, unprepared (a trigger without recipe is refused), prepared
+            rm = await ovs.get_child(f"{mv}:RecipeManagement")
+            complete, count, _, items, err = await rm.call_method(
+                f"{mv}:GetRecipeListFiltered", ua.RecipeIdExternalDataType(Id=""),
+                ua.ProductIdDataType(Id=""), ua.Variant(1, ua.VariantType.Int32),
+                ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert [(r.Id, r.Version) for r in items] == [
+                (recipe.name, str(station.active.version))]
+            out, err = await rm.call_method(
+                f"{mv}:UnprepareRecipe", ua.RecipeIdExternalDataType(Id="1"),
+                ua.RecipeIdInternalDataType(Id=""))
+            assert (out.Id, err, station.active) == (recipe.name, 0, None)
+            # the PLC sees what it sees without a recipe: INITIALIZED, no READY for triggers
+            plc = await lb.twin.wait_for(lambda st: st.state.name == "INITIALIZED", 5,
+                                         "INITIALIZED")
+            assert not plc.has(Status.READY)
+            # a trigger that names no recipe is refused and recorded
+            own = await operator.get_namespace_index(MVPOSE_URI)
+            rid, code, *_ = await ovs.call_method(
+                f"{own}:Measure", ua.Variant("VIN-NONE", ua.VariantType.String),
+                ua.Variant(0, ua.VariantType.UInt16), ua.Variant(51, ua.VariantType.UInt32))
+            assert code == Reason.UNKNOWN_RECIPE and rid > 0
+            auto = await ovs.get_child([f"{mv}:VisionStateMachine",
+                                        f"{mv}:AutomaticModeStateMachine", "0:CurrentState"])
+            assert (await auto.read_value()).Text == "Initialized"
+            _, done, err = await rm.call_method(
+                f"{mv}:PrepareRecipe", ua.RecipeIdExternalDataType(Id="1"),
+                ua.RecipeIdInternalDataType(Id=""))
+            assert (done, err, station.active.config.name) == (True, 0, recipe.name)
+            status, _ = await trigger(lb.twin, recipe, 52, None)
+            assert status.result_code != Reason.UNKNOWN_RECIPE
+        finally:
+            await engineer.disconnect()
+            await operator.disconnect()
