@@ -74,6 +74,7 @@ class RecordingHandler:
         self.started = asyncio.Event()
         self.resets = 0
         self.entered = 0  # measurements begun
+        self.fail = False  # measure raises
 
     def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
         return asyncio.ensure_future(self._measure(request))
@@ -85,6 +86,8 @@ class RecordingHandler:
             await self.gate.wait()
         if self.permits is not None:
             await self.permits.get()
+        if self.fail:
+            raise RuntimeError("the station is stopping")
         t = request.trigger_id
         out = LinkOutcome(0, 0, offset=(t * 0.5, -1.0, 2.0, 0.1, 0.2, -0.3),
                           sigma_trans_mm=0.05, sigma_rot_deg=0.01, processing_ms=12.0)
@@ -977,3 +980,21 @@ async def test_a_client_of_its_own_decodes_the_machine_vision_structures(
         "active_configuration": [using.calibration_id, str(using.version)],
         "recipes": ["recipe-1", "recipe-2"],
     }
+
+
+@MODULE_LOOP
+async def test_continuous_mode_ends_when_the_station_gives_no_answer(served: Served) -> None:
+    h = served.handler
+    h.fail = True
+    client = await served.client()
+    try:
+        p = await _parts(client)
+        assert (await _start_continuous(p, "", "VIN-F"))[1] == 0
+        await _until(lambda: served.link._continuous is None)
+        outs = await _wait_records(h, "VIN-F", 1)
+        assert [o.result_code for o in outs] == [int(Reason.HANDLER_FAILED)]  # not a storm
+        assert "continuous mode ended" in served.link.last_errors[-1]
+        assert (await p["auto_state"].read_value()).Text == "Ready"
+    finally:
+        h.fail = False
+        await client.disconnect()

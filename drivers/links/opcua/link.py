@@ -428,7 +428,11 @@ class OpcUaLink(Link):
                 # its own task, shielded: Abort ends the loop, never a job inside the station
                 job = self._spawn(self._job(self._request(trigger_id, part_id, recipe),
                                             single=False))
-                await asyncio.shield(job)
+                out = await asyncio.shield(job)
+                if out.result_code >= 1000:  # the link's own range: the station did not answer
+                    self._error(f"continuous mode ended: trigger {trigger_id} was answered "
+                                f"{reason_name(out.result_code)} by the link itself")
+                    break
                 trigger_id = self._next_trigger("")
         finally:
             self._continuous = None
