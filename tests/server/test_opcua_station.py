@@ -183,6 +183,16 @@ async def test_results_by_id_are_the_stations_records_and_plc_triggers_interleav
                 f"{mv}:GetResultById", ua.ResultIdDataType(Id=str(rec.seq + 1000)),
                 ua.Variant(0, ua.VariantType.Int32))
             assert (err, result.ResultId.Id) == (int(Reason.BAD_ARGUMENT), "")
+            complete, count, _, items, err = await res.call_method(
+                f"{mv}:GetResultListFiltered", ua.Variant(0, ua.VariantType.Int32),
+                ua.MeasIdDataType(Id="41"), ua.PartIdDataType(Id=""),
+                ua.RecipeIdExternalDataType(Id="1"), ua.RecipeIdInternalDataType(Id=""),
+                ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=""),
+                ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id=""),
+                ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.Int32))
+            assert (err, complete, count, [r.ResultId.Id for r in items]) == (
+                0, True, 1, [str(rec.seq)])
 
             # continuous mode; a PLC trigger meanwhile queues on the one trigger thread
             etype = await client.nodes.base_event_type.get_child(
