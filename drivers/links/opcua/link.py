@@ -98,7 +98,7 @@ class OpcUaLink(Link):
         self._made: Server | None = None
         self._roles = Roles(config)
         self.management = Management(handler, self._show_recipe, self._error)
-        self._continuous: asyncio.Task[None] | None = None  # StartContinuous's loop
+        self._continuous: asyncio.Future[Any] | None = None  # StartContinuous's loop
         self._stop_requested = False
 
     # ------------------------------------------------------------------ life cycle
@@ -416,7 +416,7 @@ class OpcUaLink(Link):
             return [none, v.int32(int(Reason.UNKNOWN_RECIPE))]
         first = self._next_trigger(v.struct_id(meas.Value))
         self._stop_requested = False
-        self._continuous = asyncio.ensure_future(
+        self._continuous = self._spawn(
             self._run_continuous(first, v.struct_id(part.Value), int(number or 0)))
         await self._show_states()
         return [ua.Variant(_UA.JobIdDataType(Id=str(first))), v.int32(0)]
@@ -445,7 +445,7 @@ class OpcUaLink(Link):
         if task is None:
             return [v.int32(int(Reason.BAD_ARGUMENT))]  # nothing runs
         self._stop_requested = True
-        await asyncio.shield(task)
+        await asyncio.wait({task})  # a failed loop is logged by _spawn's callback
         return [v.int32(0)]
 
     async def _abort(self, parent: ua.NodeId, *args: ua.Variant) -> list[ua.Variant]:
