@@ -45,8 +45,10 @@ class ViewSequence:
         recipe = self.book.by_number(req.recipe) if req.recipe else selected
         if recipe is None:
             fallback = selected or next(iter(self.book.recipes.values()))
-            return Step(fallback, True, 0, refused=(
-                Reason.UNKNOWN_RECIPE, f"recipe number {req.recipe} is not in the station file"))
+            text = (f"recipe number {req.recipe} is not in the station file" if req.recipe else
+                    "no recipe is selected (the PLC's SELECT_RECIPE or OPC UA PrepareRecipe "
+                    "selects one)")
+            return Step(fallback, True, 0, refused=(Reason.UNKNOWN_RECIPE, text))
         views = sorted({s.view for s in recipe.config.sightings})
         view = req.view_index or (views[0] if len(views) == 1 else 0)
         if view not in views:

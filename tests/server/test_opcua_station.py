@@ -323,6 +323,10 @@ async def test_unprepare_and_the_calibration_versions_go_through_the_station(
                 f"{own}:Measure", ua.Variant("VIN-NONE", ua.VariantType.String),
                 ua.Variant(0, ua.VariantType.UInt16), ua.Variant(51, ua.VariantType.UInt32))
             assert code == Reason.UNKNOWN_RECIPE and rid > 0
+            station.wait_idle()
+            refused = next(iter(station.services.store.measurements.iterate(
+                MeasurementFilter(result_id=rid)))).record
+            assert refused.message is not None and "no recipe is selected" in refused.message
             auto = await ovs.get_child([f"{mv}:VisionStateMachine",
                                         f"{mv}:AutomaticModeStateMachine", "0:CurrentState"])
             assert (await auto.read_value()).Text == "Initialized"
