@@ -388,6 +388,7 @@ async def test_prepare_recipe_selects_by_number_and_names_unknown_ones(served: S
             f"{mv}:PrepareRecipe", ua.RecipeIdExternalDataType(Id="2"),
             ua.RecipeIdInternalDataType(Id=""))
         assert (done, err, served.handler.recipe) == (True, 0, 2)
+        assert (internal.Id, internal.Version, internal.Hash) == ("recipe-2", "4", b"\x02" * 32)
         number = await rm.get_child([f"{own}:ActiveRecipe", f"{own}:Number"])
         assert await number.read_value() == 2
         _, done, err = await rm.call_method(

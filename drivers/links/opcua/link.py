@@ -48,7 +48,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from mvpose_core.linkconfig import OpcUaLinkConfig
 from mvpose_core.reasons import Reason, reason_name
 
-from ..base import Link, LinkOutcome, LinkRequest, StationHandler
+from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
 from . import values as v
 from .access import Roles, Users, default_pki_dir
 from .management import Management
@@ -341,9 +341,13 @@ class OpcUaLink(Link):
             await (await node.get_child("0:Id")).write_value(
                 self._state_ids[state] if active else ua.NodeId())
 
+    async def _selected(self) -> RecipeInfo | None:
+        return next((r for r in await self.handler.recipes() if r.selected), None)
+
     async def _show_recipe(self) -> None:
         number = self.handler.selected_recipe()
-        name, version = v.recipe_label(self.handler)
+        current = await self._selected()
+        name, version = (current.name, current.version) if current else ("", 0)
         n = self._nodes
         await n["recipe.Number"].write_value(ua.Variant(number, ua.VariantType.UInt16))
         await n["recipe.Name"].write_value(ua.Variant(name, ua.VariantType.String))
@@ -382,7 +386,10 @@ class OpcUaLink(Link):
             code = await self.handler.select_recipe(int(wanted))
         if code == 0:
             await self._show_recipe()
-        out = v.recipe_id("RecipeIdInternalDataType", *v.recipe_label(self.handler))
+        current = await self._selected()
+        out = (v.recipe_id("RecipeIdInternalDataType", current.name, current.version,
+                           current.sha256, current.number)
+               if current else _UA.RecipeIdInternalDataType(Id=""))
         return [ua.Variant(out), ua.Variant(code == 0, ua.VariantType.Boolean), v.int32(code)]
 
     async def _start_single_job(self, parent: ua.NodeId, meas: ua.Variant, part: ua.Variant,

@@ -7,7 +7,7 @@ from typing import Any
 
 from asyncua import ua
 
-from ..base import CalibrationInfo, StationHandler, StoredResult
+from ..base import CalibrationInfo, StoredResult
 
 _UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
 RESULT_STATE_COMPLETED = 1  # ResultStateDataType (OPC 40100-1 §12.19): processing completed
@@ -64,16 +64,6 @@ def recipe_id(cls: str, name: str, version: int, sha256: str = "",
         Hash=bytes.fromhex(sha256) if sha256 else None,
         HashAlgorithm="SHA-256" if sha256 else None,
         Description=ua.LocalizedText(f"recipe number {number}") if number else None)
-
-
-def recipe_label(handler: StationHandler) -> tuple[str, int]:
-    """The selected recipe's name and version. The StationHandler seam gives only the number;
-    a station (server.station.core.Station) also has ``active`` (name, version)."""
-    active = getattr(handler, "active", None)
-    if active is None:
-        number = handler.selected_recipe()
-        return (str(number) if number else "", 0)
-    return active.config.name, int(active.version)
 
 
 def configuration_id(calibration_id: str | None, sha256: str | None,
