@@ -8,6 +8,14 @@ seals (server/store/chain.py). A new segment starts when the current one holds
 ``segment_entries`` links; a segment is deleted once the database holds each of its links and a
 newer segment exists, so the newest link (the chain's head) always stays on disk.
 
+A segment file is longer than its lines: NUL bytes follow the last line, written (and synced)
+ahead of the appends, so that an append overwrites blocks the file already has and its
+``fdatasync`` flushes the data alone. Growing the file instead changes its size, which waits for
+the file system's own journal commit (ext4's jbd2, a normal-priority kernel thread): on a busy
+two-core PC that made an append take 3-12 ms instead of 0.3-1 ms. A segment starts with
+:data:`HEAD_ROOM` bytes of zeros; a thread of the journal's own keeps :data:`PREALLOCATE` more
+ahead of the appends. The first NUL byte of a segment ends its lines (JSON text never holds one).
+
 Only the last line of the last segment can be torn (the process died in the append, which had
 therefore not returned its seq): it is cut off at open with a warning. Anything else that does
 not verify (a line that is not JSON, a seq out of order, a hash that the body does not give)
@@ -32,6 +40,11 @@ from server.store.measurements import Link, link_from_body
 log = logging.getLogger(__name__)
 
 FORMAT = 1
+#: zeros written with a new segment's header (in the same fsync), for its first appends
+HEAD_ROOM = 64 * 1024
+#: zeros the journal's thread keeps written ahead of the appends (it adds this much when less
+#: than half is left)
+PREALLOCATE = 1024 * 1024
 _STATION = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 _SEGMENT = re.compile(r"^(\d{20})\.jsonl$")
 
@@ -50,6 +63,7 @@ class _Segment:
     after_seq: int
     last_seq: int  # after_seq when it holds no link yet
     entries: int
+    end: int = 0  # bytes of lines (the NUL bytes after them are space written ahead)
 
 
 def journal_dir(data_dir: Path, station: str) -> Path:
@@ -63,15 +77,26 @@ class Journal:
     """Append-only, fsynced segments of one station's chain. Not thread-safe for appends (the
     writer serialises them); :meth:`compact` may run on another thread."""
 
-    def __init__(self, directory: Path, station: str, segment_entries: int) -> None:
+    def __init__(self, directory: Path, station: str, segment_entries: int,
+                 ahead: int = PREALLOCATE) -> None:
         if segment_entries < 1:
             raise ValueError(f"segment_entries must be >= 1, got {segment_entries}")
         self.directory = directory
         self.station = station
         self.segment_entries = segment_entries
+        self.ahead = ahead  # PREALLOCATE; 0: no zeros ahead, every append grows the file
+        self.head_room = min(HEAD_ROOM, ahead)
         self._segments: list[_Segment] = []
-        self._fd: int | None = None  # the last segment, open for appending
-        self._size = 0  # its size in bytes after the last good append
+        self._fd: int | None = None  # the last segment, open for writing
+        self._size = 0  # where its lines end (the next append's offset)
+        self._allocated = 0  # up to here the file holds synced zeros after its lines
+        # the zeroing thread's work, between it, appends past _allocated and a new segment
+        self._alloc = threading.Condition()
+        self._zeroing: tuple[int, int] | None = None  # (fd, from offset) being zeroed now
+        self._retired: int | None = None  # a finished segment's fd, closed when its zeroing ends
+        self._wake = threading.Event()
+        self._stopping = False
+        self._ahead: threading.Thread | None = None
         self._head: tuple[int, str] | None = None
         self._broken: OSError | None = None
         self._lock = threading.Lock()  # the segment list, between append and compact
@@ -80,9 +105,10 @@ class Journal:
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, directory: Path, station: str, segment_entries: int = 1000) -> Journal:
+    def open(cls, directory: Path, station: str, segment_entries: int = 1000,
+             ahead: int = PREALLOCATE) -> Journal:
         """Read and verify every segment (cutting a torn last line); create the folder if new."""
-        journal = cls(Path(directory), station, segment_entries)
+        journal = cls(Path(directory), station, segment_entries, ahead)
         _make_dirs(journal.directory)
         journal._lock_folder()
         try:
@@ -115,7 +141,9 @@ class Journal:
         self._lock_fd = fd
 
     def _read_segment(self, path: Path, last: bool) -> None:
-        data = path.read_bytes()
+        raw_file = path.read_bytes()
+        nul = raw_file.find(b"\0")
+        data = raw_file if nul < 0 else raw_file[:nul]
         lines = data.split(b"\n")
         good_end = 0  # byte offset after the last line that verified
         header: dict[str, Any] | None = None
@@ -157,9 +185,11 @@ class Journal:
                 _fsync_dir(path.parent)
                 return
             raise JournalCorruptError(f"journal {path}: no header line")
-        if good_end < len(data):
+        if raw_file[good_end:].strip(b"\0"):  # a torn line (or its pieces): zeros instead
             with open(path, "r+b") as f:
-                f.truncate(good_end)
+                f.seek(good_end)
+                f.write(bytes(len(raw_file) - good_end))
+                f.flush()
                 os.fsync(f.fileno())
         after = int(header["after_seq"])
         if self._segments and after < self._segments[-1].last_seq:
@@ -176,7 +206,7 @@ class Journal:
                 f"{self._head[1][:12]}…"
             )
         assert prev is not None
-        self._segments.append(_Segment(path, after, prev[0], len(links)))
+        self._segments.append(_Segment(path, after, prev[0], len(links), good_end))
         self.links += links
         self._head = prev
 
@@ -207,8 +237,11 @@ class Journal:
 
     def _open_last(self) -> None:
         seg = self._segments[-1]
-        self._fd = os.open(seg.path, os.O_WRONLY | os.O_APPEND)
-        self._size = os.fstat(self._fd).st_size
+        self._fd = os.open(seg.path, os.O_WRONLY)
+        self._size = seg.end
+        self._allocated = max(seg.end, os.fstat(self._fd).st_size)  # zeros after the lines
+        self._wake.set()
+        self._start_ahead()
 
     # ------------------------------------------------------------------ state
     @property
@@ -247,22 +280,31 @@ class Journal:
         else:
             assert self._fd is not None
             try:
-                _write_all(self._fd, line)
+                if self._size + len(line) > self._allocated:  # the file grows
+                    with self._alloc:  # never into zeros the thread is writing
+                        self._alloc.wait_for(lambda: self._zeroing is None
+                                             or self._zeroing[0] != self._fd)
+                _write_at(self._fd, line, self._size)
                 os.fdatasync(self._fd)
             except OSError as err:
-                self._undo(err)
+                self._undo(err, len(line))
                 raise
             self._size += len(line)
             seg.entries += 1
+            seg.end = self._size
         self._segments[-1].last_seq = link.seq
         self._head = (link.seq, link.hash)
+        if self.ahead and self._allocated - self._size < self.ahead // 2:
+            self._wake.set()
 
-    def _undo(self, err: OSError) -> None:
-        """Cut off whatever part of the failed line reached the file."""
+    def _undo(self, err: OSError, length: int) -> None:
+        """Overwrite with zeros whatever part of the failed line reached the file."""
         assert self._fd is not None
         try:
-            os.ftruncate(self._fd, self._size)
-            os.fdatasync(self._fd)
+            reached = min(os.fstat(self._fd).st_size, self._size + length) - self._size
+            if reached > 0:  # zeros over exactly what reached the file (it must not grow)
+                _write_at(self._fd, bytes(reached), self._size)
+                os.fdatasync(self._fd)
         except OSError as again:
             self._broken = OSError(f"a failed append could not be cut off ({again})")
             log.error("journal %s: cannot cut a failed append (%s) after %s",
@@ -273,23 +315,66 @@ class Journal:
                                  "after_seq": after_seq, "after_hash": after_hash})
         path = self.directory / f"{after_seq:020d}.jsonl"
         data = header.encode() + b"\n" + first
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL, 0o644)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            _write_all(fd, data)
+            _write_at(fd, data + bytes(self.head_room), 0)
             os.fsync(fd)
             _fsync_dir(self.directory)
         except OSError:
             os.close(fd)
             path.unlink(missing_ok=True)
             raise
-        old = self._fd
-        with self._lock:
-            self._segments.append(_Segment(path, after_seq, after_seq, 1 if first else 0))
-        self._fd, self._size = fd, len(data)
+        with self._alloc:
+            old = self._fd
+            with self._lock:
+                self._segments.append(_Segment(path, after_seq, after_seq, 1 if first else 0,
+                                               len(data)))
+            self._fd, self._size = fd, len(data)
+            self._allocated = len(data) + self.head_room
+            if old is not None and self._zeroing is not None and self._zeroing[0] == old:
+                self._retired, old = old, None  # the thread closes it when done
         if old is not None:
             os.close(old)
         if not first:
             self._head = (after_seq, after_hash)
+        self._wake.set()
+        self._start_ahead()
+
+    def _start_ahead(self) -> None:
+        if self._ahead is None and self.ahead > 0:
+            self._ahead = threading.Thread(target=self._write_ahead, daemon=True,
+                                           name=f"journal-ahead-{self.station}")
+            self._ahead.start()
+
+    def _write_ahead(self) -> None:
+        """The journal's thread: keep ``ahead`` bytes of synced zeros after the lines. The
+        zeros are written outside the lock, past every line, so appends go on meanwhile."""
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            with self._alloc:
+                if self._stopping or self._fd is None:
+                    return
+                if self._allocated - self._size >= self.ahead // 2:
+                    continue
+                # past every line: an append that outran the zeros grew the file itself
+                fd, start = self._fd, max(self._allocated, self._size)
+                self._zeroing = (fd, start)
+            done = False
+            try:
+                _write_at(fd, bytes(self.ahead), start)
+                os.fdatasync(fd)
+                done = True
+            except OSError as err:  # appends go on growing the file: slower, not wrong
+                log.warning("journal %s: cannot write space ahead (%s)", self.directory, err)
+            with self._alloc:
+                self._zeroing = None
+                if done and self._fd == fd:  # no append passed `start` meanwhile (they wait)
+                    self._allocated = start + self.ahead
+                if self._retired is not None:
+                    os.close(self._retired)
+                    self._retired = None
+                self._alloc.notify_all()
 
     def compact(self, committed_seq: int) -> int:
         """Delete the segments the database holds entirely (never the newest); how many."""
@@ -303,6 +388,11 @@ class Journal:
         return len(done)
 
     def close(self) -> None:
+        with self._alloc:
+            self._stopping = True
+        self._wake.set()
+        if self._ahead is not None and self._ahead is not threading.current_thread():
+            self._ahead.join(timeout=5)
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
@@ -324,11 +414,12 @@ def _parses(raw: bytes) -> bool:
         return False
 
 
-def _write_all(fd: int, data: bytes) -> None:
+def _write_at(fd: int, data: bytes, offset: int) -> None:
     view = memoryview(data)
     while view:
-        n = os.write(fd, view)
+        n = os.pwrite(fd, view, offset)
         view = view[n:]
+        offset += n
 
 
 def _fsync_dir(path: Path) -> None:

@@ -27,7 +27,7 @@ from sqlalchemy.engine import make_url
 from server.errors import StoreUnavailableError
 from server.store.chain import GENESIS
 from server.store.db import create_store_engine, migrate
-from server.store.journal import Journal, journal_dir
+from server.store.journal import PREALLOCATE, Journal, journal_dir
 from server.store.measurements import (
     ChainConflictError,
     Link,
@@ -207,14 +207,16 @@ class DurableWriter:
              sqlite_synchronous: str = "FULL", connect_timeout_s: float = 2.0,
              statement_timeout_s: float = 5.0, sqlite_busy_timeout_s: float = 1.0,
              retry_max_s: float = 2.0, stall_s: float = 2.0,
-             segment_entries: int = 1000, outbox: OutboxRows | None = None) -> DurableWriter:
+             segment_entries: int = 1000, journal_ahead: int = PREALLOCATE,
+             outbox: OutboxRows | None = None) -> DurableWriter:
         """Open the journal, learn the head (max of journal and database), start the thread.
 
         With ``outbox`` (server/store/outbox.py), every link the thread inserts (the journal's
         replay too) gets its outbox rows in the insert's transaction."""
         if not 0 <= db_wait_s <= 1:
             raise ValueError(f"db_wait_s must be within 0-1 s, got {db_wait_s}")
-        journal = Journal.open(journal_dir(data_dir, station), station, segment_entries)
+        journal = Journal.open(journal_dir(data_dir, station), station, segment_entries,
+                               journal_ahead)
         engine = _writer_engine(url, sqlite_synchronous, connect_timeout_s, statement_timeout_s,
                                 sqlite_busy_timeout_s)
         try:

@@ -20,7 +20,7 @@ from records import make_record
 from mvpose_core.reasons import Reason
 from server.store import Store, open_store
 from server.store.chain import GENESIS, seal
-from server.store.journal import Journal, JournalCorruptError, journal_dir
+from server.store.journal import HEAD_ROOM, Journal, JournalCorruptError, journal_dir
 from server.store.measurements import ChainConflictError, seal_link
 from server.store.schemas import MeasurementFilter
 from server.store.writer import DurableWriter, Sealed
@@ -49,6 +49,11 @@ def _open(url: str, data_dir: Path, **kw: float) -> DurableWriter:
 def _append(writer: DurableWriter, rng: np.random.Generator, n: int,
             first: int = 1) -> list[Sealed]:
     return [writer.append(make_record(rng, STATION, trigger_id=first + i)) for i in range(n)]
+
+
+def _lines(segment: Path) -> list[str]:
+    """A segment's lines: they end at its first NUL byte (space written ahead of appends)."""
+    return segment.read_bytes().split(b"\0", 1)[0].decode().splitlines()
 
 
 def _rows(store: Store) -> list[tuple[int, int, str]]:
@@ -129,7 +134,7 @@ def test_compaction_keeps_the_head_and_a_restart_continues_from_it(
         writer.close()
     segments = sorted(journal_dir(data, STATION).glob("*.jsonl"))
     assert len(segments) == 1  # every older segment was committed and deleted
-    lines = segments[0].read_text().splitlines()
+    lines = _lines(segments[0])
     assert json.loads(lines[-1])["seq"] == 15 and json.loads(lines[-1])["hash"] == sealed[-1].hash
 
     # The database is gone for this station (another URL, nothing listens there): the journal
@@ -259,14 +264,16 @@ def test_a_torn_last_line_is_cut_and_a_bad_line_inside_is_refused(
     folder = journal_dir(data, STATION)
     last = sorted(folder.glob("*.jsonl"))[-1]
     good = last.read_bytes()
-    last.write_bytes(good + b'{"seq": 6, "prev_hash": "' + b"\0" * 40)  # the kill hit a write
+    end = good.index(b"\0")  # the lines end here; zeros written ahead follow
+    torn = b'{"seq": 6, "prev_hash": "' + b"\0" * 40 + b"2f9a"  # the kill hit a write
+    last.write_bytes(good[:end] + torn + good[end + len(torn):])
     with caplog.at_level(logging.WARNING):
         journal = Journal.open(folder, STATION)
     journal.close()
     assert journal.head == (5, sealed[-1].hash)
-    assert "torn" in caplog.text and last.read_bytes() == good
+    assert "torn" in caplog.text and last.read_bytes() == good  # zeros again where it was
 
-    lines = good.split(b"\n")
+    lines = good[:end].split(b"\n")
     entry = json.loads(lines[1])
     entry["body"] = entry["body"].replace('"OK"', '"NOK"', 1)
     bad = b"\n".join([lines[0], json.dumps(entry).encode(), *lines[2:]])
@@ -284,7 +291,11 @@ def test_the_journal_format_is_what_the_docs_say(url: str, tmp_path: Path) -> No
         writer.close()
     (segment,) = journal_dir(data, STATION).glob("*.jsonl")
     assert segment.name == f"{0:020d}.jsonl"
-    header, *links = (json.loads(line) for line in segment.read_text().splitlines())
+    raw = segment.read_bytes()
+    header, *links = (json.loads(line) for line in _lines(segment))
+    # the lines, then NUL bytes written ahead of the next appends (none inside the lines)
+    assert raw.index(b"\0") == len(b"".join(line.encode() + b"\n" for line in _lines(segment)))
+    assert not raw[raw.index(b"\0"):].strip(b"\0") and len(raw) >= HEAD_ROOM
     assert header == {"journal": 1, "station": STATION, "after_seq": 0, "after_hash": GENESIS}
     for link, s in zip(links, sealed, strict=True):
         assert seal(link["prev_hash"], link["body"]) == link["hash"] == s.hash
@@ -304,7 +315,9 @@ def test_a_journal_that_cannot_be_written_consumes_nothing(url: str, tmp_path: P
         from records import make_record
         from server.store.writer import DurableWriter, StoreFailedError
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a killed process
-        w = DurableWriter.open({url!r}, "station1", Path({str(data)!r}), retry_max_s=0.1)
+        # no zeros written ahead: every append grows the file, so the limit stops one
+        w = DurableWriter.open({url!r}, "station1", Path({str(data)!r}), retry_max_s=0.1,
+                               journal_ahead=0)
         rng = np.random.default_rng(10)
         a = w.append(make_record(rng, "station1", trigger_id=1))
         assert w.flush(10.0)
@@ -316,7 +329,8 @@ def test_a_journal_that_cannot_be_written_consumes_nothing(url: str, tmp_path: P
             w.append(make_record(rng, "station1", trigger_id=2))
         except StoreFailedError as err:
             print("failed:", err)
-        assert segment.stat().st_size == size, "the partial line was not cut"
+        tail = segment.read_bytes()[size:]  # what reached the file of the failed line
+        assert tail and not tail.strip(b"\\0"), "the partial line was not overwritten"
         assert w.head_seq == 1 and w.status().pending == 0
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
         b = w.append(make_record(rng, "station1", trigger_id=3))
@@ -408,3 +422,43 @@ def test_one_writer_per_journal_and_none_after_close(url: str, tmp_path: Path) -
         assert again.head_seq == 1
     finally:
         again.close()
+
+
+def test_appends_overwrite_zeros_written_ahead_and_a_reopen_continues_after_the_lines(
+        url: str, tmp_path: Path) -> None:
+    """Appends land on zeros the journal wrote ahead (the file does not grow with each line,
+    so fdatasync flushes data only); the lines end at the first NUL, and a reopened journal
+    appends right after them."""
+    data = tmp_path / "var"
+    rng = np.random.default_rng(12)
+    writer = _open(url, data, segment_entries=1000)
+    try:
+        _append(writer, rng, 30)
+        assert writer.flush(10.0)
+    finally:
+        writer.close()
+    (segment,) = journal_dir(data, STATION).glob("*.jsonl")
+    raw = segment.read_bytes()
+    end = raw.index(b"\0")
+    assert len(_lines(segment)) == 31 and raw[:end].endswith(b"\n")
+    assert not raw[end:].strip(b"\0") and len(raw) - end >= HEAD_ROOM // 2
+
+    writer = _open(url, data, segment_entries=1000)
+    try:
+        nxt = writer.append(make_record(rng, STATION, trigger_id=31))
+        assert nxt.seq == 31
+    finally:
+        writer.close()
+    after = segment.read_bytes()
+    assert after[:end] == raw[:end] and len(_lines(segment)) == 32
+    assert json.loads(_lines(segment)[-1])["seq"] == 31
+
+    plain = tmp_path / "plain"  # no space ahead: the file is exactly its lines
+    writer = DurableWriter.open(f"sqlite:///{tmp_path / 'plain.db'}", STATION, plain,
+                                journal_ahead=0)
+    try:
+        _append(writer, rng, 3)
+    finally:
+        writer.close()
+    (segment,) = journal_dir(plain, STATION).glob("*.jsonl")
+    assert b"\0" not in segment.read_bytes() and len(_lines(segment)) == 4

@@ -103,7 +103,8 @@ def _timed_appends(writer: DurableWriter, rng: np.random.Generator, first: int, 
 def _journalled(data_dir: Path) -> dict[int, str]:
     out = {}
     for segment in sorted(journal_dir(data_dir, STATION).glob("*.jsonl")):
-        for line in segment.read_text().splitlines()[1:]:
+        # a segment's lines end at its first NUL byte (space written ahead of the appends)
+        for line in segment.read_bytes().split(b"\0", 1)[0].decode().splitlines()[1:]:
             link = json.loads(line)
             out[link["seq"]] = link["hash"]
     return out
