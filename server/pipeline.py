@@ -146,13 +146,14 @@ class Pipeline:
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
 
-    def warm_up(self, recipe: RecipeConfig, passes: int = 2) -> None:
+    def warm_up(self, recipe: RecipeConfig, passes: int = 8) -> None:
         """Run a trigger's computations on made-up input before the station is ready (nothing
         is captured or stored): each camera's view of the recipe's marks at the taught pose,
         rendered without noise, detected, measured and corrected as a trigger would, ``passes``
         times, so that the first real trigger finds every cache filled (window predictions,
-        layouts, the fine pass's ray tables, the estimator's tables) and every code path of
-        numpy, OpenCV and scipy loaded. A view that cannot be rendered falls back to blank
+        layouts, the fine pass's ray tables, the estimator's tables), every code path of
+        numpy, OpenCV and scipy loaded, and the interpreter's specialised bytecode in place
+        (CPython specialises a function after it ran about eight times). A view that cannot be rendered falls back to blank
         frames and the recipe's own marks projected (the measurement part still runs)."""
         prior = recipe.T_rf_from_pf0.matrix
         rng = np.random.default_rng(0)

@@ -334,8 +334,8 @@ class Station(StationQueries):
         old = self.pipeline
         pipeline = Pipeline(self.station, self.capture, options=self.options.pipeline)
         for recipe in self.book.recipes.values():
-            with contextlib.suppress(Exception):
-                pipeline.warm_up(recipe.config)
+            with contextlib.suppress(Exception):  # two passes: a trigger may be waiting
+                pipeline.warm_up(recipe.config, passes=2)
         self.pipeline = pipeline
         self.sequence = ViewSequence(self.station, pipeline, self.book)
         assert self.provenance is not None
