@@ -20,7 +20,8 @@ steady state; the station process's RSS before and after the run; how long SIGTE
 Environment: MVPOSE_BENCH_STATIONS (comma-separated: station1, station1_8cam, station1_16cam;
 default station1), MVPOSE_BENCH_RUNS (default 3), MVPOSE_BENCH_TRIGGERS (per condition and run,
 default 150), MVPOSE_BENCH_RATES (default 0,50,200), MVPOSE_BENCH_TWIN_POLL_MS (default 1),
-MVPOSE_BENCH_MES_NICE (default 0).
+MVPOSE_BENCH_MES_NICE (default 0), MVPOSE_BENCH_TWIN_PRIORITY (the PLC twin's SCHED_FIFO
+priority, default 20; 0: normal), MVPOSE_TRIGGER_PRIORITY (the station's own option, default 10).
 """
 
 from __future__ import annotations
@@ -209,13 +210,12 @@ def _measure(name: str, serve: Serve, alone: Any) -> Run:
                     per[key].append(t[key])
             per["append+record"].append(srv - t["total"])
             per["total"].append(t["total"])
+        per["modbus side"] = [rt - c.server[tid] for rt, tid in zip(
+            c.roundtrip, c.server, strict=True)]
         stages[c.rate] = per
     first_rec = dict(records.get(1, {}))
     first_rec["append+record"] = first["server_ms"][0] - first_rec.get("total", np.nan)
     first_rec["modbus side"] = first["roundtrip_ms"][0] - first["server_ms"][0]
-    idle = stages[RATES[0]]
-    idle["modbus side"] = [rt - c for rt, c in zip(
-        conds[0].roundtrip, conds[0].server.values(), strict=True)]
     steady = np.median(warm["roundtrip_ms"][10:])
     return Run(
         station=name, conditions=conds, alone=alone_rows, stages=stages,
@@ -310,6 +310,16 @@ def report(name: str, runs: list[Run]) -> bool:
         ok &= _check(f"{name}: p99 at {rate:g} REST req/s / idle, median of runs "
                      f"(range {min(rs):.2f}-{max(rs):.2f})", med, TARGET_LOAD, "x")
 
+    # Where the load's effect goes: each stage's p50 / p99 at each rate, all runs together.
+    print(f"\n  {name}: each stage at each MES rate, p50 / p99 over all runs (ms)")
+    print(f"    {'stage':<14} " + "".join(f"{f'{r:g}/s':>16}" for r in RATES))
+    for key in (*STAGE_KEYS, "modbus side"):
+        cols = []
+        for rate in RATES:
+            xs = [x for r in runs for x in r.stages[rate].get(key, [])]
+            cols.append(f"{np.median(xs):7.2f} / {_pct(xs, 99):6.2f}" if xs else f"{'-':>16}")
+        print(f"    {key:<14} " + "".join(f"{c:>16}" for c in cols))
+
     # Stages: the station process (idle blocks) beside the same work alone.
     print(f"\n  {name}: each stage in the station process (idle blocks) and alone in the bench "
           f"process (ms)")
@@ -371,8 +381,10 @@ def main() -> int:
 
     print(f"  {RUNS} runs per station; {N_TRIGGERS} triggers per condition and run in blocks of "
           f"{BLOCK}; MES rates {RATES} req/s (client at nice {MES_NICE}); PLC twin polls every "
-          f"{TWIN_POLL_MS:g} ms; host load average {os.getloadavg()[0]:.1f} "
-          f"on {os.cpu_count()} cores", flush=True)
+          f"{TWIN_POLL_MS:g} ms at FIFO priority "
+          f"{os.environ.get('MVPOSE_BENCH_TWIN_PRIORITY', '20')}; station trigger priority "
+          f"{os.environ.get('MVPOSE_TRIGGER_PRIORITY', '10')}; host load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores", flush=True)
     ok = True
     summary: dict[str, dict[str, float]] = {}
     with tempfile.TemporaryDirectory() as t:
