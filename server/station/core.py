@@ -210,6 +210,8 @@ class Station(StationQueries):
         self._record_exec = ThreadPoolExecutor(1, thread_name_prefix="recorder")
         self._archive_exec = ThreadPoolExecutor(1, thread_name_prefix="archive",
                                                 initializer=scheduling.background)
+        for pool in (self._trigger_exec, self._record_exec, self._archive_exec):
+            pool.submit(int).result()  # each thread exists before the first trigger needs it
         ready = threading.Event()
         self._thread = threading.Thread(target=self._loop_main, args=(ready,),
                                         name="station-loop", daemon=True)
