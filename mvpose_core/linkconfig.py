@@ -127,6 +127,11 @@ class OpcUaLinkConfig(_Model):
         None, gt=0, le=600,
         description="the link's own backstop; default: the station deadline + 2 s, a second "
                     "behind the station's own watchdog")
+    query_spacing_s: float = Field(
+        0.25, ge=0, le=60,
+        description="result, recipe and configuration management calls start at most this "
+                    "often, whichever client calls (each costs the station process 10-20 ms "
+                    "of Python beside the trigger thread)")
 
     @field_validator("security")
     @classmethod

@@ -12,6 +12,7 @@ store's active version, then the station's reload on the trigger thread).
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import TYPE_CHECKING, cast
 
 from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, StoredResult
@@ -24,6 +25,7 @@ if TYPE_CHECKING:
     from server.store import Store
 
 MAX_PAGE = 1000  # the most records one query returns (a bigger ask gets this many)
+DECODE_CHUNK = 5  # records decoded between two offers of the GIL to the trigger thread
 
 
 def stored_result(s: MeasurementSummary) -> StoredResult:
@@ -75,7 +77,12 @@ class StationQueries:
         with repo._engine.connect() as conn:
             total = int(conn.execute(query.with_only_columns(func.count())).scalar_one())
             rows = conn.execute(page).all() if limit else []
-        return [stored_result(_summary(r)) for r in rows], total
+        out = []
+        for i, row in enumerate(rows):
+            if i and i % DECODE_CHUNK == 0:
+                time.sleep(0)  # hand the GIL to the trigger thread if it waits for it
+            out.append(stored_result(_summary(row)))
+        return out, total
 
     # ------------------------------------------------------------------ recipes
     async def recipes(self) -> list[RecipeInfo]:

@@ -224,7 +224,8 @@ async def served(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Serv
     pki, certs = root / "pki", root / "certs"
     certs.mkdir()
     handler = RecordingHandler()
-    link = link_class("opcua")(_config(pki), handler)
+    # no spacing between management calls here (many calls); its own test sets it
+    link = link_class("opcua")(_config(pki, query_spacing_s=0.0), handler)
     assert isinstance(link, OpcUaLink)
     await link.start()
     assert not link.ready() and link.status()["starting"]  # the NodeSet loads in the background
@@ -999,3 +1000,30 @@ async def test_continuous_mode_ends_when_the_station_gives_no_answer(served: Ser
     finally:
         h.fail = False
         await client.disconnect()
+
+
+@MODULE_LOOP
+async def test_management_calls_are_spaced_whichever_client_calls(served: Served) -> None:
+    """Each call costs the station process Python time beside the trigger thread: calls of
+    every client together start at most every query_spacing_s."""
+    ok = _store(served.handler, 901, "VIN-SPACE")
+    clients = [await served.client(), await served.client()]
+    served.link.management.spacing_s = 0.3
+    try:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+
+        async def get(client: Client) -> float:
+            p = await _parts(client)
+            _, result, err = await p["res"].call_method(
+                f"{p['mv']}:GetResultById", ua.ResultIdDataType(Id=str(ok.result_id)),
+                _timeout())
+            assert (err, result.PartId.Id) == (0, "VIN-SPACE")
+            return loop.time() - t0
+
+        done = sorted(await asyncio.gather(*(get(c) for c in clients * 2)))
+        assert done[-1] >= 3 * 0.3, done  # four calls: three spacings at least
+    finally:
+        served.link.management.spacing_s = 0.0
+        for c in clients:
+            await c.disconnect()

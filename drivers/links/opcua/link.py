@@ -97,7 +97,8 @@ class OpcUaLink(Link):
         self.failed: str | None = None
         self._made: Server | None = None
         self._roles = Roles(config)
-        self.management = Management(handler, self._show_recipe, self._error)
+        self.management = Management(handler, self._show_recipe, self._error,
+                                     config.query_spacing_s)
         self._continuous: asyncio.Future[Any] | None = None  # StartContinuous's loop
         self._stop_requested = False
 
