@@ -130,8 +130,8 @@ class OpcUaLinkConfig(_Model):
     query_spacing_s: float = Field(
         0.25, ge=0, le=60,
         description="result, recipe and configuration management calls start at most this "
-                    "often, whichever client calls (each costs the station process 10-20 ms "
-                    "of Python beside the trigger thread)")
+                    "often, whichever client calls (each keeps the station process busy for "
+                    "tens of milliseconds beside the trigger thread)")
 
     @field_validator("security")
     @classmethod

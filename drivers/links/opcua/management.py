@@ -42,7 +42,7 @@ class Management:
         self.engineer_methods: set[ua.NodeId] = set()
         # one management call at a time, whichever client, spacing_s apart (the station file's
         # query_spacing_s): clients queue instead of adding their load to the trigger path's
-        # process, where each call costs 10-20 ms of Python (decoding records, encoding)
+        # process, where each call costs tens of ms of Python (decoding records, encoding)
         self.spacing_s = spacing_s
         self._one = asyncio.Lock()
         self._last = -spacing_s
