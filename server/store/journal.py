@@ -9,12 +9,13 @@ seals (server/store/chain.py). A new segment starts when the current one holds
 newer segment exists, so the newest link (the chain's head) always stays on disk.
 
 A segment file is longer than its lines: NUL bytes follow the last line, written (and synced)
-ahead of the appends, so that an append overwrites blocks the file already has and its
-``fdatasync`` flushes the data alone. Growing the file instead changes its size, which waits for
-the file system's own journal commit (ext4's jbd2, a normal-priority kernel thread): on a busy
-two-core PC that made an append take 3-12 ms instead of 0.3-1 ms. A segment starts with
-:data:`HEAD_ROOM` bytes of zeros; a thread of the journal's own keeps :data:`PREALLOCATE` more
-ahead of the appends. The first NUL byte of a segment ends its lines (JSON text never holds one).
+ahead of the appends by a thread of the journal's own, so that an append overwrites blocks the
+file already has and its ``fdatasync`` flushes the data alone. Growing the file instead changes
+its size, which waits for the file system's own journal commit (ext4's jbd2, a normal-priority
+kernel thread): on a busy two-core PC that made an append take 3-12 ms instead of 0.3-1 ms. The
+thread keeps up to :data:`PREALLOCATE` bytes ahead, in synced pieces of :data:`CHUNK` (an
+append's ``fdatasync`` flushes whatever of the file is dirty, so the zeros must never be much of
+it). The first NUL byte of a segment ends its lines (JSON text never holds one).
 
 Only the last line of the last segment can be torn (the process died in the append, which had
 therefore not returned its seq): it is cut off at open with a warning. Anything else that does
@@ -40,11 +41,14 @@ from server.store.measurements import Link, link_from_body
 log = logging.getLogger(__name__)
 
 FORMAT = 1
-#: zeros written with a new segment's header (in the same fsync), for its first appends
-HEAD_ROOM = 64 * 1024
-#: zeros the journal's thread keeps written ahead of the appends (it adds this much when less
-#: than half is left)
+#: zeros the journal's thread keeps written ahead of the appends (it tops up when less than
+#: half is left)
 PREALLOCATE = 1024 * 1024
+#: the thread writes and syncs this much at a time
+CHUNK = 64 * 1024
+#: where the lines have caught up with the zeros (a new segment), new zeros start this far past
+#: them, so that the next appends do not wait for the piece being written
+GAP = 8 * 1024
 _STATION = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 _SEGMENT = re.compile(r"^(\d{20})\.jsonl$")
 
@@ -85,14 +89,15 @@ class Journal:
         self.station = station
         self.segment_entries = segment_entries
         self.ahead = ahead  # PREALLOCATE; 0: no zeros ahead, every append grows the file
-        self.head_room = min(HEAD_ROOM, ahead)
         self._segments: list[_Segment] = []
         self._fd: int | None = None  # the last segment, open for writing
         self._size = 0  # where its lines end (the next append's offset)
-        self._allocated = 0  # up to here the file holds synced zeros after its lines
-        # the zeroing thread's work, between it, appends past _allocated and a new segment
+        # [_zero_from, _zero_to): synced zeros an append may overwrite (from <= _size: it may)
+        self._zero_from = 0
+        self._zero_to = 0
+        # the zeroing thread's work, between it, appends outside the zeros and a new segment
         self._alloc = threading.Condition()
-        self._zeroing: tuple[int, int] | None = None  # (fd, from offset) being zeroed now
+        self._zeroing: tuple[int, int, int] | None = None  # (fd, lo, hi) being written now
         self._retired: int | None = None  # a finished segment's fd, closed when its zeroing ends
         self._wake = threading.Event()
         self._stopping = False
@@ -239,7 +244,8 @@ class Journal:
         seg = self._segments[-1]
         self._fd = os.open(seg.path, os.O_WRONLY)
         self._size = seg.end
-        self._allocated = max(seg.end, os.fstat(self._fd).st_size)  # zeros after the lines
+        # every byte after the lines is zero (a torn line was zeroed at open)
+        self._zero_from, self._zero_to = seg.end, max(seg.end, os.fstat(self._fd).st_size)
         self._wake.set()
         self._start_ahead()
 
@@ -248,6 +254,12 @@ class Journal:
     def head(self) -> tuple[int, str] | None:
         """(seq, hash) of the newest link (or segment header) on disk; None for a new journal."""
         return self._head
+
+    @property
+    def space_ahead(self) -> int:
+        """Bytes of synced zeros the next appends overwrite (0 while a new segment has none)."""
+        with self._alloc:
+            return self._zero_to - self._size if self._zero_from <= self._size else 0
 
     @property
     def segments(self) -> list[Path]:
@@ -280,10 +292,10 @@ class Journal:
         else:
             assert self._fd is not None
             try:
-                if self._size + len(line) > self._allocated:  # the file grows
-                    with self._alloc:  # never into zeros the thread is writing
-                        self._alloc.wait_for(lambda: self._zeroing is None
-                                             or self._zeroing[0] != self._fd)
+                end = self._size + len(line)
+                if not self._zero_from <= self._size or end > self._zero_to:  # not over zeros
+                    with self._alloc:  # never into the piece the thread is writing
+                        self._alloc.wait_for(lambda: not self._overlaps(self._size, end))
                 _write_at(self._fd, line, self._size)
                 os.fdatasync(self._fd)
             except OSError as err:
@@ -294,8 +306,12 @@ class Journal:
             seg.end = self._size
         self._segments[-1].last_seq = link.seq
         self._head = (link.seq, link.hash)
-        if self.ahead and self._allocated - self._size < self.ahead // 2:
+        if self.ahead and self._zero_to - self._size < self.ahead // 2:
             self._wake.set()
+
+    def _overlaps(self, lo: int, hi: int) -> bool:
+        z = self._zeroing
+        return z is not None and z[0] == self._fd and z[1] < hi and lo < z[2]
 
     def _undo(self, err: OSError, length: int) -> None:
         """Overwrite with zeros whatever part of the failed line reached the file."""
@@ -317,7 +333,7 @@ class Journal:
         data = header.encode() + b"\n" + first
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            _write_at(fd, data + bytes(self.head_room), 0)
+            _write_at(fd, data, 0)
             os.fsync(fd)
             _fsync_dir(self.directory)
         except OSError:
@@ -330,7 +346,7 @@ class Journal:
                 self._segments.append(_Segment(path, after_seq, after_seq, 1 if first else 0,
                                                len(data)))
             self._fd, self._size = fd, len(data)
-            self._allocated = len(data) + self.head_room
+            self._zero_from = self._zero_to = len(data)  # the thread starts the zeros
             if old is not None and self._zeroing is not None and self._zeroing[0] == old:
                 self._retired, old = old, None  # the thread closes it when done
         if old is not None:
@@ -347,34 +363,39 @@ class Journal:
             self._ahead.start()
 
     def _write_ahead(self) -> None:
-        """The journal's thread: keep ``ahead`` bytes of synced zeros after the lines. The
-        zeros are written outside the lock, past every line, so appends go on meanwhile."""
+        """The journal's thread: keep up to ``ahead`` bytes of synced zeros after the lines,
+        written a CHUNK at a time outside the lock, always past the lines."""
         while True:
             self._wake.wait()
             self._wake.clear()
-            with self._alloc:
-                if self._stopping or self._fd is None:
-                    return
-                if self._allocated - self._size >= self.ahead // 2:
-                    continue
-                # past every line: an append that outran the zeros grew the file itself
-                fd, start = self._fd, max(self._allocated, self._size)
-                self._zeroing = (fd, start)
-            done = False
-            try:
-                _write_at(fd, bytes(self.ahead), start)
-                os.fdatasync(fd)
-                done = True
-            except OSError as err:  # appends go on growing the file: slower, not wrong
-                log.warning("journal %s: cannot write space ahead (%s)", self.directory, err)
-            with self._alloc:
-                self._zeroing = None
-                if done and self._fd == fd:  # no append passed `start` meanwhile (they wait)
-                    self._allocated = start + self.ahead
-                if self._retired is not None:
-                    os.close(self._retired)
-                    self._retired = None
-                self._alloc.notify_all()
+            while True:
+                with self._alloc:
+                    if self._stopping or self._fd is None:
+                        return
+                    if self._zero_to - self._size >= self.ahead:
+                        break
+                    fd = self._fd
+                    if self._zero_to <= self._size:  # the lines reached the zeros' end
+                        self._zero_from = self._zero_to = self._size + GAP
+                    lo = self._zero_to
+                    self._zeroing = (fd, lo, lo + CHUNK)
+                done = False
+                try:
+                    _write_at(fd, bytes(CHUNK), lo)
+                    os.fdatasync(fd)
+                    done = True
+                except OSError as err:  # appends go on growing the file: slower, not wrong
+                    log.warning("journal %s: cannot write space ahead (%s)", self.directory, err)
+                with self._alloc:
+                    self._zeroing = None
+                    if done and self._fd == fd and self._zero_to == lo:
+                        self._zero_to = lo + CHUNK
+                    if self._retired is not None:
+                        os.close(self._retired)
+                        self._retired = None
+                    self._alloc.notify_all()
+                if not done:
+                    break
 
     def compact(self, committed_seq: int) -> int:
         """Delete the segments the database holds entirely (never the newest); how many."""

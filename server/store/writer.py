@@ -149,6 +149,7 @@ class WriterStatus:
     last_error_at: datetime | None
     conflict: bool  # the database holds another chain: the writer stopped, an operator must act
     journal: str
+    journal_ahead: int = 0  # bytes of zeros written ahead of the journal's appends
 
 
 class DurableWriter:
@@ -371,6 +372,7 @@ class DurableWriter:
                 last_error_at=self._last_error_at,
                 conflict=self._conflict,
                 journal=str(self._journal.directory),
+                journal_ahead=self._journal.space_ahead,
             )
 
     def flush(self, timeout: float) -> bool:

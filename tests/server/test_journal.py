@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from records import make_record
 from mvpose_core.reasons import Reason
 from server.store import Store, open_store
 from server.store.chain import GENESIS, seal
-from server.store.journal import HEAD_ROOM, Journal, JournalCorruptError, journal_dir
+from server.store.journal import CHUNK, Journal, JournalCorruptError, journal_dir
 from server.store.measurements import ChainConflictError, seal_link
 from server.store.schemas import MeasurementFilter
 from server.store.writer import DurableWriter, Sealed
@@ -264,14 +265,15 @@ def test_a_torn_last_line_is_cut_and_a_bad_line_inside_is_refused(
     folder = journal_dir(data, STATION)
     last = sorted(folder.glob("*.jsonl"))[-1]
     good = last.read_bytes()
-    end = good.index(b"\0")  # the lines end here; zeros written ahead follow
+    end = len(good.split(b"\0", 1)[0])  # the lines end here; zeros written ahead may follow
     torn = b'{"seq": 6, "prev_hash": "' + b"\0" * 40 + b"2f9a"  # the kill hit a write
     last.write_bytes(good[:end] + torn + good[end + len(torn):])
     with caplog.at_level(logging.WARNING):
         journal = Journal.open(folder, STATION)
     journal.close()
     assert journal.head == (5, sealed[-1].hash)
-    assert "torn" in caplog.text and last.read_bytes() == good  # zeros again where it was
+    cut = last.read_bytes()  # zeros where the torn line was
+    assert "torn" in caplog.text and cut[:end] == good[:end] and not cut[end:].strip(b"\0")
 
     lines = good[:end].split(b"\n")
     entry = json.loads(lines[1])
@@ -293,9 +295,9 @@ def test_the_journal_format_is_what_the_docs_say(url: str, tmp_path: Path) -> No
     assert segment.name == f"{0:020d}.jsonl"
     raw = segment.read_bytes()
     header, *links = (json.loads(line) for line in _lines(segment))
-    # the lines, then NUL bytes written ahead of the next appends (none inside the lines)
-    assert raw.index(b"\0") == len(b"".join(line.encode() + b"\n" for line in _lines(segment)))
-    assert not raw[raw.index(b"\0"):].strip(b"\0") and len(raw) >= HEAD_ROOM
+    # the lines, then only NUL bytes (written ahead of the next appends)
+    end = len(b"".join(line.encode() + b"\n" for line in _lines(segment)))
+    assert raw[:end].count(b"\0") == 0 and not raw[end:].strip(b"\0")
     assert header == {"journal": 1, "station": STATION, "after_seq": 0, "after_hash": GENESIS}
     for link, s in zip(links, sealed, strict=True):
         assert seal(link["prev_hash"], link["body"]) == link["hash"] == s.hash
@@ -435,23 +437,30 @@ def test_appends_overwrite_zeros_written_ahead_and_a_reopen_continues_after_the_
     try:
         _append(writer, rng, 30)
         assert writer.flush(10.0)
+        deadline = time.monotonic() + 30
+        while writer.status().journal_ahead < CHUNK:  # the journal's thread writes them
+            assert time.monotonic() < deadline, "no zeros were written ahead"
+            time.sleep(0.01)
+        size = (sealed := _append(writer, rng, 1, first=31)) and next(
+            journal_dir(data, STATION).glob("*.jsonl")).stat().st_size
     finally:
         writer.close()
     (segment,) = journal_dir(data, STATION).glob("*.jsonl")
     raw = segment.read_bytes()
     end = raw.index(b"\0")
-    assert len(_lines(segment)) == 31 and raw[:end].endswith(b"\n")
-    assert not raw[end:].strip(b"\0") and len(raw) - end >= HEAD_ROOM // 2
+    assert len(_lines(segment)) == 32 and raw[:end].endswith(b"\n")
+    assert not raw[end:].strip(b"\0") and len(raw) - end >= CHUNK // 2
+    assert size == len(raw) and sealed[0].seq == 31  # the append overwrote zeros: same size
 
     writer = _open(url, data, segment_entries=1000)
     try:
-        nxt = writer.append(make_record(rng, STATION, trigger_id=31))
-        assert nxt.seq == 31
+        nxt = writer.append(make_record(rng, STATION, trigger_id=32))
+        assert nxt.seq == 32
     finally:
         writer.close()
     after = segment.read_bytes()
-    assert after[:end] == raw[:end] and len(_lines(segment)) == 32
-    assert json.loads(_lines(segment)[-1])["seq"] == 31
+    assert after[:end] == raw[:end] and len(_lines(segment)) == 33
+    assert json.loads(_lines(segment)[-1])["seq"] == 32
 
     plain = tmp_path / "plain"  # no space ahead: the file is exactly its lines
     writer = DurableWriter.open(f"sqlite:///{tmp_path / 'plain.db'}", STATION, plain,
