@@ -157,6 +157,11 @@ def _measure(name: str, serve: Serve, alone: Any) -> Run:
         time.sleep(1.0)
         first = twin.block(1, 1)  # the first trigger after ready
         warm = twin.block(2, 30)
+        # the same pause before one trigger, long after ready: what a pause costs any trigger
+        paused = []
+        for k in range(3):
+            time.sleep(1.0)
+            paused += twin.block(40 + k, 1)["roundtrip_ms"]
         n_blocks = -(-N_TRIGGERS // BLOCK)
         for b in range(n_blocks):
             n = min(BLOCK, N_TRIGGERS - b * BLOCK)
@@ -220,6 +225,7 @@ def _measure(name: str, serve: Serve, alone: Any) -> Run:
     return Run(
         station=name, conditions=conds, alone=alone_rows, stages=stages,
         first={"roundtrip": first["roundtrip_ms"][0], "steady": float(steady),
+               "paused": float(np.median(paused)),
                # where the first trigger falls among the idle blocks' (one sample against a
                # spread: a ratio to the median alone says little on a loaded host)
                "rank": float(np.mean(np.array(conds[0].roundtrip) < first["roundtrip_ms"][0])),
@@ -357,7 +363,9 @@ def report(name: str, runs: list[Run]) -> bool:
         parts = ", ".join(f"{key} {f['stage ' + key]:.1f}/{steady[key]:.1f}" for key in steady)
         print(f"    run {k}: ready in {r.ready_s:.1f} s; first trigger {f['roundtrip']:.1f} ms "
               f"(first/steady ms: {parts}) vs steady median {f['steady']:.1f} ms = "
-              f"{f['roundtrip'] / f['steady']:.2f}x, slower than {100 * f['rank']:.0f} % of the "
+              f"{f['roundtrip'] / f['steady']:.2f}x (a trigger after the same 1 s pause later "
+              f"in the run: {f['paused']:.1f} ms = {f['paused'] / f['steady']:.2f}x), slower "
+              f"than {100 * f['rank']:.0f} % of the "
               f"idle blocks' triggers; station RSS {r.rss_kb[0] / 1024:.1f} -> "
               f"{r.rss_kb[1] / 1024:.1f} MiB ({grow:+.2f} KiB/trigger); station CPU "
               f"{r.cpu_station:.1f} s; SIGTERM with a backlog -> exit in {r.stop_s:.2f} s")

@@ -153,8 +153,9 @@ class Pipeline:
         times, so that the first real trigger finds every cache filled (window predictions,
         layouts, the fine pass's ray tables, the estimator's tables), every code path of
         numpy, OpenCV and scipy loaded, and the interpreter's specialised bytecode in place
-        (CPython specialises a function after it ran about eight times). A view that cannot be rendered falls back to blank
-        frames and the recipe's own marks projected (the measurement part still runs)."""
+        (CPython specialises a function after it ran about eight times). A view that cannot
+        be rendered falls back to blank frames and the recipe's own marks projected (the
+        measurement part still runs)."""
         prior = recipe.T_rf_from_pf0.matrix
         rng = np.random.default_rng(0)
         clean = RenderOptions(noise_sigma=0.0, shot_noise_gain=0.0, supersample=4)

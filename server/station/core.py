@@ -81,6 +81,8 @@ class Appended:
 class RecordSink(Protocol):
     def append(self, record: MeasurementRecord) -> Appended: ...
 
+    def rehearse(self, record: MeasurementRecord) -> None: ...
+
     def status(self) -> dict[str, Any]: ...
 
     def close(self) -> None: ...
@@ -103,6 +105,9 @@ class WriterSink:
         sealed = self.writer.append(record)  # StoreFailedError: the station answers STORE_FAILED
         self.services.metrics.observe(record, sealed.seq)
         return Appended(result_id=sealed.seq, db_id=sealed.id, on_committed=sealed.on_committed)
+
+    def rehearse(self, record: MeasurementRecord) -> None:
+        self.writer.rehearse(record)
 
     def status(self) -> dict[str, Any]:
         st = self.writer.status()
@@ -212,6 +217,12 @@ class Station(StationQueries):
                                                 initializer=scheduling.background)
         for pool in (self._trigger_exec, self._record_exec, self._archive_exec):
             pool.submit(int).result()  # each thread exists before the first trigger needs it
+        if self.book.recipes:  # a record built and sealed as an append does, nothing kept
+            for _ in range(8):
+                sink.rehearse(failure_record(
+                    self.provenance, code=int(Reason.INTERNAL_ERROR), message="rehearsal",
+                    trigger_id=0, part_id=None, triggered_at=datetime.now(UTC),
+                    recipe=self._any_recipe(), total_ms=0.0))
         ready = threading.Event()
         self._thread = threading.Thread(target=self._loop_main, args=(ready,),
                                         name="station-loop", daemon=True)

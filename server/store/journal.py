@@ -313,6 +313,11 @@ class Journal:
         z = self._zeroing
         return z is not None and z[0] == self._fd and z[1] < hi and lo < z[2]
 
+    @staticmethod
+    def encode(link: Link) -> bytes:
+        """The line an append writes for ``link``."""
+        return _line(link)
+
     def _undo(self, err: OSError, length: int) -> None:
         """Overwrite with zeros whatever part of the failed line reached the file."""
         assert self._fd is not None

@@ -291,6 +291,15 @@ class DurableWriter:
             commit.wait(self.db_wait_s)
         return Sealed(link, commit, journal_ms)
 
+    def rehearse(self, record: MeasurementRecord) -> None:
+        """The append's own work on ``record`` (normalise, seal, encode the journal line) with
+        nothing kept: no seq taken, nothing written. The station runs it before it is ready, so
+        that its first real append does not run this code cold."""
+        record = normalized(record)
+        head = self._journal.head or (0, "0" * 64)
+        self._journal.encode(seal_link(self.station, head[0] + 1, head[1], datetime.now(UTC),
+                                       record, record.model_dump(mode="json")))
+
     # ------------------------------------------------------------------ the database thread
     def _run(self) -> None:
         backoff = 0.05
