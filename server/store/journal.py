@@ -46,9 +46,9 @@ FORMAT = 1
 PREALLOCATE = 1024 * 1024
 #: the thread writes and syncs this much at a time
 CHUNK = 64 * 1024
-#: where the lines have caught up with the zeros (a new segment), new zeros start this far past
-#: them, so that the next appends do not wait for the piece being written
-GAP = 8 * 1024
+#: where the lines have caught up with the zeros (a new segment), the first piece is this small,
+#: so that an append meanwhile waits for it briefly
+FIRST_PIECE = 8 * 1024
 _STATION = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 _SEGMENT = re.compile(r"^(\d{20})\.jsonl$")
 
@@ -380,13 +380,16 @@ class Journal:
                     if self._zero_to - self._size >= self.ahead:
                         break
                     fd = self._fd
+                    piece = CHUNK
                     if self._zero_to <= self._size:  # the lines reached the zeros' end
-                        self._zero_from = self._zero_to = self._size + GAP
+                        # a small first piece: an append meanwhile waits for it, not for a CHUNK
+                        self._zero_from = self._zero_to = self._size
+                        piece = FIRST_PIECE
                     lo = self._zero_to
-                    self._zeroing = (fd, lo, lo + CHUNK)
+                    self._zeroing = (fd, lo, lo + piece)
                 done = False
                 try:
-                    _write_at(fd, bytes(CHUNK), lo)
+                    _write_at(fd, bytes(piece), lo)
                     os.fdatasync(fd)
                     done = True
                 except OSError as err:  # appends go on growing the file: slower, not wrong
@@ -394,7 +397,7 @@ class Journal:
                 with self._alloc:
                     self._zeroing = None
                     if done and self._fd == fd and self._zero_to == lo:
-                        self._zero_to = lo + CHUNK
+                        self._zero_to = lo + piece
                     if self._retired is not None:
                         os.close(self._retired)
                         self._retired = None
