@@ -207,9 +207,12 @@ def relay(src: asyncio.Future[S], dst: asyncio.Future[D],
 
 
 class Link(ABC):
-    """One link backend, started and stopped on the station's event loop."""
+    """One link backend, started and stopped on the station's event loop, or on a loop of its
+    own in a thread of its own (``own_loop``): a backend whose protocol work is heavy (OPC UA's
+    event encoding, its address space's start) must not hold up another link's answers."""
 
     name: ClassVar[str]
+    own_loop: ClassVar[bool] = False
 
     def __init__(self, config: Any, handler: StationHandler) -> None:
         self.config = config

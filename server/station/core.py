@@ -171,6 +171,8 @@ class Station(StationQueries):
         self._archive_exec: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
+        # links that run on a loop of their own (Link.own_loop), by name: (loop, its thread)
+        self._link_loops: dict[str, tuple[asyncio.AbstractEventLoop, threading.Thread]] = {}
         self._watch: asyncio.Task[None] | None = None
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
         # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
@@ -223,11 +225,7 @@ class Station(StationQueries):
                     self.provenance, code=int(Reason.INTERNAL_ERROR), message="rehearsal",
                     trigger_id=0, part_id=None, triggered_at=datetime.now(UTC),
                     recipe=self._any_recipe(), total_ms=0.0))
-        ready = threading.Event()
-        self._thread = threading.Thread(target=self._loop_main, args=(ready,),
-                                        name="station-loop", daemon=True)
-        self._thread.start()
-        ready.wait()
+        self._loop, self._thread = _loop_thread("station-loop")
         self.run_on_loop(self._start_links(), timeout=10)
 
     async def _start_links(self) -> None:
@@ -247,7 +245,9 @@ class Station(StationQueries):
             configs[name] = cfg
         self.links = open_links(configs, self)
         for link in self.links:
-            await link.start()
+            if link.own_loop:
+                self._link_loops[link.name] = _loop_thread(f"link-{link.name}")
+            await self._on_link_loop(link, link.start())
         self._watch = asyncio.create_task(self._watch_versions(), name="recipe-versions")
 
     def stop(self) -> None:
@@ -281,18 +281,24 @@ class Station(StationQueries):
                 await self._watch
             self._watch = None
         for link in self.links:
-            await link.stop()
+            await self._on_link_loop(link, link.stop())
         self.links = []
+        for loop, thread in self._link_loops.values():
+            loop.call_soon_threadsafe(loop.stop)
+            await asyncio.to_thread(thread.join, 10)
+        self._link_loops.clear()
 
-    def _loop_main(self, ready: threading.Event) -> None:
-        loop = asyncio.new_event_loop()
-        asyncio.set_event_loop(loop)
-        self._loop = loop
-        ready.set()
-        try:
-            loop.run_forever()
-        finally:
-            loop.close()
+    def _link_loop(self, link: Link) -> asyncio.AbstractEventLoop | None:
+        """The loop ``link`` runs on: its own, or the station loop."""
+        own = self._link_loops.get(link.name)
+        return own[0] if own is not None else self._loop
+
+    async def _on_link_loop(self, link: Link, coro: Any) -> Any:
+        """Await ``coro`` (a call into ``link``) on the link's own loop, if it has one."""
+        own = self._link_loops.get(link.name)
+        if own is None:
+            return await coro
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, own[0]))
 
     def run_on_loop(self, coro: Any, timeout: float | None = None) -> Any:
         """Run a coroutine on the station loop from another thread and wait for its result."""
@@ -408,7 +414,9 @@ class Station(StationQueries):
         if self._loop is None:
             return
         for link in self.links:
-            self._loop.call_soon_threadsafe(link.recipe_changed)
+            loop = self._link_loop(link)
+            if loop is not None:
+                loop.call_soon_threadsafe(link.recipe_changed)
 
     # ------------------------------------------------------------------ StationHandler (links)
     def convention(self) -> RobotConvention:
@@ -744,3 +752,19 @@ class Station(StationQueries):
             "store": self.sink.status() if self.sink is not None else None,
             **{name: part() for name, part in self.status_parts.items()},
         }
+
+
+def _loop_thread(name: str) -> tuple[asyncio.AbstractEventLoop, threading.Thread]:
+    """A new event loop running in a daemon thread of its own (stopped with ``loop.stop``)."""
+    loop = asyncio.new_event_loop()
+
+    def main() -> None:
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_forever()
+        finally:
+            loop.close()
+
+    thread = threading.Thread(target=main, name=name, daemon=True)
+    thread.start()
+    return loop, thread

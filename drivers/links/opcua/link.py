@@ -68,6 +68,9 @@ class OpcUaLink(Link):
     """OPC UA server with the station's VisionSystem object."""
 
     name = "opcua"
+    # its own loop and thread in the station process: importing the address space (seconds)
+    # and encoding each result event must not hold up the Modbus link's answers
+    own_loop = True
     config: OpcUaLinkConfig
 
     def __init__(self, config: OpcUaLinkConfig, handler: StationHandler) -> None:
@@ -546,8 +549,10 @@ class OpcUaLink(Link):
             "ProcessingMs": float(r.get("processing_ms") or 0.0), "CreationTime": at,
         }
         async with self._lock:
-            for name, _, vt in self._result_fields():
-                await self._nodes[f"last.{name}"].write_value(ua.Variant(values[name], vt))
+            server = self.server
+            for name, _, vt in self._result_fields():  # the server's own write: no session
+                await server.write_attribute_value(self._nodes[f"last.{name}"].nodeid,
+                                                   ua.DataValue(ua.Variant(values[name], vt)))
             ev = self._evgen.event
             for name, _, vt in self._result_fields():
                 if name not in ("PartId", "CreationTime"):
