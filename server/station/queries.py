@@ -61,27 +61,16 @@ class StationQueries:
         return stored_result(rows[0]) if rows else None
 
     def _find_results(self, q: ResultQuery) -> tuple[list[StoredResult], int]:
-        from sqlalchemy import func
-
-        from server.store.measurements import M, _summary
-
-        repo = self._store().measurements
         result = None if q.ok is None else ("OK" if q.ok else "NOK")
-        query = repo._filtered(MeasurementFilter(result=result, reason_code=q.reason_code,
-                                                 recipe=q.recipe, part_id=q.part_id))
-        if q.trigger_id is not None:
-            query = query.where(M.c.trigger_id == q.trigger_id)
-        limit = min(max(q.limit, 0), MAX_PAGE)
-        # oldest first: a StartIndex keeps its meaning while new records arrive at the end
-        page = query.order_by(M.c.seq).offset(max(q.start, 0)).limit(limit)
-        with repo._engine.connect() as conn:
-            total = int(conn.execute(query.with_only_columns(func.count())).scalar_one())
-            rows = conn.execute(page).all() if limit else []
+        total, summaries = self._store().measurements.summaries_from(
+            MeasurementFilter(result=result, reason_code=q.reason_code, recipe=q.recipe,
+                              part_id=q.part_id, trigger_id=q.trigger_id),
+            q.start, min(max(q.limit, 0), MAX_PAGE))
         out = []
-        for i, row in enumerate(rows):
+        for i, summary in enumerate(summaries):
             if i and i % DECODE_CHUNK == 0:
                 time.sleep(0)  # hand the GIL to the trigger thread if it waits for it
-            out.append(stored_result(_summary(row)))
+            out.append(stored_result(summary))
         return out, total
 
     # ------------------------------------------------------------------ recipes

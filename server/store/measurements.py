@@ -362,6 +362,18 @@ class MeasurementRepository:
                 return
             last_id = rows[-1].id
 
+    def summaries_from(self, filters: MeasurementFilter, start: int,
+                       limit: int) -> tuple[int, Iterator[MeasurementSummary]]:
+        """How many records match, and the summaries of ``limit`` of them from the ``start``-th,
+        oldest first (decoded as they are taken): paging by index, as OPC UA's
+        GetResultListFiltered does, keeps its meaning while new records arrive at the end."""
+        query = self._filtered(filters)
+        page = query.order_by(M.c.seq).offset(max(start, 0)).limit(max(limit, 0))
+        with self._engine.connect() as conn:
+            total = int(conn.execute(query.with_only_columns(func.count())).scalar_one())
+            rows = list(conn.execute(page).all()) if limit > 0 else []
+        return total, (_summary(r) for r in rows)
+
     def count(self, filters: MeasurementFilter | None = None) -> int:
         query = self._filtered(filters or MeasurementFilter()).with_only_columns(func.count())
         with self._engine.connect() as conn:
@@ -383,6 +395,8 @@ class MeasurementRepository:
             q = q.where(M.c.part_id == f.part_id)
         if f.result_id is not None:
             q = q.where(M.c.seq == f.result_id)
+        if f.trigger_id is not None:
+            q = q.where(M.c.trigger_id == f.trigger_id)
         return q
 
     # ------------------------------------------------------------------ audit

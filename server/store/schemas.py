@@ -287,3 +287,4 @@ class MeasurementFilter(_Model):
     recipe: str | None = None
     part_id: str | None = None
     result_id: int | None = Field(None, description="the result id the PLC read (= seq)")
+    trigger_id: int | None = Field(None, description="the trigger id the link sent")

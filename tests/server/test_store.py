@@ -155,6 +155,23 @@ def test_paging_is_stable_while_records_arrive(store: Store) -> None:
     assert [m.id for m in page1 + rest] == sorted(first, reverse=True)
 
 
+def test_index_paging_oldest_first_with_the_trigger_id_filter(store: Store) -> None:
+    """summaries_from (OPC UA's GetResultListFiltered): oldest first from an index, the total
+    of all matches, and records arriving meanwhile land at the end."""
+    rng = np.random.default_rng(6)
+    for i in range(1, 11):
+        store.measurements.insert(make_record(rng, trigger_id=100 + i % 3))
+    total, page = store.measurements.summaries_from(MeasurementFilter(), 2, 3)
+    assert total == 10 and [m.result_id for m in page] == [3, 4, 5]
+    store.measurements.insert(make_record(rng, trigger_id=101))
+    total, found = store.measurements.summaries_from(MeasurementFilter(trigger_id=101), 0, 50)
+    matches = list(found)
+    assert total == 5 and [m.result_id for m in matches] == [1, 4, 7, 10, 11]
+    assert {m.trigger_id for m in matches} == {101}
+    total, page = store.measurements.summaries_from(MeasurementFilter(trigger_id=101), 4, 0)
+    assert total == 5 and list(page) == []
+
+
 def test_bad_cursor_and_naive_times_are_the_callers_error(store: Store) -> None:
     with pytest.raises(InvalidInputError, match="cursor"):
         store.measurements.page(MeasurementFilter(), "not-a-cursor", 5)
