@@ -50,6 +50,9 @@ async def test_a_stuck_trigger_is_answered_with_a_recorded_timeout(tmp_path: Pat
         waited = time.monotonic() - t
         assert status.result_code == Reason.TIMEOUT
         assert waited < 3.0, f"answered after {waited:.2f} s"  # not the PLC's 5 s give-up
+        # journalled before the answer; the database commit follows (the trigger thread is
+        # stuck, so wait_idle cannot be used: wait for the writer alone)
+        assert lb.runtime.sink.flush(10.0)
         recs = _records(lb)
         # The station's watchdog answered (at the deadline + 0.3 s), not the link's backstop.
         assert "the trigger thread is stuck" in (recs[0].record.message or "")
