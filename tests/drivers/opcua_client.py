@@ -2,18 +2,14 @@
 
 A client in the test's own process never decodes anything by itself: the server there has put the
 Machine Vision structures into ``asyncua.ua`` already. This one starts with nothing, loads the
-types from the server as a plant's client does, calls the management methods and prints what it
-decoded as JSON:
+types from the server as a plant's client does (``load_data_type_definitions``), calls the
+management methods and prints what it decoded as JSON:
 
-    python tests/drivers/opcua_client.py URL KEY CERT USER PASSWORD RESULT_ID [--no-workaround]
+    python tests/drivers/opcua_client.py URL KEY CERT USER PASSWORD RESULT_ID
 
-asyncua's ``load_data_type_definitions`` skips a structure DataType without a DataTypeDefinition
-of its own, and then cannot build any structure with a field of that type. The Machine Vision
-NodeSet (1.0.0) gives ``RecipeIdExternalDataType``, ``RecipeIdInternalDataType`` and
-``ConfigurationIdDataType`` none: they are subtypes of ``BinaryIdBaseDataType`` that add no
-field. So ResultDataType, ConfigurationDataType and others stay unknown to the client
-(FreeOpcUa/opcua-asyncio#1693, open). :func:`load_machine_vision_types` works around it: each
-such subtype gets its parent's fields, then the definitions are loaded again.
+That works because the link gives the three Machine Vision id types the NodeSet leaves without a
+DataTypeDefinition their parent's (drivers.links.opcua.nodesets.complete_definitions); without
+it asyncua's client cannot build ResultDataType and the others (FreeOpcUa/opcua-asyncio#1693).
 """
 
 from __future__ import annotations
@@ -24,34 +20,13 @@ import sys
 from typing import Any
 
 from asyncua import Client, ua
-from asyncua.common.structures104 import make_structure
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
 MV_URI = "http://opcfoundation.org/UA/MachineVision"
 
 
-async def load_machine_vision_types(client: Client) -> None:
-    """``load_data_type_definitions``, with the subtypes it skips made from their parent."""
-    await client.load_data_type_definitions()
-    mv = await client.get_namespace_index(MV_URI)
-    base = await client.nodes.base_structure_type.get_child([f"{mv}:BinaryIdBaseDataType"])
-    for sub in await base.get_children(refs=ua.ObjectIds.HasSubtype):
-        name = (await sub.read_browse_name()).Name
-        if getattr(getattr(ua, name, None), "data_type", None) == sub.nodeid:
-            continue  # loaded: the server gave it a definition
-        sdef = await base.read_data_type_definition()
-        encodings = await sub.get_children(refs=ua.ObjectIds.HasEncoding)
-        binary = [e for e in encodings if (await e.read_browse_name()).Name == "Default Binary"]
-        sdef.DefaultEncodingId = binary[0].nodeid
-        sdef.BaseDataType = base.nodeid
-        cls = make_structure(sub.nodeid, name, sdef)[name]
-        cls.data_type = sub.nodeid  # type: ignore[attr-defined]
-        ua.register_extension_object(name, binary[0].nodeid, cls, sub.nodeid)
-    await client.load_data_type_definitions()
-
-
-async def main(url: str, key: str, cert: str, user: str, password: str, result_id: str,
-               workaround: bool) -> dict[str, Any]:
+async def main(url: str, key: str, cert: str, user: str, password: str,
+               result_id: str) -> dict[str, Any]:
     client = Client(url, timeout=10)
     client.application_uri = "urn:mvpose:test:client"
     await client.set_security(SecurityPolicyBasic256Sha256, certificate=cert, private_key=key,
@@ -60,10 +35,7 @@ async def main(url: str, key: str, cert: str, user: str, password: str, result_i
     client.set_password(password)
     await client.connect()
     try:
-        if workaround:
-            await load_machine_vision_types(client)
-        else:
-            await client.load_data_type_definitions()
+        await client.load_data_type_definitions()
         known = {n: hasattr(ua, n) for n in ("ResultDataType", "ConfigurationDataType",
                                              "RecipeIdInternalDataType")}
         if not all(known.values()):
@@ -98,7 +70,4 @@ async def main(url: str, key: str, cert: str, user: str, password: str, result_i
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    workaround = "--no-workaround" not in args
-    args = [a for a in args if a != "--no-workaround"]
-    print(json.dumps(asyncio.run(main(*args, workaround=workaround))))
+    print(json.dumps(asyncio.run(main(*sys.argv[1:]))))

@@ -951,28 +951,27 @@ async def test_halt_ends_continuous_mode(served: Served) -> None:
 @MODULE_LOOP
 async def test_a_client_of_its_own_decodes_the_machine_vision_structures(
         served: Served) -> None:
-    """A client in another process (no types from our server in its asyncua.ua) decodes
-    ResultDataType, ConfigurationDataType and RecipeIdInternalDataType, with the workaround
-    for FreeOpcUa/opcua-asyncio#1693 (tests/drivers/opcua_client.py) and not without it."""
+    """A client in another process (no types from our server in its asyncua.ua) loads the
+    definitions from the server and decodes ResultDataType, ConfigurationDataType and
+    RecipeIdInternalDataType: the link completes the NodeSet's id types' definitions
+    (FreeOpcUa/opcua-asyncio#1693 otherwise)."""
     ok = _store(served.handler, 801, "VIN-OWN")
     key, cert = served.default_cert
     script = Path(__file__).with_name("opcua_client.py")
 
-    async def run(*extra: str) -> dict[str, Any]:
+    async def run() -> dict[str, Any]:
         proc = await asyncio.create_subprocess_exec(
             sys.executable, str(script), served.url, str(key), str(cert), "olga",
-            PASSWORDS["olga"], str(ok.result_id), *extra,
+            PASSWORDS["olga"], str(ok.result_id),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         out, err = await asyncio.wait_for(proc.communicate(), 60)
         assert proc.returncode == 0, err.decode()[-2000:]
         decoded: dict[str, Any] = json.loads(out)
         return decoded
 
-    plain, fixed = await asyncio.gather(run("--no-workaround"), run())
+    decoded = await run()
     using = next(c for c in served.handler.calibs if c.in_use)
-    # if this fails, asyncua loads these types now: drop load_machine_vision_types
-    assert plain["known"]["ResultDataType"] is False, plain
-    assert fixed == {
+    assert decoded == {
         "known": {"ResultDataType": True, "ConfigurationDataType": True,
                   "RecipeIdInternalDataType": True},
         "error": 0, "type": "ResultDataType", "result_id": str(ok.result_id),

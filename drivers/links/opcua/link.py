@@ -52,7 +52,7 @@ from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
 from . import values as v
 from .access import Roles, Users, default_pki_dir
 from .management import Management
-from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, import_order
+from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +144,7 @@ class OpcUaLink(Link):
             t = time.monotonic()
             for path in self._order:
                 await server.import_xml(str(path), strict_mode=path.name == MACHINE_VISION)
+            await complete_definitions(server)
             self.load_s["nodesets"] = time.monotonic() - t
             t = time.monotonic()
             await self._build(server)

@@ -12,7 +12,8 @@ import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from asyncua import Server
+from asyncua import Server, ua
+from asyncua.server.address_space import AttributeValue
 
 NODESET_DIR = Path(__file__).resolve().parent.parent / "opcua_nodesets"
 NODESET_FILES = NODESET_DIR / "node_modules" / "node-opcua-nodesets" / "nodesets"
@@ -82,6 +83,45 @@ def import_order(model: str = MV_URI) -> list[Path]:
     visit(model)
     return order
 
+
+
+async def complete_definitions(server: Server) -> list[str]:
+    """Give the Machine Vision structure DataTypes that lack a DataTypeDefinition their
+    parent's; returns their names.
+
+    ``RecipeIdExternalDataType``, ``RecipeIdInternalDataType`` and ``ConfigurationIdDataType``
+    are subtypes of ``BinaryIdBaseDataType`` that add no field, and the NodeSet (1.0.0) gives them
+    no ``<Definition>``. OPC 10000-3 (1.04, §5.8.3) asks a server to expose the DataTypeDefinition
+    attribute of every structure DataType; without it a client that builds its types from the
+    server (asyncua's ``load_data_type_definitions``, FreeOpcUa/opcua-asyncio#1693) cannot decode
+    ResultDataType, ConfigurationDataType or any other structure with such a field. The
+    definition is the parent's fields with the subtype's own binary encoding.
+    """
+    mv = await server.get_namespace_index(MV_URI)
+    base = await server.nodes.base_structure_type.get_child([f"{mv}:BinaryIdBaseDataType"])
+    parent = await base.read_data_type_definition()
+    if not isinstance(parent, ua.StructureDefinition):
+        raise NodeSetError(f"BinaryIdBaseDataType has no structure definition: {parent!r}")
+    aspace = server.iserver.aspace
+    done: list[str] = []
+    for sub in await base.get_children(refs=ua.ObjectIds.HasSubtype):
+        node = aspace.get(sub.nodeid)
+        have = node.attributes.get(ua.AttributeIds.DataTypeDefinition) if node else None
+        if node is None or (have is not None and have.value is not None
+                            and have.value.Value is not None
+                            and have.value.Value.Value is not None):
+            continue  # it has one (the importer leaves an empty attribute where it has none)
+        binary = [e for e in await sub.get_children(refs=ua.ObjectIds.HasEncoding)
+                  if (await e.read_browse_name()).Name == "Default Binary"]
+        if not binary:
+            continue
+        definition = ua.StructureDefinition(
+            DefaultEncodingId=binary[0].nodeid, BaseDataType=base.nodeid,
+            StructureType=parent.StructureType, Fields=list(parent.Fields))
+        node.attributes[ua.AttributeIds.DataTypeDefinition] = AttributeValue(
+            ua.DataValue(ua.Variant(definition)))
+        done.append((await sub.read_browse_name()).Name)
+    return done
 
 
 async def load_times() -> dict[str, float]:
