@@ -290,17 +290,15 @@ class Journal:
         if seg.entries >= self.segment_entries:
             self._new_segment(head[0], head[1], line)
         else:
-            assert self._fd is not None
-            try:
-                end = self._size + len(line)
-                if not self._zero_from <= self._size or end > self._zero_to:  # not over zeros
-                    with self._alloc:  # never into the piece the thread is writing
-                        self._alloc.wait_for(lambda: not self._overlaps(self._size, end))
-                _write_at(self._fd, line, self._size)
-                os.fdatasync(self._fd)
-            except OSError as err:
-                self._undo(err, len(line))
-                raise
+            end = self._size + len(line)
+            if self._zero_from <= self._size and end <= self._zero_to:
+                self._put(line)  # over synced zeros: the thread only ever writes past them
+            else:
+                # Not over zeros (the file grows): never into the piece the thread is writing,
+                # and it may not start one (at the lines' end) until this line is down.
+                with self._alloc:
+                    self._alloc.wait_for(lambda: not self._overlaps(self._size, end))
+                    self._put(line)
             self._size += len(line)
             seg.entries += 1
             seg.end = self._size
@@ -308,6 +306,16 @@ class Journal:
         self._head = (link.seq, link.hash)
         if self.ahead and self._zero_to - self._size < self.ahead // 2:
             self._wake.set()
+
+    def _put(self, line: bytes) -> None:
+        """Write ``line`` at the lines' end and fdatasync it; on failure nothing of it stays."""
+        assert self._fd is not None
+        try:
+            _write_at(self._fd, line, self._size)
+            os.fdatasync(self._fd)
+        except OSError as err:
+            self._undo(err, len(line))
+            raise
 
     def _overlaps(self, lo: int, hi: int) -> bool:
         z = self._zeroing

@@ -471,3 +471,23 @@ def test_appends_overwrite_zeros_written_ahead_and_a_reopen_continues_after_the_
         writer.close()
     (segment,) = journal_dir(plain, STATION).glob("*.jsonl")
     assert b"\0" not in segment.read_bytes() and len(_lines(segment)) == 4
+
+
+def test_appends_racing_the_zeroing_thread_lose_no_line(url: str, tmp_path: Path) -> None:
+    """A small space ahead (4 KiB) wakes the journal's thread every couple of appends and makes
+    appends outrun its zeros: 300 appends back to back, across segments, all read back."""
+    data = tmp_path / "var"
+    rng = np.random.default_rng(13)
+    writer = DurableWriter.open(url, STATION, data, segment_entries=120, journal_ahead=4096)
+    try:
+        sealed = _append(writer, rng, 300)
+        assert writer.flush(30.0)
+    finally:
+        writer.close()
+    journal = Journal.open(journal_dir(data, STATION), STATION)
+    journal.close()
+    assert journal.head == (300, sealed[-1].hash)
+    for segment in journal_dir(data, STATION).glob("*.jsonl"):
+        raw = segment.read_bytes()
+        end = len(raw.split(b"\0", 1)[0])
+        assert not raw[end:].strip(b"\0"), f"{segment.name}: bytes after the lines' end"
