@@ -26,6 +26,7 @@ from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from opcua_events import Events
 from pydantic import ValidationError
 
 from drivers.links import link_class
@@ -271,18 +272,7 @@ async def test_the_vision_system_is_browsable_with_its_state_machine(served: Ser
         await client.disconnect()
 
 
-class _Events:
-    def __init__(self) -> None:
-        self.queue: asyncio.Queue[Any] = asyncio.Queue()
-
-    def event_notification(self, event: Any) -> None:
-        self.queue.put_nowait(event)
-
-    async def next(self) -> Any:
-        return await asyncio.wait_for(self.queue.get(), 10)
-
-
-async def _subscribe(client: Client, standard: bool = False) -> _Events:
+async def _subscribe(client: Client, standard: bool = False) -> Events:
     """Result events: of our subtype (every field), or of the standard's ResultReadyEventType
     (what a generic OPC 40100 client asks for)."""
     await client.load_data_type_definitions()
@@ -291,7 +281,7 @@ async def _subscribe(client: Client, standard: bool = False) -> _Events:
     if not standard:
         path.append(f"{own}:MvposeResultReadyEventType")
     etype = await client.nodes.base_event_type.get_child(path)
-    events = _Events()
+    events = Events(timeout_s=10.0)
     sub = await client.create_subscription(50, events)
     await sub.subscribe_events(vs, etype)
     return events

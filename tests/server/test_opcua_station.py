@@ -15,6 +15,7 @@ from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from opcua_events import Events
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
 from drivers.links.opcua import MV_URI, MVPOSE_URI, OpcUaLink
@@ -25,17 +26,6 @@ from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter
 
 CLIENT_URI = "urn:mvpose:test:station-client"
-
-
-class _Events:
-    def __init__(self) -> None:
-        self.queue: asyncio.Queue[Any] = asyncio.Queue()
-
-    def event_notification(self, event: Any) -> None:
-        self.queue.put_nowait(event)
-
-    async def next(self) -> Any:
-        return await asyncio.wait_for(self.queue.get(), 15)
 
 
 async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path) -> None:
@@ -78,7 +68,7 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
             assert await name.read_value() == station.active.config.name
             etype = await client.nodes.base_event_type.get_child(
                 [f"{mv}:ResultReadyEventType", f"{own}:MvposeResultReadyEventType"])
-            events = _Events()
+            events = Events()
             sub = await client.create_subscription(50, events)
             await sub.subscribe_events(vs, etype)
 
@@ -197,7 +187,7 @@ async def test_results_by_id_are_the_stations_records_and_plc_triggers_interleav
             # continuous mode; a PLC trigger meanwhile queues on the one trigger thread
             etype = await client.nodes.base_event_type.get_child(
                 [f"{mv}:ResultReadyEventType", f"{own}:MvposeResultReadyEventType"])
-            events = _Events()
+            events = Events()
             sub = await client.create_subscription(20, events)
             await sub.subscribe_events(vs, etype)
             job, err = await auto.call_method(
