@@ -67,7 +67,7 @@ class _Segment:
     after_seq: int
     last_seq: int  # after_seq when it holds no link yet
     entries: int
-    end: int = 0  # bytes of lines (the NUL bytes after them are space written ahead)
+    end: int = 0  # bytes of lines when read at open (the NULs after them: space written ahead)
 
 
 def journal_dir(data_dir: Path, station: str) -> Path:
@@ -301,7 +301,6 @@ class Journal:
                     self._put(line)
             self._size += len(line)
             seg.entries += 1
-            seg.end = self._size
         self._segments[-1].last_seq = link.seq
         self._head = (link.seq, link.hash)
         if self.ahead and self._zero_to - self._size < self.ahead // 2:
