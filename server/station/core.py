@@ -60,6 +60,7 @@ class StationOptions:
     sim_seed: int = 0  # the simulated scene's generator (kind: sim cameras)
     sim_render: Any = None  # drivers.cameras.RenderOptions for the simulated scene
     camera_ready_s: float = 10.0
+    store_settle_s: float = 5.0  # the longest wait for the journal's zeros ahead before ready
     # Simulated cameras: render the part at the recipe's reference pose at start-up, so that a
     # served simulated station has something to measure (tests and the demo move it themselves).
     sim_part_at_reference: bool = False
@@ -82,6 +83,8 @@ class RecordSink(Protocol):
     def append(self, record: MeasurementRecord) -> Appended: ...
 
     def rehearse(self, record: MeasurementRecord) -> None: ...
+
+    def settle(self, timeout_s: float) -> bool: ...
 
     def status(self) -> dict[str, Any]: ...
 
@@ -108,6 +111,11 @@ class WriterSink:
 
     def rehearse(self, record: MeasurementRecord) -> None:
         self.writer.rehearse(record)
+
+    def settle(self, timeout_s: float) -> bool:
+        """Wait for the journal's zeros ahead: the first appends then share the disk with no
+        zero piece being written."""
+        return self.writer.wait_journal_ahead(timeout_s)
 
     def status(self) -> dict[str, Any]:
         st = self.writer.status()
@@ -225,6 +233,10 @@ class Station(StationQueries):
                     self.provenance, code=int(Reason.INTERNAL_ERROR), message="rehearsal",
                     trigger_id=0, part_id=None, triggered_at=datetime.now(UTC),
                     recipe=self._any_recipe(), total_ms=0.0))
+        if not sink.settle(self.options.store_settle_s):
+            log.warning("station %s: the store's journal has not written its space ahead "
+                        "within %.1f s; the first appends grow the file", self.station.name,
+                        self.options.store_settle_s)
         self._loop, self._thread = _loop_thread("station-loop")
         self.run_on_loop(self._start_links(), timeout=10)
 

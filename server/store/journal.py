@@ -100,6 +100,7 @@ class Journal:
         self._zeroing: tuple[int, int, int] | None = None  # (fd, lo, hi) being written now
         self._retired: int | None = None  # a finished segment's fd, closed when its zeroing ends
         self._wake = threading.Event()
+        self._idle = False  # the thread has written all it was woken for (until the next wake)
         self._stopping = False
         self._ahead: threading.Thread | None = None
         self._head: tuple[int, str] | None = None
@@ -261,6 +262,18 @@ class Journal:
         with self._alloc:
             return self._zero_to - self._size if self._zero_from <= self._size else 0
 
+    def wait_ahead(self, timeout_s: float) -> bool:
+        """Wait until the journal's thread has written the zeros it was last woken for (at open:
+        up to ``ahead`` of them), so that the next appends overwrite zeros and share the disk with
+        no zero piece being written; False if not within ``timeout_s`` or none could be written."""
+        if self.ahead <= 0:
+            return True
+        with self._alloc:
+            settled = self._alloc.wait_for(
+                lambda: self._stopping or (self._idle and not self._wake.is_set()), timeout_s)
+            zeros = self._zero_from <= self._size < self._zero_to
+            return settled and self._fd is not None and zeros
+
     @property
     def segments(self) -> list[Path]:
         with self._lock:
@@ -379,12 +392,16 @@ class Journal:
         written a CHUNK at a time outside the lock, always past the lines."""
         while True:
             self._wake.wait()
-            self._wake.clear()
+            with self._alloc:  # not idle before the wake is cleared: wait_ahead sees one or both
+                self._idle = False
+                self._wake.clear()
             while True:
                 with self._alloc:
                     if self._stopping or self._fd is None:
                         return
                     if self._zero_to - self._size >= self.ahead:
+                        self._idle = not self._wake.is_set()
+                        self._alloc.notify_all()
                         break
                     fd = self._fd
                     piece = CHUNK
@@ -408,6 +425,8 @@ class Journal:
                     if self._retired is not None:
                         os.close(self._retired)
                         self._retired = None
+                    if not done:
+                        self._idle = not self._wake.is_set()
                     self._alloc.notify_all()
                 if not done:
                     break
@@ -426,6 +445,7 @@ class Journal:
     def close(self) -> None:
         with self._alloc:
             self._stopping = True
+            self._alloc.notify_all()
         self._wake.set()
         if self._ahead is not None and self._ahead is not threading.current_thread():
             self._ahead.join(timeout=5)

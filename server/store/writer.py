@@ -291,6 +291,10 @@ class DurableWriter:
             commit.wait(self.db_wait_s)
         return Sealed(link, commit, journal_ms)
 
+    def wait_journal_ahead(self, timeout_s: float) -> bool:
+        """Wait until the journal's zeros ahead are written (:meth:`Journal.wait_ahead`)."""
+        return self._journal.wait_ahead(timeout_s)
+
     def rehearse(self, record: MeasurementRecord) -> None:
         """The append's own work on ``record`` (normalise, seal, encode the journal line) with
         nothing kept: no seq taken, nothing written. The station runs it before it is ready, so

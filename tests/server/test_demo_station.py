@@ -22,10 +22,13 @@ def test_demo_measures_n_triggers_and_stops(
     true_rows = re.findall(r"^\s+\d+\s+true\s", out, flags=re.M)
     assert len(true_rows) == 2
     # Each trigger is answered: measured (with its error and latency) or NOK with the reason.
-    answers = re.findall(r"^\s+(meas\.|NOK [A-Z_]+)", out, flags=re.M)
-    assert len(answers) == 2, out
-    for m in re.finditer(r"meas\..*?([\d.]+)° +([\d.]+) mm .*? ([\d.]+) ms +OK", out):
-        assert float(m.group(1)) < 0.2 and float(m.group(2)) < 1.0
+    num = r"-?\d+\.\d+"
+    measured = re.findall(rf"^\s+meas\.(?:\s+{num}){{3}} \|(?:\s+{num}){{3}}\s+({num})\s+({num})"
+                          rf"\s+{num}\s+{num}\s+({num})\s+OK$", out, flags=re.M)
+    refused = re.findall(r"^\s+NOK: .+ \(([A-Z_]+), code \d+\) after [\d.]+ ms$", out, flags=re.M)
+    assert len(measured) + len(refused) == 2, out
+    for rot_deg, trans_mm, server_ms in measured:
+        assert float(rot_deg) < 0.2 and float(trans_mm) < 1.0 and float(server_ms) > 0.0
     assert "2 triggers:" in out
     assert (tmp_path / "var" / "mvpose.db").exists()
 

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from records import make_record
 from mvpose_core.reasons import Reason
 from server.store import Store, open_store
 from server.store.chain import GENESIS, seal
-from server.store.journal import CHUNK, Journal, JournalCorruptError, journal_dir
+from server.store.journal import CHUNK, PREALLOCATE, Journal, JournalCorruptError, journal_dir
 from server.store.measurements import ChainConflictError, seal_link
 from server.store.schemas import MeasurementFilter
 from server.store.writer import DurableWriter, Sealed
@@ -437,10 +436,9 @@ def test_appends_overwrite_zeros_written_ahead_and_a_reopen_continues_after_the_
     try:
         _append(writer, rng, 30)
         assert writer.flush(10.0)
-        deadline = time.monotonic() + 30
-        while writer.status().journal_ahead < CHUNK:  # the journal's thread writes them
-            assert time.monotonic() < deadline, "no zeros were written ahead"
-            time.sleep(0.01)
+        # the journal's thread writes them; the station waits for this before it is ready
+        assert writer.wait_journal_ahead(30.0), "no zeros were written ahead"
+        assert writer.status().journal_ahead >= PREALLOCATE // 2  # topped up below half
         size = (sealed := _append(writer, rng, 1, first=31)) and next(
             journal_dir(data, STATION).glob("*.jsonl")).stat().st_size
     finally:
