@@ -47,6 +47,7 @@ from server.station import scheduling
 from server.station.queries import StationQueries
 from server.station.records import Provenance, failure_record, result_record
 from server.station.sequence import Step, ViewSequence
+from server.store.outbox import OutboxRows
 from server.store.schemas import MeasurementRecord
 
 log = logging.getLogger(__name__)
@@ -93,16 +94,22 @@ class RecordSink(Protocol):
 
 class WriterSink:
     """The station's durable writer (server.store.writer): the journal first, the database
-    behind it, so an append never waits for the database longer than ``db_wait_s``."""
+    behind it. An append never waits for the database; the database thread inserts a record
+    ``commit_delay_s`` after its append, once the link has answered (its ~2 ms of Python would
+    otherwise hold the GIL while the answer goes out). With ``outbox`` (the MQTT publisher's),
+    each record's messages are inserted in its transaction."""
 
-    def __init__(self, services: Services, db_wait_s: float = 0.0) -> None:
+    def __init__(self, services: Services, commit_delay_s: float = 0.005,
+                 outbox: OutboxRows | None = None) -> None:
         from server.store.writer import DurableWriter
 
         self.services = services
+        self.outbox = outbox
         s = services.settings
         self.writer = DurableWriter.open(s.resolved_database_url, services.station_name,
-                                         s.data_dir, db_wait_s=db_wait_s,
-                                         sqlite_synchronous=s.sqlite_synchronous)
+                                         s.data_dir, db_wait_s=0.0,
+                                         commit_delay_s=commit_delay_s,
+                                         sqlite_synchronous=s.sqlite_synchronous, outbox=outbox)
 
     def append(self, record: MeasurementRecord) -> Appended:
         sealed = self.writer.append(record)  # StoreFailedError: the station answers STORE_FAILED

@@ -3,7 +3,7 @@
 Only a station file with a ``plant:`` block that names an ``mqtt`` broker starts it
 (server/station/process.py). Then:
 
-- the durable writer is opened with the outbox hook (:class:`OutboxWriterSink`): every record
+- the durable writer is opened with the outbox hook (:meth:`MqttPublisher.sink`): every record
   the database takes gets its result message in the same transaction (server/store/outbox.py);
 - the ``mqtt-publisher`` thread reads the unpublished rows in order, publishes them with QoS 1
   and marks them published when the broker's PUBACK arrives (paho's network thread reports it);
@@ -51,21 +51,6 @@ def topic_prefix(plant: PlantConfig, station: str) -> str:
     return f"{plant.enterprise}/{plant.site}/{plant.area}/{plant.line}/{station}/mvpose"
 
 
-class OutboxWriterSink(WriterSink):
-    """The station's durable writer with the outbox hook: each record's result message is
-    inserted in the transaction of the record (the journal's replay at start-up too)."""
-
-    def __init__(self, services: Services, result_topic: str, db_wait_s: float = 0.005) -> None:
-        from server.store.writer import DurableWriter
-
-        self.services = services
-        s = services.settings
-        self.writer = DurableWriter.open(s.resolved_database_url, services.station_name,
-                                         s.data_dir, db_wait_s=db_wait_s,
-                                         sqlite_synchronous=s.sqlite_synchronous,
-                                         outbox=result_rows(result_topic))
-
-
 class MqttPublisher:
     """Publishes one station's outbox and its retained state to the plant's broker."""
 
@@ -103,14 +88,16 @@ class MqttPublisher:
             return None
         return cls(station.name, station.plant, station.plant.mqtt, software_version)
 
-    def sink(self, services: Services) -> OutboxWriterSink:
-        return OutboxWriterSink(services, self.result_topic)
+    def sink(self, services: Services) -> WriterSink:
+        """The station's writer with this publisher's outbox rows in each record's transaction
+        (the journal's replay at start-up too)."""
+        return WriterSink(services, outbox=result_rows(self.result_topic))
 
     # ------------------------------------------------------------------ life cycle
     def start(self, station: Station) -> None:
         """Connect (in the background: a broker that is down is retried) and start publishing."""
         sink = station.sink
-        if not isinstance(sink, OutboxWriterSink):
+        if not isinstance(sink, WriterSink) or sink.outbox is None:
             raise RuntimeError(f"station {self.station!r}: the MQTT publisher needs the station "
                                f"started with its sink (MqttPublisher.sink)")
         self._station = station

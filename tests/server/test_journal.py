@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -82,6 +83,27 @@ def test_append_seals_the_next_link_and_the_database_holds_it_as_sealed(
         status = writer.status()
         assert (status.up, status.head_seq, status.committed_seq, status.pending) == (
             True, 6, 6, 0)
+    finally:
+        writer.close()
+
+
+def test_a_commit_delay_holds_the_insert_after_the_append_not_the_append(
+        url: str, tmp_path: Path) -> None:
+    """With commit_delay_s the database thread inserts a link that long after its append (the
+    link's answer goes out first); the append itself returns at once, and the links appended
+    meanwhile are committed with it."""
+    with pytest.raises(ValueError, match="commit_delay_s"):
+        _open(url, tmp_path / "bad", commit_delay_s=0.01, db_wait_s=0.005)
+    writer = _open(url, tmp_path / "var", commit_delay_s=0.3, db_wait_s=0.0)
+    try:
+        t = time.monotonic()
+        sealed = _append(writer, np.random.default_rng(2), 3)
+        appended = time.monotonic() - t
+        assert appended < 0.3 and all(s.id is None for s in sealed)
+        assert writer.status().pending == 3
+        assert sealed[-1].wait_id(10.0) is not None
+        assert time.monotonic() - t >= 0.3
+        assert writer.flush(10.0) and writer.status().committed_seq == 3
     finally:
         writer.close()
 
