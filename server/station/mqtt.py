@@ -12,8 +12,8 @@ Only a station file with a ``plant:`` block that names an ``mqtt`` broker starts
 - the station state (online, recipe and version, calibration) is a retained message; the
   broker's last will replaces it with ``online: false`` when the station dies.
 
-Nothing here runs on the trigger path: a recorded answer only wakes the publisher (an event),
-and the outbox rows are written by the writer's database thread, not the trigger thread.
+Nothing here runs on the trigger path: the outbox rows are written by the writer's database
+thread, which wakes the publisher (an event) once they are committed.
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ class MqttPublisher:
                                f"started with its sink (MqttPublisher.sink)")
         self._station = station
         self.connect(sink.writer.engine)
-        station.add_listener(lambda _event: self._wake.set())
+        sink.writer.add_commit_listener(lambda _seq: self._wake.set())  # its rows are in
 
     def connect(self, engine: Engine) -> None:
         """Publish the outbox in ``engine``'s database (``start`` does this for a station)."""

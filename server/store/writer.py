@@ -181,6 +181,7 @@ class DurableWriter:
         self.station = repo.station
         self.db_wait_s = db_wait_s
         self.commit_delay_s = commit_delay_s
+        self._commit_listeners: list[Callable[[int], object]] = []
         self.retry_max_s = retry_max_s
         self.stall_s = stall_s
         self._journal = journal
@@ -353,6 +354,11 @@ class DurableWriter:
                 self._cond.notify_all()
             for (_, commit, _), db_id in zip(batch, ids, strict=True):
                 commit.set(db_id)
+            for listen in list(self._commit_listeners):
+                try:
+                    listen(last.seq)
+                except Exception:
+                    log.exception("station %s: a commit listener failed", self.station)
             if self._closing.is_set():  # closed while a frozen database held this insert
                 return
             try:
@@ -367,6 +373,11 @@ class DurableWriter:
             self._last_error = _one_line(err)
             self._last_error_at = datetime.now(UTC)
             self._cond.notify_all()
+
+    def add_commit_listener(self, listen: Callable[[int], object]) -> None:
+        """Call ``listen(seq)`` on the database thread after each commit, with the newest seq
+        the database now holds (an outbox's rows are there from then on)."""
+        self._commit_listeners.append(listen)
 
     # ------------------------------------------------------------------ status and shutdown
     @property

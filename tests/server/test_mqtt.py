@@ -32,10 +32,10 @@ PLANT = {"enterprise": "acme", "site": "wob", "area": "body", "line": "l3"}
 TOPICS = ["acme/wob/body/l3/+/mvpose/#"]
 
 
-def _plant(port: int) -> Any:
+def _plant(port: int, poll_s: float = 0.05) -> Any:
     def edit(data: dict[str, Any]) -> None:
         data["plant"] = {**PLANT, "mqtt": {"host": "127.0.0.1", "port": port,
-                                           "keepalive_s": 5, "poll_s": 0.05}}
+                                           "keepalive_s": 5, "poll_s": poll_s}}
     return edit
 
 
@@ -168,6 +168,32 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
     body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])
     assert body == got[("station1", 1)]
+
+
+def test_a_record_is_published_once_committed_not_at_the_next_poll(tmp_path: Path) -> None:
+    """The database thread wakes the publisher when a record's outbox row is committed: with
+    the publisher's poll at 10 s, each result still reaches the subscriber within 2 s."""
+    broker = Mosquitto(tmp_path)
+    broker.start()
+    sub = Subscriber(broker.port, TOPICS)
+    path = station_file(tmp_path, "station1", relaxed_deadline, _plant(broker.port, poll_s=10))
+    data = tmp_path / "var"
+    log = tmp_path / "station.log"
+    client = StationClient(data / "station.sock")
+    proc = _station(path, data, log)
+    try:
+        wait_until("the station process answers", lambda: _ready(client, proc, log), START_S)
+        wait_until("the retained online state",
+                   lambda: [s for s in sub.on("/mvpose/state") if s["online"]], 30)
+        for k in (1, 2, 3):
+            got = client.trigger(part_id=f"P{k}", trigger_id=k)
+            assert got["result_code"] == 0, got
+            wait_until(f"result {k} at the subscriber", lambda k=k: len(sub.results()) == k, 2.0)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        sub.close()
+        broker.stop()
 
 
 def test_plant_names_are_single_topic_levels(tmp_path: Path) -> None:
