@@ -68,6 +68,9 @@ class StationOptions:
     # The watchdog's margin past the deadline: a trigger not recorded by then is answered with
     # a recorded TIMEOUT (the link's own backstop comes a second later).
     answer_margin_s: float = 1.0
+    # Listeners (observers: an OPC UA client's ResultReadyEvent, ...) hear of a result this long
+    # after its append, when the answering link has answered: their work holds the GIL.
+    observer_delay_s: float = 0.005
 
 
 @dataclass(frozen=True)
@@ -617,14 +620,28 @@ class Station(StationQueries):
             event = dict(self.last)
         if done.db_id is None and done.on_committed is not None:
             done.on_committed(lambda db_id: self._committed(done.result_id, db_id))
+        if self._listeners:
+            self._tell_later(event)
+        answer = Answer(outcome, record, message, done.db_id)
+        answer.on_committed = done.on_committed
+        return answer
+
+    def _tell_later(self, event: dict[str, Any]) -> None:
+        """Call the listeners with ``event`` observer_delay_s from now, on the station loop (at
+        once on this thread when there is no loop to wait on)."""
+        loop, delay = self._loop, self.options.observer_delay_s
+        if loop is not None and delay > 0:
+            with contextlib.suppress(RuntimeError):  # the loop closed: tell them now
+                loop.call_soon_threadsafe(loop.call_later, delay, self._tell, event)
+                return
+        self._tell(event)
+
+    def _tell(self, event: dict[str, Any]) -> None:
         for listen in list(self._listeners):
             try:
                 listen(event)
             except Exception:
                 log.exception("a result listener failed")
-        answer = Answer(outcome, record, message, done.db_id)
-        answer.on_committed = done.on_committed
-        return answer
 
     def _committed(self, result_id: int, db_id: int) -> None:
         with self._lock:
@@ -718,7 +735,8 @@ class Station(StationQueries):
             self._archive_exec.submit(lambda: None).result(timeout=timeout_s)
 
     def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
-        """Call ``listen(last_result)`` after each recorded answer (trigger or recorder thread)."""
+        """Call ``listen(last_result)`` after each recorded answer, observer_delay_s after its
+        append, on the station loop's thread."""
         self._listeners.append(listen)
 
     # ------------------------------------------------------------------ status

@@ -527,7 +527,7 @@ class OpcUaLink(Link):
 
     # ------------------------------------------------------------------ results
     def _on_result(self, result: dict[str, Any]) -> None:
-        """The station's listener (trigger or recorder thread): publish on our loop."""
+        """The station's listener (on the station loop): publish on our loop."""
         loop = self._loop
         if self._listening and loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(lambda: self._spawn(self._publish(result)))
