@@ -560,7 +560,7 @@ class Station(StationQueries):
                                     triggered_at=at, recipe=recipe,
                                     total_ms=(time.monotonic() - t0) * 1e3)
         answer = self._append(record, message, t0, req.link)
-        if step is not None and step.result is not None:
+        if step is not None and step.result is not None and answer.record is not None:
             self._after(step, answer)
         return answer
 

@@ -70,6 +70,26 @@ async def test_a_stuck_trigger_is_answered_with_a_recorded_timeout(tmp_path: Pat
             recs[0].seq + 1, 42, status.result_code) == (status.result_id, 42, status.result_code)
 
 
+async def test_a_record_the_journal_refuses_is_answered_store_failed(tmp_path: Path) -> None:
+    """A measured result whose record cannot be made durable (here: the writer is closed, so
+    the journal takes no more links) reaches the PLC as STORE_FAILED (107) with no offset, and
+    the trigger thread answers the next trigger the same way."""
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline),
+                            tmp_path / "var")
+    async with running_station(settings, runtime_options(), http_port=None) as lb:
+        recipe = lb.runtime.active.config
+        T = recipe.T_rf_from_pf0.matrix
+        await move_part(lb.runtime, lb.twin, T)
+        status, _ = await trigger(lb.twin, recipe, 1, T)
+        assert status.result_code == 0
+        lb.runtime.sink.writer.close()
+        for trigger_id in (2, 3):
+            status, _ = await trigger(lb.twin, recipe, trigger_id, T, timeout=5.0)
+            assert status.result_code == Reason.STORE_FAILED, status
+            assert status.offset_float == (0.0,) * 6
+        assert [r.seq for r in _records(lb)] == [1]  # nothing half-stored
+
+
 async def test_result_ids_are_the_records_and_survive_a_restart(tmp_path: Path) -> None:
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline),
                             tmp_path / "var")
