@@ -1,5 +1,11 @@
 """Image archive: NOK frames always, OK frames 1 in N, a quota evicting the oldest OK frames first.
 
+Frames wait in memory until they are written (PNG, ~50 ms of CPU per 4 MP frame). So that a
+trigger storm can neither grow that backlog without bound nor keep a core busy encoding, a
+trigger's frames are only planned while few are waiting: OK frames when none are, NOK frames
+while fewer than ``max_pending`` triggers' are. What is not planned is counted
+(``skipped_ok``, ``skipped_nok``, in the station's status); the record then lists no images.
+
 Measurement records are never deleted here: eviction removes a frame's file and marks its row,
 so results outlive their images. The pipeline calls :meth:`ImageArchive.plan` before writing the
 record (the refs go into the record) and :meth:`ImageArchive.write` after the PLC has its result,
@@ -25,7 +31,8 @@ from server.store.schemas import ImageRef
 class ImageArchive:
     """Frames as PNG files under ``root``; their rows in the store's ``images`` table."""
 
-    def __init__(self, root: Path, repo: ImageRepository, ok_every: int, quota_bytes: int) -> None:
+    def __init__(self, root: Path, repo: ImageRepository, ok_every: int, quota_bytes: int,
+                 max_pending: int = 8) -> None:
         if ok_every < 1:
             raise ValueError(f"ok_every must be >= 1, got {ok_every}")
         if quota_bytes <= 0:
@@ -35,7 +42,11 @@ class ImageArchive:
         self.ok_every = ok_every
         self.quota_bytes = quota_bytes
         self._lock = threading.Lock()
+        self.max_pending = max_pending
         self._ok_seen = 0
+        self._pending = 0  # triggers whose frames are planned and not yet written or abandoned
+        self.skipped_ok = 0  # OK triggers due for the archive whose frames were not kept
+        self.skipped_nok = 0
         self._stored: int | None = None  # bytes on disk, read from the store on first use
 
     def plan(
@@ -46,13 +57,24 @@ class ImageArchive:
         ok: bool,
         cameras: Sequence[tuple[int, str]],
     ) -> list[ImageRef]:
-        """Which frames of this trigger to keep (``[]`` for an OK trigger outside the 1 in N)."""
+        """Which frames of this trigger to keep (``[]`` for an OK trigger outside the 1 in N,
+        or when too many triggers' frames wait to be written). Planned frames are then
+        written (:meth:`write`) or given up (:meth:`release`): either ends their wait."""
+        if not cameras:
+            return []
         with self._lock:
             if ok:
                 self._ok_seen += 1
                 # The first OK frame is kept, then every N-th: a fresh archive is never empty.
                 if (self._ok_seen - 1) % self.ok_every:
                     return []
+                if self._pending:
+                    self.skipped_ok += 1
+                    return []
+            elif self._pending >= self.max_pending:
+                self.skipped_nok += 1
+                return []
+            self._pending += 1
         stamp = triggered_at.strftime("%Y%m%dT%H%M%S%fZ")
         day = triggered_at.strftime("%Y-%m-%d")
         return [
@@ -72,6 +94,24 @@ class ImageArchive:
         frames: Mapping[tuple[int, str], np.ndarray],
     ) -> list[ImageInfo]:
         """Write the planned frames (keyed by (view, camera_id)), then enforce the quota."""
+        try:
+            return self._write(measurement_id, refs, ok, frames)
+        finally:
+            if refs:
+                self.release()
+
+    def release(self) -> None:
+        """One trigger's planned frames are written or given up: they wait no more."""
+        with self._lock:
+            self._pending = max(0, self._pending - 1)
+
+    def status(self) -> dict[str, int]:
+        with self._lock:
+            return {"pending": self._pending, "skipped_ok": self.skipped_ok,
+                    "skipped_nok": self.skipped_nok}
+
+    def _write(self, measurement_id: int, refs: Sequence[ImageRef], ok: bool,
+               frames: Mapping[tuple[int, str], np.ndarray]) -> list[ImageInfo]:
         written = []
         with self._lock:
             self._current()  # read the baseline before adding rows, so nothing counts twice

@@ -48,7 +48,7 @@ from server.station.queries import StationQueries
 from server.station.records import Provenance, failure_record, result_record
 from server.station.sequence import Step, ViewSequence
 from server.store.outbox import OutboxRows
-from server.store.schemas import MeasurementRecord
+from server.store.schemas import ImageRef, MeasurementRecord
 
 log = logging.getLogger(__name__)
 
@@ -543,9 +543,9 @@ class Station(StationQueries):
                 return None
             ticket.state = "recording"
         recipe = step.recipe if step is not None else self._any_recipe()
+        images: list[ImageRef] = []
         if step is not None and step.result is not None:
             res = step.result
-            images = []
             if self.services is not None:
                 images = self.services.images.plan(self.station.name, req.trigger_id, at, res.ok,
                                                    sorted(res.frames))
@@ -560,8 +560,11 @@ class Station(StationQueries):
                                     triggered_at=at, recipe=recipe,
                                     total_ms=(time.monotonic() - t0) * 1e3)
         answer = self._append(record, message, t0, req.link)
+        archiving = False
         if step is not None and step.result is not None and answer.record is not None:
-            self._after(step, answer)
+            archiving = self._after(step, answer)
+        if images and not archiving and self.services is not None:
+            self.services.images.release()  # the record was not stored: no frames to write
         return answer
 
     def _any_recipe(self) -> ActiveRecipe:
@@ -648,7 +651,8 @@ class Station(StationQueries):
             if self.last is not None and self.last["result_id"] == result_id:
                 self.last["measurement_id"] = db_id
 
-    def _after(self, step: Step, answer: Answer) -> None:
+    def _after(self, step: Step, answer: Answer) -> bool:
+        """Teach if armed; hand the record's planned frames to the archive (True if it has)."""
         rec = answer.record
         assert rec is not None and step.result is not None and self.book is not None
         if self.teach_armed_by is not None and rec.result == "OK" and rec.T_rf_from_pf is not None:
@@ -663,10 +667,15 @@ class Station(StationQueries):
             # The archive's rows name the record's database id: written once the database has
             # the record (at once, unless the database is slow or down).
             def write(db_id: int) -> None:
-                with contextlib.suppress(RuntimeError):  # the station stopped meanwhile
+                try:
                     archive.submit(self._archive, db_id, rec, frames)
+                except RuntimeError:  # the station stopped meanwhile
+                    assert self.services is not None
+                    self.services.images.release()
 
             answer.on_committed(write)
+            return True
+        return False
 
     def _archive(self, measurement_id: int, rec: MeasurementRecord,
                  frames: Mapping[tuple[int, str], np.ndarray]) -> None:
@@ -787,6 +796,7 @@ class Station(StationQueries):
             "last_result": last,
             "warm_up_ms": {k: round(v, 1) for k, v in self.warmed_ms.items()},
             "store": self.sink.status() if self.sink is not None else None,
+            "archive": self.services.images.status() if self.services is not None else None,
             **{name: part() for name, part in self.status_parts.items()},
         }
 

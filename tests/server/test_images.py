@@ -44,11 +44,42 @@ def _trigger(store: Store, archive: ImageArchive, rng: np.random.Generator, i: i
     return stored.id, [(r, frames[(r.view, r.camera_id)]) for r in refs]
 
 
+def _planned(archive: ImageArchive, i: int, ok: bool) -> bool:
+    """Plan a trigger's frames and, as the station does once they are written, release them."""
+    refs = archive.plan("station1", i, T0, ok, CAMS)
+    if refs:
+        archive.release()
+    return bool(refs)
+
+
 def test_nok_always_ok_one_in_n(store: Store, tmp_path: Path) -> None:
     archive = ImageArchive(tmp_path / "img", store.images, ok_every=3, quota_bytes=10**9)
-    kept_ok = [bool(archive.plan("station1", i, T0, True, CAMS)) for i in range(7)]
+    kept_ok = [_planned(archive, i, True) for i in range(7)]
     assert kept_ok == [True, False, False, True, False, False, True]
-    assert all(len(archive.plan("station1", 100 + i, T0, False, CAMS)) == 2 for i in range(5))
+    assert all(_planned(archive, 100 + i, False) for i in range(5))
+    assert archive.status() == {"pending": 0, "skipped_ok": 0, "skipped_nok": 0}
+
+
+def test_frames_waiting_to_be_written_bound_what_is_planned(store: Store, tmp_path: Path) -> None:
+    """A trigger storm: OK frames are only planned when none wait to be written, NOK frames
+    while fewer than max_pending triggers' do; what is skipped is counted, and a write or a
+    release ends a trigger's wait."""
+    archive = ImageArchive(tmp_path / "img", store.images, ok_every=1, quota_bytes=10**9,
+                           max_pending=3)
+    first = archive.plan("station1", 1, T0, True, CAMS)
+    assert first and not archive.plan("station1", 2, T0, True, CAMS)
+    assert [bool(archive.plan("station1", i, T0, False, CAMS)) for i in (3, 4, 5)] == [
+        True, True, False]
+    assert archive.status() == {"pending": 3, "skipped_ok": 1, "skipped_nok": 1}
+    stored = store.measurements.insert(make_record(np.random.default_rng(1), trigger_id=1,
+                                                   triggered_at=T0, images=first))
+    archive.write(stored.id, first, True, _frames(np.random.default_rng(2)))
+    archive.release()
+    assert archive.status()["pending"] == 1
+    assert not archive.plan("station1", 6, T0, True, CAMS)  # one NOK still waits
+    archive.release()
+    assert archive.plan("station1", 7, T0, True, CAMS)
+    assert archive.status() == {"pending": 1, "skipped_ok": 2, "skipped_nok": 1}
 
 
 def test_frames_are_written_losslessly_and_listed(store: Store, tmp_path: Path) -> None:
