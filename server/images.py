@@ -1,6 +1,6 @@
 """Image archive: NOK frames always, OK frames 1 in N, a quota evicting the oldest OK frames first.
 
-Frames wait in memory until they are written (PNG, ~50 ms of CPU per 4 MP frame). So that a
+Frames wait in memory until they are encoded (PNG) and written. So that a
 trigger storm can neither grow that backlog without bound nor keep a core busy encoding, a
 trigger's frames are only planned while few are waiting: OK frames when none are, NOK frames
 while fewer than ``max_pending`` triggers' are. What is not planned is counted
