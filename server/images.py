@@ -44,7 +44,7 @@ class ImageArchive:
         self._lock = threading.Lock()
         self.max_pending = max_pending
         self._ok_seen = 0
-        self._pending = 0  # triggers whose frames are planned and not yet written or abandoned
+        self._pending = 0  # triggers whose frames are planned and not yet written or released
         self.skipped_ok = 0  # OK triggers due for the archive whose frames were not kept
         self.skipped_nok = 0
         self._stored: int | None = None  # bytes on disk, read from the store on first use

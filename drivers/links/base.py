@@ -183,9 +183,9 @@ class StationHandler(Protocol):
     def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
         """Call ``listen(result)`` after every recorded answer, whichever link or client caused
         it, a few milliseconds after the answer (on the station's own thread: hand it over to
-        your own loop). The
-        dict holds result_id, trigger_id, part_id, recipe, result, reason_code, reason,
-        message, processing_ms, at, offset (recipe convention, or None), sigma_mm, sigma_deg."""
+        your own loop). The dict holds result_id, trigger_id, part_id, recipe, result,
+        reason_code, reason, message, processing_ms, at, offset (recipe convention, or None),
+        sigma_mm, sigma_deg."""
         ...
 
 
