@@ -6,7 +6,9 @@ to ResultReadyEvent; every event's ResultId is the stored record's seq, whicheve
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -130,14 +132,21 @@ def _opcua_link(station: Any) -> OpcUaLink:
     return next(lk for lk in station.links if isinstance(lk, OpcUaLink))
 
 
-async def test_results_by_id_are_the_stations_records_and_plc_triggers_interleave_with_continuous_mode(  # noqa: E501
-        tmp_path: Path) -> None:
+@contextlib.asynccontextmanager
+async def _opcua_station(tmp_path: Path) -> AsyncIterator[tuple[Any, OpcUaLink]]:
+    """Station 1 in-process with its PLC twin and an OPC UA link that has started."""
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline,
                                          _opcua(tmp_path / "pki")), tmp_path / "var")
     async with running_station(settings, runtime_options(), http_port=None) as lb:
-        station = lb.runtime
-        link = _opcua_link(station)
+        link = _opcua_link(lb.runtime)
         assert await asyncio.to_thread(link.started.wait, 120), link.status()
+        yield lb, link
+
+
+async def test_results_by_id_are_the_stations_records_and_plc_triggers_interleave_with_continuous_mode(  # noqa: E501
+        tmp_path: Path) -> None:
+    async with _opcua_station(tmp_path) as (lb, link):
+        station = lb.runtime
         recipe = station.active.config
         await move_part(station, lb.twin, recipe.T_rf_from_pf0.matrix)
         client = await _client(link, tmp_path, "olga")
@@ -233,12 +242,8 @@ async def test_unprepare_and_the_calibration_versions_go_through_the_station(
         tmp_path: Path) -> None:
     from mvpose_core.calibration.files import CameraCalibration, InputsSummary, make_calibration
 
-    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline,
-                                         _opcua(tmp_path / "pki")), tmp_path / "var")
-    async with running_station(settings, runtime_options(), http_port=None) as lb:
+    async with _opcua_station(tmp_path) as (lb, link):
         station = lb.runtime
-        link = _opcua_link(station)
-        assert await asyncio.to_thread(link.started.wait, 120), link.status()
         recipe = station.active.config
         cam = station.station.camera("top_left").model
         calibs = [make_calibration("intrinsics", InputsSummary(board="test"), station="station1",
