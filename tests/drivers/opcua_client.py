@@ -48,6 +48,10 @@ async def main(url: str, key: str, cert: str, user: str, password: str,
             ua.Variant(0, ua.VariantType.Int32))
         cm = await vs.get_child(f"{mv}:ConfigurationManagement")
         active = await (await cm.get_child(f"{mv}:ActiveConfiguration")).read_value()
+        # a ConfigurationIdDataType sent by this client: the server decodes it by its encoding
+        _, by_version, by_version_err = await cm.call_method(
+            f"{mv}:GetConfigurationById", ua.ConfigurationIdDataType(Id="", Version="1"),
+            ua.Variant(0, ua.VariantType.Int32))
         rm = await vs.get_child(f"{mv}:RecipeManagement")
         out = await rm.call_method(
             f"{mv}:GetRecipeListFiltered", ua.RecipeIdExternalDataType(Id=""),
@@ -63,6 +67,8 @@ async def main(url: str, key: str, cert: str, user: str, password: str,
             "state": result.ResultState,
             "content": [c.Value for c in result.ResultContent or []],
             "active_configuration": [active.InternalId.Id, active.InternalId.Version],
+            "configuration_1": [by_version_err, by_version.InternalId.Id,
+                                by_version.InternalId.Version],
             "recipes": [r.Id for r in out[3]],
         }
     finally:

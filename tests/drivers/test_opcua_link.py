@@ -13,10 +13,7 @@ import json
 import shutil
 import socket
 import sys
-import threading
 from collections.abc import AsyncIterator, Callable
-from dataclasses import replace
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -27,16 +24,13 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from opcua_events import Events
+from opcua_handler import AT, PASSWORDS, RecordingHandler, link_config
 from pydantic import ValidationError
 
 from drivers.links import link_class
 from drivers.links.base import (
-    CalibrationInfo,
     LinkOutcome,
     LinkRequest,
-    RecipeInfo,
-    ResultQuery,
-    StoredResult,
 )
 from drivers.links.opcua import (
     MV_URI,
@@ -48,132 +42,10 @@ from drivers.links.opcua import (
 )
 from mvpose_core.linkconfig import LinksConfig, OpcUaLinkConfig, hash_password
 from mvpose_core.reasons import Reason
-from mvpose_core.transforms import RobotConvention
 
 MODULE_LOOP = pytest.mark.asyncio(loop_scope="module")  # the one server's loop
 
-PASSWORDS = {"olga": "operator-pw", "rita": "reader-pw", "erik": "engineer-pw"}
-AT = datetime(2026, 11, 23, 23, 0, tzinfo=UTC)
 CLIENT_URI = "urn:mvpose:test:client"
-
-
-class RecordingHandler:
-    """A station that records every answer with the next seq and tells its listeners (from a
-    thread of its own, as the station's recorder thread does)."""
-
-    def __init__(self) -> None:
-        self.seq = 100
-        self.records: list[tuple[LinkRequest, LinkOutcome]] = []
-        self.stored: dict[int, StoredResult] = {}
-        self.calibs = [CalibrationInfo(1, "cal-a", "aa" * 32, AT, "eve", "first", False, False),
-                       CalibrationInfo(2, "cal-b", "bb" * 32, AT, "eve", "second", True, True)]
-        self.queries = 0
-        self.listeners: list[Callable[[dict[str, Any]], None]] = []
-        self.recipe = 1
-        self.gate: asyncio.Event | None = None
-        self.permits: asyncio.Queue[None] | None = None  # one per measurement, when set
-        self.started = asyncio.Event()
-        self.resets = 0
-        self.entered = 0  # measurements begun
-        self.fail = False  # measure raises
-
-    def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
-        return asyncio.ensure_future(self._measure(request))
-
-    async def _measure(self, request: LinkRequest) -> LinkOutcome:
-        self.started.set()
-        self.entered += 1
-        if self.gate is not None:
-            await self.gate.wait()
-        if self.permits is not None:
-            await self.permits.get()
-        if self.fail:
-            raise RuntimeError("the station is stopping")
-        t = request.trigger_id
-        out = LinkOutcome(0, 0, offset=(t * 0.5, -1.0, 2.0, 0.1, 0.2, -0.3),
-                          sigma_trans_mm=0.05, sigma_rot_deg=0.01, processing_ms=12.0)
-        return self.record(request, out, "OK")
-
-    def record(self, request: LinkRequest, out: LinkOutcome, result: str) -> LinkOutcome:
-        self.seq += 1
-        out = LinkOutcome(out.result_code, self.seq, out.offset, out.sigma_trans_mm,
-                          out.sigma_rot_deg, out.processing_ms)
-        self.records.append((request, out))
-        self.stored[self.seq] = StoredResult(
-            self.seq, request.trigger_id, request.part_id, f"recipe-{self.recipe}", 1,
-            out.result_code == 0, out.result_code, "", AT, 12.0, "cal-b", "bb" * 32,
-            "fanuc" if out.offset else None, out.offset, out.sigma_trans_mm, out.sigma_rot_deg)
-        event = {
-            "result_id": self.seq, "trigger_id": request.trigger_id, "part_id": request.part_id,
-            "recipe": f"recipe-{self.recipe}", "result": result, "reason_code": out.result_code,
-            "reason": Reason(out.result_code).name, "message": "", "processing_ms": 12.0,
-            "at": "2026-11-23T23:00:00+00:00", "convention": "fanuc",
-            "offset": list(out.offset) if out.offset else None,
-            "sigma_mm": out.sigma_trans_mm, "sigma_deg": out.sigma_rot_deg,
-        }
-        for listen in self.listeners:
-            th = threading.Thread(target=listen, args=(event,))
-            th.start()
-            th.join()
-        return out
-
-    async def record_failure(self, request: LinkRequest, code: int, message: str,
-                             processing_ms: float) -> int:
-        return self.record(request, LinkOutcome(code, 0), "NOK").result_id
-
-    async def select_recipe(self, number: int) -> int:
-        if number not in (1, 2):
-            return int(Reason.UNKNOWN_RECIPE)
-        self.recipe = number
-        return 0
-
-    async def teach_reference(self, by: str) -> int:
-        return 0
-
-    async def reset(self) -> None:
-        self.resets += 1
-
-    def convention(self) -> RobotConvention:
-        return RobotConvention.FANUC
-
-    def selected_recipe(self) -> int:
-        return self.recipe
-
-    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
-        self.listeners.append(listen)
-
-    async def unselect_recipe(self) -> int:
-        self.recipe = 0
-        return 0
-
-    async def recipes(self) -> list[RecipeInfo]:
-        return [RecipeInfo(n, f"recipe-{n}", n + 2, f"{n:02d}" * 32, n == self.recipe)
-                for n in (1, 2)]
-
-    async def get_result(self, result_id: int) -> StoredResult | None:
-        self.queries += 1
-        return self.stored.get(result_id)
-
-    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
-        self.queries += 1
-        q = query
-        found = [r for r in self.stored.values()
-                 if (q.part_id is None or r.part_id == q.part_id)
-                 and (q.recipe is None or r.recipe == q.recipe)
-                 and (q.trigger_id is None or r.trigger_id == q.trigger_id)
-                 and (q.ok is None or r.ok == q.ok)
-                 and (q.reason_code is None or r.reason_code == q.reason_code)]
-        return found[q.start:q.start + q.limit], len(found)
-
-    async def calibrations(self) -> list[CalibrationInfo]:
-        return list(self.calibs)
-
-    async def activate_calibration(self, version: int, by: str) -> tuple[int, str]:
-        if version == 1 and by == "opcua":
-            self.calibs = [replace(c, active=c.version == 1, in_use=c.version == 1)
-                           for c in self.calibs]
-            return 0, ""
-        return int(Reason.BAD_ARGUMENT), f"version {version} does not fit"
 
 
 class Served:
@@ -210,15 +82,6 @@ class Served:
     default_cert: tuple[Path, Path]
 
 
-def _config(pki: Path, **extra: Any) -> OpcUaLinkConfig:
-    users = {"olga": {"role": "operator", "password_hash": hash_password("operator-pw", 10_000)},
-             "rita": {"role": "read", "password_hash": hash_password("reader-pw", 10_000)},
-             "erik": {"role": "engineer",
-                      "password_hash": hash_password("engineer-pw", 10_000)}}
-    return OpcUaLinkConfig.model_validate({"port": 0, "pki_dir": str(pki), "users": users,
-                                           "measure_timeout_s": 5.0, **extra})
-
-
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
 async def served(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Served]:
     root = tmp_path_factory.mktemp("opcua")
@@ -226,7 +89,7 @@ async def served(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Serv
     certs.mkdir()
     handler = RecordingHandler()
     # no spacing between management calls here (many calls); its own test sets it
-    link = link_class("opcua")(_config(pki, query_spacing_s=0.0), handler)
+    link = link_class("opcua")(link_config(pki, query_spacing_s=0.0), handler)
     assert isinstance(link, OpcUaLink)
     await link.start()
     assert not link.ready() and link.status()["starting"]  # the NodeSet loads in the background
@@ -515,7 +378,7 @@ def _tampered(path: Path, tmp_path: Path) -> Path:
 async def test_security_none_and_anonymous_readers_only_when_listed(tmp_path: Path) -> None:
     handler = RecordingHandler()
     pki = tmp_path / "pki"
-    link = OpcUaLink(_config(pki, security=["None"], allow_anonymous=True), handler)
+    link = OpcUaLink(link_config(pki, security=["None"], allow_anonymous=True), handler)
     await link.start()
     try:
         await link.wait_ready(120)
@@ -969,6 +832,7 @@ async def test_a_client_of_its_own_decodes_the_machine_vision_structures(
         "configuration": ["cal-b", "2"], "state": 1,
         "content": [*(ok.offset or ()), 0.05, 0.01],
         "active_configuration": [using.calibration_id, str(using.version)],
+        "configuration_1": [0, "cal-a", "1"],
         "recipes": ["recipe-1", "recipe-2"],
     }
 

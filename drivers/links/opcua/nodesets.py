@@ -96,12 +96,20 @@ async def complete_definitions(server: Server) -> list[str]:
     server (asyncua's ``load_data_type_definitions``, FreeOpcUa/opcua-asyncio#1693) cannot decode
     ResultDataType, ConfigurationDataType or any other structure with such a field. The
     definition is the parent's fields with the subtype's own binary encoding.
+
+    The server decodes them by that encoding too: each gets a class of its own in ``asyncua.ua``
+    (the parent's fields), registered under its DataType and its binary encoding. Without it, a
+    ``ConfigurationIdDataType`` a client sends (ActivateConfiguration, PrepareRecipe's external
+    id) stays an undecoded ExtensionObject and reads as empty.
     """
     mv = await server.get_namespace_index(MV_URI)
     base = await server.nodes.base_structure_type.get_child([f"{mv}:BinaryIdBaseDataType"])
     parent = await base.read_data_type_definition()
     if not isinstance(parent, ua.StructureDefinition):
         raise NodeSetError(f"BinaryIdBaseDataType has no structure definition: {parent!r}")
+    parent_class = ua.extension_objects_by_datatype.get(base.nodeid)
+    if parent_class is None:
+        raise NodeSetError("the importer made no class for BinaryIdBaseDataType")
     aspace = server.iserver.aspace
     done: list[str] = []
     for sub in await base.get_children(refs=ua.ObjectIds.HasSubtype):
@@ -120,7 +128,12 @@ async def complete_definitions(server: Server) -> list[str]:
             StructureType=parent.StructureType, Fields=list(parent.Fields))
         node.attributes[ua.AttributeIds.DataTypeDefinition] = AttributeValue(
             ua.DataValue(ua.Variant(definition)))
-        done.append((await sub.read_browse_name()).Name)
+        name = (await sub.read_browse_name()).Name
+        own = type(name, (parent_class,), {"__module__": parent_class.__module__,
+                                           "data_type": sub.nodeid})
+        ua.register_extension_object(name, binary[0].nodeid, own, sub.nodeid)
+        setattr(ua, name, own)  # the importer bound the name to the parent's class
+        done.append(name)
     return done
 
 
