@@ -24,8 +24,9 @@ against the station, which a screen or a SCADA client on another machine would n
 
 Printed per run and condition: p50 / p99 of the roundtrip, the ratio observer / baseline of p99
 (issue 18's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it); over all
-runs the p50 ratio and the CPU the station and the API process spent per trigger in each
-condition (what the observer costs the server, apart from the host's noise in p99). A missed
+runs the p50 ratio and the CPU the station, the API process and the OPC UA link's own process
+(drivers.links.process) spent per trigger in each condition (what the observer costs the server,
+apart from the host's noise in p99). A missed
 target is printed as "target missed"; the exit status is non-zero only when something failed.
 
 Environment: MVPOSE_BENCH_OBS_RUNS (fresh servers, default 2), MVPOSE_BENCH_OBS_ROUNDS (rounds of
@@ -98,6 +99,7 @@ class Server:
         self.plc_port = int(status["links"]["modbus"]["port"])
         self.opcua_port = int(status["links"]["opcua"]["port"])
         self.station_pid = int(status["pid"])
+        self.opcua_pid = int(status["links"]["opcua"]["pid"])  # the link's own process
         self.base_url = self._wait_api(60.0)
         self.api_pid = int(json.loads((self.data_dir / "api.json").read_text())["pid"])
         self.ready_s = time.monotonic() - t0
@@ -286,8 +288,8 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
     twin = live = opcua = None
     rt: dict[str, list[float]] = {c: [] for c in CONDITIONS}
     seen = {"live": 0, "opcua": 0}
-    # station, API process, observers' side: CPU s during the blocks
-    cpu = {c: [0.0, 0.0, 0.0] for c in CONDITIONS}
+    # station, API process, OPC UA link process, observers' side: CPU s during the blocks
+    cpu = {c: [0.0, 0.0, 0.0, 0.0] for c in CONDITIONS}
     nok = 0
     try:
         twin = TwinProcess(server.plc_port, tmp / "twin.log", TWIN_PERIOD_MS, TWIN_POLL_MS)
@@ -303,11 +305,12 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                     obs.open()
                 time.sleep(0.5)  # the observer's start (page load, subscription) settles
                 c0 = (cpu_s(server.station_pid), cpu_s(server.api_pid),
-                      observer_cpu(server, twin))
+                      cpu_s(server.opcua_pid), observer_cpu(server, twin))
                 res = twin.block(next_id, BLOCK)
                 cpu[cond][0] += cpu_s(server.station_pid) - c0[0]
                 cpu[cond][1] += cpu_s(server.api_pid) - c0[1]
-                cpu[cond][2] += _spent(c0[2], observer_cpu(server, twin))
+                cpu[cond][2] += cpu_s(server.opcua_pid) - c0[2]
+                cpu[cond][3] += _spent(c0[3], observer_cpu(server, twin))
                 next_id += BLOCK
                 if obs is not None:
                     time.sleep(0.3)  # the last results reach the observer
@@ -357,10 +360,10 @@ def report(runs: list[dict[str, Any]]) -> None:
     print("    per trigger, all runs: p50 observer / baseline "
           + ", ".join(f"{c} {_pct(pooled[c], 50) / _pct(pooled['base'], 50):.2f}"
                       for c in ("live", "opcua"))
-          + "; CPU ms of the station / API process / observers' side (bench process, "
-            "Playwright, Chromium) "
+          + "; CPU ms of the station / API process / OPC UA link process / observers' side "
+            "(bench process, Playwright, Chromium) "
           + ", ".join(f"{c} " + " / ".join(
-              f"{1e3 * sum(r['cpu'][c][i] for r in runs) / len(pooled[c]):.1f}" for i in range(3))
+              f"{1e3 * sum(r['cpu'][c][i] for r in runs) / len(pooled[c]):.1f}" for i in range(4))
                       for c in CONDITIONS))
     noks = sum(r["nok"] for r in runs)
     print(f"    NOK answers: {noks}; server ready (OPC UA listening) after "

@@ -28,7 +28,8 @@ import yaml
 from asyncua import Client, ua
 
 from drivers.cameras import RenderOptions
-from drivers.links.opcua import MV_URI, OpcUaLink
+from drivers.links.opcua import MV_URI
+from drivers.links.process import ProcessLink
 from mvpose_core.linkconfig import hash_password
 from server.loopback import move_part, running_station, trigger
 from server.settings import Settings
@@ -63,7 +64,8 @@ async def run(gap_s: float, spacing_s: float, blocks: int, per_block: int) -> No
                                                           supersample=4))
         async with running_station(settings, options, http_port=None) as lb:
             station = lb.runtime
-            link = next(lk for lk in station.links if isinstance(lk, OpcUaLink))
+            link = next(lk for lk in station.links
+                        if isinstance(lk, ProcessLink) and lk.name == "opcua")
             await asyncio.to_thread(link.started.wait, 120)
             assert station.active is not None
             recipe = station.active.config

@@ -1,7 +1,9 @@
 """Links to the line's controllers behind one trigger interface (:mod:`drivers.links.base`).
 
 ``BACKENDS`` names each backend's module and class; they are imported only when a station file
-enables them, so a station without OPC UA never imports asyncua.
+enables them, so a station without OPC UA never imports asyncua. A backend in ``OWN_PROCESS`` runs
+in a child process of the station (:mod:`drivers.links.process`): its per-result work is pure
+Python and would otherwise hold the station process's GIL beside the trigger path.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
 }
+OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
 
 
 def link_class(name: str) -> type[Link]:
@@ -28,10 +31,14 @@ def link_class(name: str) -> type[Link]:
 
 
 def open_links(configs: dict[str, Any], handler: StationHandler) -> list[Link]:
-    """One link per enabled backend config (``{name: config}``); not started yet."""
-    return [link_class(name)(cfg, handler) for name, cfg in configs.items()
-            if getattr(cfg, "enabled", True)]
+    """One link per enabled backend config (``{name: config}``); not started yet. A backend in
+    OWN_PROCESS is a :class:`~drivers.links.process.ProcessLink` here (the backend itself is
+    imported only in its child process)."""
+    from .process import hosted
+
+    return [(hosted(name) if name in OWN_PROCESS else link_class(name))(cfg, handler)
+            for name, cfg in configs.items() if getattr(cfg, "enabled", True)]
 
 
-__all__ = ["BACKENDS", "Link", "LinkOutcome", "LinkRequest", "StationHandler", "link_class",
-           "open_links", "relay"]
+__all__ = ["BACKENDS", "OWN_PROCESS", "Link", "LinkOutcome", "LinkRequest", "StationHandler",
+           "link_class", "open_links", "relay"]

@@ -208,12 +208,10 @@ def relay(src: asyncio.Future[S], dst: asyncio.Future[D],
 
 
 class Link(ABC):
-    """One link backend, started and stopped on the station's event loop, or on a loop of its
-    own in a thread of its own (``own_loop``): a backend whose protocol work is heavy (OPC UA's
-    event encoding, its address space's start) must not hold up another link's answers."""
+    """One link backend, started and stopped on the event loop it serves on (the station's, or
+    its child process's own: ``drivers.links.OWN_PROCESS``)."""
 
     name: ClassVar[str]
-    own_loop: ClassVar[bool] = False
 
     def __init__(self, config: Any, handler: StationHandler) -> None:
         self.config = config

@@ -3,7 +3,8 @@
 This is everything of the station process (``mvpose station``) except its control channel; it
 serves no HTTP. Threads, and why:
 
-- ``station-loop``: an asyncio loop of its own holding the links (Modbus/TCP) and the control
+- ``station-loop``: an asyncio loop of its own holding the links (Modbus/TCP; the station's side
+  of OPC UA, whose server runs in a child process: drivers.links.process) and the control
   channel, so nothing a caller of this object does can delay a trigger's arrival or its answer;
 - ``trigger``: one worker runs every trigger (any link, or the control channel) in order, so
   measurements never overlap and the robot-mounted sequence needs no lock;
@@ -189,8 +190,6 @@ class Station(StationQueries):
         self._archive_exec: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
-        # links that run on a loop of their own (Link.own_loop), by name: (loop, its thread)
-        self._link_loops: dict[str, tuple[asyncio.AbstractEventLoop, threading.Thread]] = {}
         self._watch: asyncio.Task[None] | None = None
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
         # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
@@ -248,7 +247,8 @@ class Station(StationQueries):
                         "within %.1f s; the first appends grow the file", self.station.name,
                         self.options.store_settle_s)
         self._loop, self._thread = _loop_thread("station-loop")
-        self.run_on_loop(self._start_links(), timeout=10)
+        # an OPC UA link's process imports asyncua before it answers (seconds on a loaded host)
+        self.run_on_loop(self._start_links(), timeout=30)
 
     async def _start_links(self) -> None:
         margin = self.options.answer_margin_s
@@ -267,9 +267,7 @@ class Station(StationQueries):
             configs[name] = cfg
         self.links = open_links(configs, self)
         for link in self.links:
-            if link.own_loop:
-                self._link_loops[link.name] = _loop_thread(f"link-{link.name}")
-            await self._on_link_loop(link, link.start())
+            await link.start()
         self._watch = asyncio.create_task(self._watch_versions(), name="recipe-versions")
 
     def stop(self) -> None:
@@ -303,24 +301,8 @@ class Station(StationQueries):
                 await self._watch
             self._watch = None
         for link in self.links:
-            await self._on_link_loop(link, link.stop())
+            await link.stop()
         self.links = []
-        for loop, thread in self._link_loops.values():
-            loop.call_soon_threadsafe(loop.stop)
-            await asyncio.to_thread(thread.join, 10)
-        self._link_loops.clear()
-
-    def _link_loop(self, link: Link) -> asyncio.AbstractEventLoop | None:
-        """The loop ``link`` runs on: its own, or the station loop."""
-        own = self._link_loops.get(link.name)
-        return own[0] if own is not None else self._loop
-
-    async def _on_link_loop(self, link: Link, coro: Any) -> Any:
-        """Await ``coro`` (a call into ``link``) on the link's own loop, if it has one."""
-        own = self._link_loops.get(link.name)
-        if own is None:
-            return await coro
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, own[0]))
 
     def run_on_loop(self, coro: Any, timeout: float | None = None) -> Any:
         """Run a coroutine on the station loop from another thread and wait for its result."""
@@ -436,9 +418,7 @@ class Station(StationQueries):
         if self._loop is None:
             return
         for link in self.links:
-            loop = self._link_loop(link)
-            if loop is not None:
-                loop.call_soon_threadsafe(link.recipe_changed)
+            self._loop.call_soon_threadsafe(link.recipe_changed)
 
     # ------------------------------------------------------------------ StationHandler (links)
     def convention(self) -> RobotConvention:

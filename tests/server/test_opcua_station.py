@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from opcua_events import Events
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.opcua import MV_URI, MVPOSE_URI, OpcUaLink
+from drivers.links.opcua import MV_URI, MVPOSE_URI
+from drivers.links.process import ProcessLink
 from drivers.plc.registers import Status
 from mvpose_core.linkconfig import hash_password
 from mvpose_core.reasons import Reason
@@ -47,7 +49,7 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
     settings = settings_for(station_file(tmp_path, "station1", opcua), tmp_path / "var")
     async with running_server(settings, runtime_options(), http_port=None) as lb:
         station = lb.runtime
-        link = next(lk for lk in station.links if isinstance(lk, OpcUaLink))
+        link = _opcua_link(station)
         # the Machine Vision NodeSet loads in the background of the station's start
         assert await asyncio.to_thread(link.started.wait, 120), link.status()
         assert {lk.name for lk in station.links} == {"modbus", "opcua"}
@@ -108,7 +110,7 @@ def _opcua(pki: Path) -> Any:
     return edit
 
 
-async def _client(link: OpcUaLink, tmp_path: Path, user: str) -> Client:
+async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
     key, cert = tmp_path / "client.pem", tmp_path / "client.der"
     if not cert.exists():
         await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
@@ -128,12 +130,21 @@ async def _client(link: OpcUaLink, tmp_path: Path, user: str) -> Client:
     return client
 
 
-def _opcua_link(station: Any) -> OpcUaLink:
-    return next(lk for lk in station.links if isinstance(lk, OpcUaLink))
+def _opcua_link(station: Any) -> ProcessLink:
+    """The station's side of its OPC UA link (the server runs in a child process)."""
+    return next(lk for lk in station.links if isinstance(lk, ProcessLink) and lk.name == "opcua")
+
+
+async def _until(check: Any, what: str, timeout_s: float = 5.0) -> None:
+    """Until ``check()`` (the child's status reaches the station within 0.2 s)."""
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
+        await asyncio.sleep(0.05)
 
 
 @contextlib.asynccontextmanager
-async def _opcua_station(tmp_path: Path) -> AsyncIterator[tuple[Any, OpcUaLink]]:
+async def _opcua_station(tmp_path: Path) -> AsyncIterator[tuple[Any, ProcessLink]]:
     """Station 1 in-process with its PLC twin and an OPC UA link that has started."""
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline,
                                          _opcua(tmp_path / "pki")), tmp_path / "var")
@@ -286,7 +297,8 @@ async def test_unprepare_and_the_calibration_versions_go_through_the_station(
             assert await cm.call_method(
                 f"{mv}:ActivateConfiguration",
                 ua.ConfigurationIdDataType(Id="", Version="3")) == int(Reason.BAD_ARGUMENT)
-            assert "does not match its sha256" in link.last_errors[-1]
+            await _until(lambda: "does not match its sha256" in " ".join(
+                link.status()["last_errors"][-1:]), "the refusal in the link's status")
             assert station.status()["calibration"]["version"] == 2
             ovs = await operator.nodes.objects.get_child(f"{mv}:VisionSystem")
             ocm = await ovs.get_child(f"{mv}:ConfigurationManagement")

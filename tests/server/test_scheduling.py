@@ -23,9 +23,9 @@ from server.station.client import StationClient, StationDownError
 START_S = 90.0
 
 
-def _start(tmp_path: Path, *extra: str,
-           env: dict[str, str] | None = None) -> tuple[subprocess.Popen[bytes], StationClient]:
-    path = station_file(tmp_path, "station1", relaxed_deadline)
+def _start(tmp_path: Path, *extra: str, env: dict[str, str] | None = None,
+           edit: Any = None) -> tuple[subprocess.Popen[bytes], StationClient]:
+    path = station_file(tmp_path, "station1", relaxed_deadline, *([edit] if edit else []))
     data = tmp_path / "var"
     log = (tmp_path / "station.log").open("wb")
     proc = subprocess.Popen(
@@ -83,6 +83,32 @@ def test_priority_zero_keeps_the_normal_scheduler_and_says_so(tmp_path: Path) ->
         assert {t["policy"] for t in _threads(proc.pid)} == {os.SCHED_OTHER}
     finally:
         _stop(proc)
+
+
+def test_the_opcua_link_process_runs_normal_and_ends_with_the_station(tmp_path: Path) -> None:
+    """The OPC UA server's process (drivers.links.process) is the station's child under the
+    normal scheduler, whatever the trigger path runs under; SIGTERM ends both."""
+
+    def opcua(data: dict[str, Any]) -> None:
+        data.setdefault("links", {})["opcua"] = {"port": 0, "security": ["None"],
+                                                 "allow_anonymous": True}
+
+    proc, client = _start(tmp_path, "--trigger-priority", "12", edit=opcua)
+    try:
+        deadline = time.monotonic() + START_S
+        while not (link := client.status()["links"]["opcua"]).get("running"):
+            assert time.monotonic() < deadline, link
+            time.sleep(0.1)
+        child = link["pid"]
+        assert int((Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split())[1]) \
+            == proc.pid
+        assert {t["policy"] for t in _threads(child)} == {os.SCHED_OTHER}
+        assert client.status()["cpu"] == {"policy": "fifo", "priority": 12}
+    finally:
+        t = time.monotonic()
+        _stop(proc)
+    assert time.monotonic() - t < 5.0  # what a container runtime waits after SIGTERM
+    assert not Path(f"/proc/{child}").exists()
 
 
 @pytest.mark.parametrize("value", ["100", "-1", "high"])

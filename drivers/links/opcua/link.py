@@ -19,8 +19,9 @@ Security (:mod:`.access`): Basic256Sha256 Sign / SignAndEncrypt by default with 
 certificate made at the first start in ``pki_dir``; client certificates must be in
 ``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in with a name
 and password checked against the station file's pbkdf2 hashes and get the read, operator (may
-call methods) or engineer role (also ActivateConfiguration, writes). The server runs on the
-station's event loop, like the Modbus link.
+call methods) or engineer role (also ActivateConfiguration, writes). In a station the server runs
+in a process of its own (:mod:`drivers.links.process`): building and encoding each result event
+is pure Python that would otherwise hold the station process's GIL beside the trigger path.
 """
 
 from __future__ import annotations
@@ -68,9 +69,6 @@ class OpcUaLink(Link):
     """OPC UA server with the station's VisionSystem object."""
 
     name = "opcua"
-    # its own loop and thread in the station process: importing the address space (seconds)
-    # and encoding each result event must not hold up the Modbus link's answers
-    own_loop = True
     config: OpcUaLinkConfig
 
     def __init__(self, config: OpcUaLinkConfig, handler: StationHandler) -> None:

@@ -1,0 +1,488 @@
+"""A link backend in a process of its own, with the station's :class:`StationHandler` reached
+over a socket: the station keeps one GIL for its trigger path.
+
+A backend whose protocol work is pure Python and heavy per result (OPC UA: each result event is
+built, deep-copied and encoded by asyncua) would hold the station process's GIL while the trigger
+thread and the Modbus loop wait for it. Listed in ``drivers.links.OWN_PROCESS``, it runs in a
+child process instead:
+
+- :class:`ProcessLink` stands for it in the station (on the station's loop): it starts the child,
+  serves the child's handler calls with the station's handler, forwards each result to it, and
+  shows the child's status and readiness. A child that dies is started again (backoff 1 s to 30 s);
+  the station and its other links go on meanwhile.
+- In the child, ``python -m drivers.links.process <backend>``, the backend runs unchanged against
+  :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
+  without a call (the selected recipe, its robot convention) comes with every reply and with each
+  recipe change.
+
+The child is started with ``posix_spawn`` under the normal scheduling policy: a station whose
+threads run under SCHED_FIFO does not pass its real-time priority on. It ends when its socket
+closes, so a station killed with SIGKILL leaves no child behind. The socket is a private
+socketpair between the station and its own child; messages are pickled frames (length, pickle) of
+this module's tuples and the seam's dataclasses. This module is the only one that knows them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import os
+import pickle
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar
+
+from .base import Link, LinkOutcome, LinkRequest, StationHandler
+
+log = logging.getLogger(__name__)
+
+CHILD_FD = 3  # the socket's descriptor in the child
+STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this often
+RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
+STOP_S = 3.0  # a child that has not ended this long after "stop" is killed
+_HEADER = struct.Struct("!I")
+_MAX_FRAME = 64 << 20
+# the StationHandler calls a child may make (its answers go back as replies)
+CALLS = frozenset({"measure", "record_failure", "select_recipe", "teach_reference", "reset",
+                   "unselect_recipe", "recipes", "get_result", "find_results", "calibrations",
+                   "activate_calibration"})
+
+
+# --------------------------------------------------------------------------- frames
+class _Wire:
+    """Pickled frames over one stream; writes go out in order on the owning loop."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.closed = False
+
+    def send(self, *message: Any) -> None:
+        if self.closed or self.writer.is_closing():
+            return
+        data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        self.writer.write(_HEADER.pack(len(data)) + data)
+
+    async def read(self) -> tuple[Any, ...] | None:
+        """The next message; None when the other side has gone."""
+        try:
+            (size,) = _HEADER.unpack(await self.reader.readexactly(_HEADER.size))
+            if size > _MAX_FRAME:
+                raise ValueError(f"a frame of {size} bytes (at most {_MAX_FRAME})")
+            message: tuple[Any, ...] = pickle.loads(await self.reader.readexactly(size))
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return None
+        return message
+
+    def close(self) -> None:
+        self.closed = True
+        self.writer.close()
+
+
+def _portable(err: BaseException) -> BaseException:
+    """``err`` if it survives pickling, else a RuntimeError with its text."""
+    try:
+        pickle.loads(pickle.dumps(err))
+    except Exception:  # noqa: BLE001 - any exception a handler raised
+        return RuntimeError(f"{type(err).__name__}: {err}")
+    return err
+
+
+# --------------------------------------------------------------------------- station side
+class ProcessLink(Link):
+    """The station's side of a backend running in a child process (see the module docstring).
+    Made per backend by :func:`hosted`; started and stopped on the station's loop."""
+
+    backend: ClassVar[str] = ""
+
+    def __init__(self, config: Any, handler: StationHandler) -> None:
+        super().__init__(config, handler)
+        self.pid = 0
+        self.starts = 0  # children started
+        self.last_exit: str | None = None
+        self.started = threading.Event()  # the child's link is ready (for tests and threads)
+        self._status: dict[str, Any] = {"running": False, "starting": True, "error": None}
+        self._ready = False
+        self._wire: _Wire | None = None
+        self._pidfd = -1
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread = 0
+        self._stopping = False
+        self._watch: asyncio.Task[None] | None = None
+        self._calls: set[asyncio.Future[Any]] = set()
+        self._listening = False
+
+    # ------------------------------------------------------------------ Link
+    async def start(self) -> None:
+        """Start the child and its link; raises what the link's start raised there."""
+        self._loop = asyncio.get_running_loop()
+        self._thread = threading.get_ident()
+        await self._spawn()
+        self._watch = asyncio.create_task(self._supervise(), name=f"link-{self.name}-process")
+
+    async def stop(self) -> None:
+        self._stopping = True
+        if self._watch is not None:
+            self._watch.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watch
+            self._watch = None
+        await self._end_child()
+        for call in list(self._calls):
+            call.cancel()
+
+    def ready(self) -> bool:
+        return self._ready and self._wire is not None
+
+    def status(self) -> dict[str, Any]:
+        return {**self._status, "pid": self.pid, "process_starts": self.starts,
+                **({"last_exit": self.last_exit} if self.last_exit else {})}
+
+    @property
+    def port(self) -> int:
+        """The port the child's link listens on (its status says it)."""
+        port = self._status.get("port")
+        if not isinstance(port, int):
+            raise RuntimeError(f"the {self.name} link is not running")
+        return port
+
+    def recipe_changed(self) -> None:
+        if self._wire is not None:
+            self._wire.send("recipe_changed", self._snapshot())
+
+    # ------------------------------------------------------------------ the child
+    async def _spawn(self) -> None:
+        ours, theirs = socket.socketpair()
+        root = str(Path(__file__).resolve().parents[2])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
+        try:
+            pid = os.posix_spawn(
+                sys.executable, [sys.executable, "-m", "drivers.links.process", self.backend],
+                env, file_actions=[(os.POSIX_SPAWN_DUP2, theirs.fileno(), CHILD_FD)],
+                scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+        finally:
+            theirs.close()
+        self.pid, self.starts = pid, self.starts + 1
+        self._pidfd = os.pidfd_open(pid)
+        reader, writer = await asyncio.open_unix_connection(sock=ours)
+        wire = self._wire = _Wire(reader, writer)  # stop() reaches a child that is starting
+        wire.send("start", self.backend, self.config, logging.getLogger().getEffectiveLevel(),
+                  self._snapshot())
+        answer = await wire.read()
+        if answer is None or answer[0] != "started" or answer[1] is not None:
+            why = (answer[1] if answer is not None and answer[0] == "started"
+                   else "the process ended before its link started")
+            self._wire = None
+            wire.close()
+            await self._reap(STOP_S)
+            self._status = {"running": False, "starting": False, "error": why}
+            raise RuntimeError(f"the {self.name} link (process {pid}) did not start: {why}")
+        log.info("%s link: process %d", self.name, pid)
+
+    async def _supervise(self) -> None:
+        """Serve the child until it ends; start it again unless the link is stopping."""
+        backoff = RESTART_S[0]
+        while True:
+            began = time.monotonic()
+            assert self._wire is not None
+            await self._serve(self._wire)
+            self._wire, self._ready = None, False
+            self.started.clear()
+            self.last_exit = f"process {self.pid} ended ({await self._reap(STOP_S)})"
+            if time.monotonic() - began > 60.0:
+                backoff = RESTART_S[0]
+            while True:
+                self._status = {"running": False, "starting": True,
+                                "error": f"{self.last_exit}; starting again in {backoff:g} s"}
+                log.error("%s link: %s; starting it again in %g s", self.name, self.last_exit,
+                          backoff)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, RESTART_S[1])
+                try:
+                    await self._spawn()
+                    break
+                except Exception as err:  # noqa: BLE001 - shown in the status, tried again
+                    self.last_exit = str(err)
+
+    async def _serve(self, wire: _Wire) -> None:
+        while (message := await wire.read()) is not None:
+            kind = message[0]
+            if kind == "call":
+                self._call(wire, *message[1:])
+            elif kind == "status":
+                self._status, self._ready = message[1], message[2]
+                if self._ready:
+                    self.started.set()
+            elif kind == "listen" and not self._listening:
+                self._listening = True  # once per ProcessLink: a restarted child gets the same
+                self.handler.add_listener(self._on_result)
+        wire.close()
+
+    def _call(self, wire: _Wire, call_id: int, method: str, args: tuple[Any, ...]) -> None:
+        if method not in CALLS:
+            wire.send("reply", call_id, False, ValueError(f"no handler call {method!r}"),
+                      self._snapshot())
+            return
+        try:
+            call = asyncio.ensure_future(getattr(self.handler, method)(*args))
+        except Exception as err:  # noqa: BLE001 - the child's caller gets it
+            wire.send("reply", call_id, False, _portable(err), self._snapshot())
+            return
+        self._calls.add(call)
+
+        def done(f: asyncio.Future[Any]) -> None:
+            self._calls.discard(f)
+            if f.cancelled():
+                return
+            err = f.exception()
+            try:
+                if err is None:
+                    wire.send("reply", call_id, True, f.result(), self._snapshot())
+                    return
+            except (pickle.PicklingError, TypeError, AttributeError) as bad:
+                err = RuntimeError(f"{method}: the answer cannot cross to the link's process "
+                                   f"({type(bad).__name__}: {bad})")
+            wire.send("reply", call_id, False, _portable(err), self._snapshot())
+
+        call.add_done_callback(done)
+
+    def _on_result(self, result: dict[str, Any]) -> None:
+        """The station's listener: hand the result to the child (from any thread)."""
+        if threading.get_ident() == self._thread:
+            self._forward(result)
+        elif self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._forward, result)
+
+    def _forward(self, result: dict[str, Any]) -> None:
+        if self._wire is not None:
+            self._wire.send("result", result)
+
+    def _snapshot(self) -> tuple[int, Any]:
+        return self.handler.selected_recipe(), self.handler.convention()
+
+    async def _end_child(self) -> None:
+        wire, self._wire, self._ready = self._wire, None, False
+        self.started.clear()
+        if wire is not None:
+            wire.send("stop")
+            with contextlib.suppress(Exception):
+                await wire.writer.drain()
+        if self._pidfd >= 0:
+            code = await self._reap(STOP_S)
+            self.last_exit = f"process {self.pid} ended ({code})"
+        if wire is not None:
+            wire.close()
+        self._status = {"running": False, "starting": False, "error": None}
+
+    async def _reap(self, timeout_s: float) -> str:
+        """Wait for the child to end (SIGKILL after ``timeout_s``); how it ended."""
+        fd, self._pidfd = self._pidfd, -1
+        if fd < 0:
+            return "already reaped"
+        loop = asyncio.get_running_loop()
+        ended: asyncio.Future[None] = loop.create_future()
+
+        def readable() -> None:
+            if not ended.done():
+                ended.set_result(None)
+
+        loop.add_reader(fd, readable)
+        try:
+            try:
+                await asyncio.wait_for(ended, timeout_s)
+            except TimeoutError:
+                log.error("%s link: process %d did not end within %g s; killing it",
+                          self.name, self.pid, timeout_s)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(self.pid, signal.SIGKILL)
+            _, status = await asyncio.to_thread(os.waitpid, self.pid, 0)
+        finally:
+            loop.remove_reader(fd)
+            os.close(fd)
+        if os.WIFSIGNALED(status):
+            return f"signal {signal.Signals(os.WTERMSIG(status)).name}"
+        return f"exit {os.waitstatus_to_exitcode(status)}"
+
+
+_HOSTED: dict[str, type[ProcessLink]] = {}
+
+
+def hosted(backend: str) -> type[ProcessLink]:
+    """The ProcessLink class that runs ``backend`` (a key of BACKENDS) in a child process, under
+    the backend's name."""
+    if backend not in _HOSTED:
+        _HOSTED[backend] = type(f"{backend.capitalize()}ProcessLink", (ProcessLink,),
+                                {"name": backend, "backend": backend})
+    return _HOSTED[backend]
+
+
+# --------------------------------------------------------------------------- child side
+class RemoteHandler:
+    """The StationHandler a backend sees in the child: each call crosses the socket."""
+
+    def __init__(self, wire: _Wire, snapshot: tuple[int, Any]) -> None:
+        self._wire = wire
+        self._ids = itertools.count(1)
+        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._recipe, self._convention = snapshot
+
+    def _ask(self, method: str, *args: Any) -> asyncio.Future[Any]:
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        if self._wire.closed:
+            future.set_exception(ConnectionError("the station has gone"))
+            return future
+        call_id = next(self._ids)
+        self._pending[call_id] = future
+        future.add_done_callback(lambda _: self._pending.pop(call_id, None))
+        self._wire.send("call", call_id, method, args)
+        return future
+
+    def answered(self, call_id: int, ok: bool, value: Any, snapshot: tuple[int, Any]) -> None:
+        self.snapshot(snapshot)
+        future = self._pending.pop(call_id, None)
+        if future is None or future.done():
+            return  # its caller gave up (a timeout, a client gone)
+        if ok:
+            future.set_result(value)
+        else:
+            future.set_exception(value)
+
+    def snapshot(self, snapshot: tuple[int, Any]) -> None:
+        self._recipe, self._convention = snapshot
+
+    def gone(self) -> None:
+        for future in list(self._pending.values()):
+            if not future.done():
+                future.set_exception(ConnectionError("the station has gone"))
+
+    def tell(self, result: dict[str, Any]) -> None:
+        for listen in list(self._listeners):
+            try:
+                listen(result)
+            except Exception:
+                log.exception("a result listener failed")
+
+    # ------------------------------------------------------------------ StationHandler
+    def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
+        return self._ask("measure", request)
+
+    async def record_failure(self, request: LinkRequest, code: int, message: str,
+                             processing_ms: float) -> int:
+        result: int = await self._ask("record_failure", request, code, message, processing_ms)
+        return result
+
+    async def select_recipe(self, number: int) -> int:
+        result: int = await self._ask("select_recipe", number)
+        return result
+
+    async def teach_reference(self, by: str) -> int:
+        result: int = await self._ask("teach_reference", by)
+        return result
+
+    async def reset(self) -> None:
+        await self._ask("reset")
+
+    def convention(self) -> Any:
+        return self._convention
+
+    def selected_recipe(self) -> int:
+        return int(self._recipe)
+
+    async def unselect_recipe(self) -> int:
+        result: int = await self._ask("unselect_recipe")
+        return result
+
+    async def recipes(self) -> Any:
+        return await self._ask("recipes")
+
+    async def get_result(self, result_id: int) -> Any:
+        return await self._ask("get_result", result_id)
+
+    async def find_results(self, query: Any) -> Any:
+        return await self._ask("find_results", query)
+
+    async def calibrations(self) -> Any:
+        return await self._ask("calibrations")
+
+    async def activate_calibration(self, version: int, by: str) -> Any:
+        return await self._ask("activate_calibration", version, by)
+
+    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
+        if not self._listeners:
+            self._wire.send("listen")
+        self._listeners.append(listen)
+
+
+async def _child(sock: socket.socket) -> int:
+    from . import link_class
+
+    reader, writer = await asyncio.open_unix_connection(sock=sock)
+    wire = _Wire(reader, writer)
+    first = await wire.read()
+    if first is None or first[0] != "start":
+        return 2
+    _, backend, config, level, snapshot = first
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format=f"%(asctime)s %(levelname)s [{backend} link] %(name)s: "
+                               "%(message)s")
+    handler = RemoteHandler(wire, snapshot)
+    link = link_class(backend)(config, handler)
+    try:
+        await link.start()
+    except Exception as err:  # noqa: BLE001 - the station shows it and raises it
+        log.exception("the %s link did not start", backend)
+        wire.send("started", f"{type(err).__name__}: {err}")
+        await writer.drain()
+        return 1
+    wire.send("started", None)
+    reporter = asyncio.create_task(_report(wire, link))
+    try:
+        while (message := await wire.read()) is not None:
+            kind = message[0]
+            if kind == "reply":
+                handler.answered(*message[1:])
+            elif kind == "result":
+                handler.tell(message[1])
+            elif kind == "recipe_changed":
+                handler.snapshot(message[1])
+                link.recipe_changed()
+            elif kind == "stop":
+                break
+    finally:
+        reporter.cancel()
+        handler.gone()
+        await link.stop()
+        wire.close()
+    return 0
+
+
+async def _report(wire: _Wire, link: Link) -> None:
+    """Send the link's status and readiness whenever they changed."""
+    last: Any = None
+    while True:
+        now = (link.status(), link.ready())
+        if now != last:
+            wire.send("status", *now)
+            last = now
+        await asyncio.sleep(STATUS_EVERY_S)
+
+
+def main() -> int:
+    # Ctrl-C in a terminal reaches the whole process group: the station stops this process
+    # (a "stop" message, or its socket closing), in order.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sock = socket.socket(fileno=CHILD_FD)
+    return asyncio.run(_child(sock))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
