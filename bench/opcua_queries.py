@@ -2,9 +2,10 @@
 
 ``python -m bench.opcua_queries [--gap S] [--spacing S] [--blocks 3] [--triggers 40]``
 
-Station 1 in-process on simulated cameras (the part at its reference pose), the PLC twin
-triggering over Modbus/TCP on loopback, and an asyncua client calling GetResultListFiltered
-(100 results a call) back to back, ``--gap`` seconds apart, in alternating blocks: ``--triggers``
+Station 1 in-process on simulated cameras (the part at its reference pose; its OPC UA server in
+its own child process), the PLC twin triggering over Modbus/TCP on loopback, and an asyncua
+client in a process of its own calling GetResultListFiltered (100 results a call) back to back,
+``--gap`` seconds apart, in alternating blocks: ``--triggers``
 PLC triggers without the client, as many with it, ``--blocks`` times. The link's
 ``query_spacing_s`` is ``--spacing`` (the station file's default: 0.25). Prints the station's
 processing time of the PLC triggers (the record's total, ms) per condition and the client's
@@ -17,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -56,6 +59,37 @@ def _summary(name: str, values: list[float]) -> str:
             f"p90 {v[int(0.9 * (len(v) - 1))]:.1f}, max {v[-1]:.1f}")
 
 
+async def client(url: str, gap_s: float) -> None:
+    """The reading client (``--client URL``, a process of its own, as a plant's client is):
+    GetResultListFiltered back to back until stdin closes; prints "ready", then the call times
+    (ms) as one JSON list."""
+    client = Client(url, timeout=30)
+    client.set_user("mes")
+    client.set_password("pw")
+    await client.connect()
+    await client.load_data_type_definitions()
+    mv = await client.get_namespace_index(MV_URI)
+    res = await client.nodes.objects.get_child([f"{mv}:VisionSystem", f"{mv}:ResultManagement"])
+    empty: list[Any] = [
+        ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id=""),
+        ua.RecipeIdExternalDataType(Id=""), ua.RecipeIdInternalDataType(Id=""),
+        ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=""),
+        ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id="")]
+    stop = asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+    calls: list[float] = []
+    print("ready", flush=True)
+    while not stop.done():
+        t = time.perf_counter()
+        await res.call_method(
+            f"{mv}:GetResultListFiltered", ua.Variant(0, ua.VariantType.Int32),
+            *empty, ua.Variant(100, ua.VariantType.UInt32),
+            ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.Int32))
+        calls.append((time.perf_counter() - t) * 1e3)
+        await asyncio.sleep(gap_s)
+    await client.disconnect()
+    print(json.dumps(calls), flush=True)
+
+
 async def run(gap_s: float, spacing_s: float, blocks: int, per_block: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -70,31 +104,8 @@ async def run(gap_s: float, spacing_s: float, blocks: int, per_block: int) -> No
             assert station.active is not None
             recipe = station.active.config
             await move_part(station, lb.twin, recipe.T_rf_from_pf0.matrix)
-            client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=30)
-            client.set_user("mes")
-            client.set_password("pw")
-            await client.connect()
-            await client.load_data_type_definitions()
-            mv = await client.get_namespace_index(MV_URI)
-            res = await client.nodes.objects.get_child([f"{mv}:VisionSystem",
-                                                        f"{mv}:ResultManagement"])
+            url = f"opc.tcp://127.0.0.1:{link.port}/mvpose"
             calls: list[float] = []
-
-            async def query(stop: asyncio.Event) -> None:
-                empty: list[Any] = [
-                    ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id=""),
-                    ua.RecipeIdExternalDataType(Id=""), ua.RecipeIdInternalDataType(Id=""),
-                    ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=""),
-                    ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id="")]
-                while not stop.is_set():
-                    t = time.perf_counter()
-                    await res.call_method(
-                        f"{mv}:GetResultListFiltered", ua.Variant(0, ua.VariantType.Int32),
-                        *empty, ua.Variant(100, ua.VariantType.UInt32),
-                        ua.Variant(0, ua.VariantType.UInt32), ua.Variant(0, ua.VariantType.Int32))
-                    calls.append((time.perf_counter() - t) * 1e3)
-                    await asyncio.sleep(gap_s)
-
             trigger_id = 1
             for _ in range(150):  # records for the client to page through, and a warm station
                 await trigger(lb.twin, recipe, trigger_id, None)
@@ -102,16 +113,22 @@ async def run(gap_s: float, spacing_s: float, blocks: int, per_block: int) -> No
             ms: dict[str, list[float]] = {"alone": [], "with the client": []}
             for _ in range(blocks):
                 for cond in ms:
-                    stop = asyncio.Event()
-                    task = asyncio.create_task(query(stop)) if cond != "alone" else None
+                    reader = None
+                    if cond != "alone":
+                        reader = subprocess.Popen(  # noqa: S603 - this module, our interpreter
+                            [sys.executable, "-m", "bench.opcua_queries", "--client", url,
+                             "--gap", str(gap_s)], cwd=ROOT, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+                        assert reader.stdout is not None
+                        line = await asyncio.to_thread(reader.stdout.readline)
+                        assert line.strip() == "ready", line
                     for _ in range(per_block):
                         status, _ = await trigger(lb.twin, recipe, trigger_id, None)
                         ms[cond].append(status.processing_ms)
                         trigger_id += 1
-                    stop.set()
-                    if task is not None:
-                        await task
-            await client.disconnect()
+                    if reader is not None:
+                        out, _ = await asyncio.to_thread(reader.communicate, "", 60)
+                        calls += json.loads(out.strip().splitlines()[-1])
     print(f"query_spacing_s {spacing_s}, client gap {gap_s} s")
     for cond, values in ms.items():
         print(_summary(f"PLC trigger, station ms, {cond}", values))
@@ -124,8 +141,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spacing", type=float, default=0.25)
     parser.add_argument("--blocks", type=int, default=3)
     parser.add_argument("--triggers", type=int, default=40)
+    parser.add_argument("--client", metavar="URL", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    asyncio.run(run(args.gap, args.spacing, args.blocks, args.triggers))
+    if args.client:
+        asyncio.run(client(args.client, args.gap))
+    else:
+        asyncio.run(run(args.gap, args.spacing, args.blocks, args.triggers))
     return 0
 
 
