@@ -47,6 +47,7 @@ log = logging.getLogger(__name__)
 CHILD_FD = 3  # the socket's descriptor in the child
 STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this often
 RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
+START_S = 25.0  # a child whose link has not started this long after its spawn is killed
 STOP_S = 3.0  # a child that has not ended this long after "stop" is killed
 _HEADER = struct.Struct("!I")
 _MAX_FRAME = 64 << 20
@@ -114,7 +115,6 @@ class ProcessLink(Link):
         self._pidfd = -1
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread = 0
-        self._stopping = False
         self._watch: asyncio.Task[None] | None = None
         self._calls: set[asyncio.Future[Any]] = set()
         self._listening = False
@@ -128,7 +128,6 @@ class ProcessLink(Link):
         self._watch = asyncio.create_task(self._supervise(), name=f"link-{self.name}-process")
 
     async def stop(self) -> None:
-        self._stopping = True
         if self._watch is not None:
             self._watch.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -176,13 +175,21 @@ class ProcessLink(Link):
         wire = self._wire = _Wire(reader, writer)  # stop() reaches a child that is starting
         wire.send("start", self.backend, self.config, logging.getLogger().getEffectiveLevel(),
                   self._snapshot())
-        answer = await wire.read()
+        hung = False
+        try:
+            answer = await asyncio.wait_for(wire.read(), START_S)
+        except TimeoutError:
+            answer, hung = None, True
         if answer is None or answer[0] != "started" or answer[1] is not None:
-            why = (answer[1] if answer is not None and answer[0] == "started"
-                   else "the process ended before its link started")
+            if hung:
+                why = f"no answer within {START_S:g} s"
+            elif answer is not None and answer[0] == "started":
+                why = str(answer[1])
+            else:
+                why = "the process ended before its link started"
             self._wire = None
             wire.close()
-            await self._reap(STOP_S)
+            await self._reap(0.0 if hung else STOP_S)
             self._status = {"running": False, "starting": False, "error": why}
             raise RuntimeError(f"the {self.name} link (process {pid}) did not start: {why}")
         log.info("%s link: process %d", self.name, pid)
@@ -334,10 +341,11 @@ class RemoteHandler:
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
         self._recipe, self._convention = snapshot
+        self._gone = False
 
     def _ask(self, method: str, *args: Any) -> asyncio.Future[Any]:
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
-        if self._wire.closed:
+        if self._gone or self._wire.closed:
             future.set_exception(ConnectionError("the station has gone"))
             return future
         call_id = next(self._ids)
@@ -360,6 +368,8 @@ class RemoteHandler:
         self._recipe, self._convention = snapshot
 
     def gone(self) -> None:
+        """The station answers no more: every waiting call and every later one fails."""
+        self._gone = True
         for future in list(self._pending.values()):
             if not future.done():
                 future.set_exception(ConnectionError("the station has gone"))
