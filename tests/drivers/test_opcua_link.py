@@ -13,7 +13,7 @@ import json
 import shutil
 import socket
 import sys
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from opcua_events import Events
 from opcua_handler import AT, PASSWORDS, RecordingHandler, link_config
 from pydantic import ValidationError
+from waiting import until
 
 from drivers.links import link_class
 from drivers.links.base import (
@@ -671,13 +672,6 @@ async def test_recipes_are_listed_and_unprepared(served: Served) -> None:
         await client.disconnect()
 
 
-async def _until(condition: Callable[[], bool]) -> None:
-    async def wait() -> None:
-        while not condition():
-            await asyncio.sleep(0.005)  # polling the test handler's counters
-    await asyncio.wait_for(wait(), 10)
-
-
 def _permits(n: int) -> asyncio.Queue[None]:
     """Measurements the test handler may finish, one token each."""
     q: asyncio.Queue[None] = asyncio.Queue()
@@ -694,7 +688,7 @@ async def _start_continuous(p: dict[str, Any], meas: str, part: str) -> tuple[st
 
 
 async def _wait_records(h: RecordingHandler, part: str, n: int) -> list[LinkOutcome]:
-    await _until(lambda: len([1 for req, _ in h.records if req.part_id == part]) >= n)
+    await until(lambda: len([1 for req, _ in h.records if req.part_id == part]) >= n)
     return [out for req, out in h.records if req.part_id == part]
 
 
@@ -724,11 +718,11 @@ async def test_continuous_mode_measures_back_to_back_until_stop(served: Served) 
         assert triggers[0] == 700 and len(set(triggers)) == 5
         assert {req.link for req, _ in h.records if req.part_id == "VIN-C"} == {"opcua"}
         # the sixth job waits inside the station; Stop lets it finish, then Ready
-        await _until(lambda: h.entered == entered + 6)
+        await until(lambda: h.entered == entered + 6)
         stop = asyncio.ensure_future(p["auto"].call_method(
             f"{mv}:Stop", ua.Variant(0, ua.VariantType.Int32),
             ua.Variant("", ua.VariantType.String)))
-        await _until(lambda: served.link._stop_requested)
+        await until(lambda: served.link._stop_requested)
         assert not stop.done()  # Stop waits for the running job
         h.permits.put_nowait(None)
         assert await asyncio.wait_for(stop, 10) == 0
@@ -757,7 +751,7 @@ async def test_abort_is_ready_at_once_and_the_running_job_keeps_its_record(
         p = await _parts(client)
         mv = p["mv"]
         assert (await _start_continuous(p, "", "VIN-A"))[1] == 0
-        await _until(lambda: h.entered == entered + 2)  # the second job is inside the station
+        await until(lambda: h.entered == entered + 2)  # the second job is inside the station
         assert await p["auto"].call_method(
             f"{mv}:Abort", ua.Variant(0, ua.VariantType.Int32),
             ua.Variant("", ua.VariantType.String)) == 0
@@ -784,7 +778,7 @@ async def test_halt_ends_continuous_mode(served: Served) -> None:
         p = await _parts(client)
         mv, sm = p["mv"], p["sm"]
         assert (await _start_continuous(p, "", "VIN-HC"))[1] == 0
-        await _until(lambda: h.entered == entered + 3)  # the third waits inside the station
+        await until(lambda: h.entered == entered + 3)  # the third waits inside the station
         assert await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
                                     ua.Variant("", ua.VariantType.String)) == 0
         assert (await (await sm.get_child("0:CurrentState")).read_value()).Text == "Halted"
@@ -845,7 +839,7 @@ async def test_continuous_mode_ends_when_the_station_gives_no_answer(served: Ser
     try:
         p = await _parts(client)
         assert (await _start_continuous(p, "", "VIN-F"))[1] == 0
-        await _until(lambda: served.link._continuous is None)
+        await until(lambda: served.link._continuous is None)
         outs = await _wait_records(h, "VIN-F", 1)
         assert [o.result_code for o in outs] == [int(Reason.HANDLER_FAILED)]  # not a storm
         assert "continuous mode ended" in served.link.last_errors[-1]

@@ -11,7 +11,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ import pytest_asyncio
 from asyncua import Client, ua
 from opcua_events import Events
 from opcua_handler import PASSWORDS, RecordingHandler, link_config
+from waiting import until
 
 from drivers.links import LinkOutcome, LinkRequest, open_links
 from drivers.links.opcua import MV_URI, MVPOSE_URI
@@ -27,13 +28,6 @@ from drivers.links.process import ProcessLink
 from mvpose_core.reasons import Reason
 
 START_S = 120.0  # importing the Machine Vision NodeSet takes seconds on a loaded machine
-
-
-async def _until(check: Callable[[], Any], what: str, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
-        await asyncio.sleep(0.05)
 
 
 @pytest_asyncio.fixture
@@ -44,7 +38,7 @@ async def hosted(tmp_path: Path) -> AsyncIterator[tuple[ProcessLink, RecordingHa
     assert isinstance(link, ProcessLink) and link.name == "opcua"
     await link.start()
     try:
-        await _until(link.started.is_set, "the child's server listens", START_S)
+        await until(link.started.is_set, "the child's server listens", START_S)
         yield link, handler
     finally:
         await link.stop()
@@ -128,7 +122,7 @@ async def test_the_childs_calls_are_answered_by_the_station_processs_handler(
         assert session.events.queue.empty()  # one event per record
     finally:
         await session.close()
-    await _until(lambda: link.status().get("results_published") == 3, "the child's count")
+    await until(lambda: link.status().get("results_published") == 3, "the child's count")
 
 
 async def test_the_child_runs_under_the_normal_scheduler_whatever_the_station_runs_under(
@@ -145,7 +139,7 @@ async def test_the_child_runs_under_the_normal_scheduler_whatever_the_station_ru
     try:
         pid = link.status()["pid"]
         assert os.sched_getscheduler(pid) == os.SCHED_OTHER
-        await _until(link.started.is_set, "the child's server listens", START_S)
+        await until(link.started.is_set, "the child's server listens", START_S)
         tasks = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
         assert {os.sched_getscheduler(t) for t in tasks} == {os.SCHED_OTHER}
     finally:
@@ -158,9 +152,9 @@ async def test_a_killed_child_is_started_again_and_serves_as_before(
     link, handler = hosted
     first = link.status()["pid"]
     os.kill(first, signal.SIGKILL)
-    await _until(lambda: not link.ready(), "the link is down")
+    await until(lambda: not link.ready(), "the link is down")
     assert "SIGKILL" in (link.status().get("last_exit") or ""), link.status()
-    await _until(lambda: link.started.is_set() and link.status()["pid"] != first,
+    await until(lambda: link.started.is_set() and link.status()["pid"] != first,
                  "a new child listens", START_S)
     assert link.status()["process_starts"] == 2
     session = await Session.open(link)
@@ -207,7 +201,7 @@ async def test_a_child_whose_station_is_killed_ends(tmp_path: Path) -> None:
         except FileNotFoundError:
             return True
 
-    await _until(ended, "the orphaned child ends", 30.0)
+    await until(ended, "the orphaned child ends", 30.0)
 
 
 async def test_a_link_that_cannot_start_says_why_and_leaves_no_process(tmp_path: Path) -> None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from opcua_events import Events
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
+from waiting import until
 
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.process import ProcessLink
@@ -133,14 +133,6 @@ async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
 def _opcua_link(station: Any) -> ProcessLink:
     """The station's side of its OPC UA link (the server runs in a child process)."""
     return next(lk for lk in station.links if isinstance(lk, ProcessLink) and lk.name == "opcua")
-
-
-async def _until(check: Any, what: str, timeout_s: float = 5.0) -> None:
-    """Until ``check()`` (the child's status reaches the station within 0.2 s)."""
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
-        await asyncio.sleep(0.05)
 
 
 @contextlib.asynccontextmanager
@@ -297,7 +289,8 @@ async def test_unprepare_and_the_calibration_versions_go_through_the_station(
             assert await cm.call_method(
                 f"{mv}:ActivateConfiguration",
                 ua.ConfigurationIdDataType(Id="", Version="3")) == int(Reason.BAD_ARGUMENT)
-            await _until(lambda: "does not match its sha256" in " ".join(
+            # the child's status reaches the station within 0.2 s
+            await until(lambda: "does not match its sha256" in " ".join(
                 link.status()["last_errors"][-1:]), "the refusal in the link's status")
             assert station.status()["calibration"]["version"] == 2
             ovs = await operator.nodes.objects.get_child(f"{mv}:VisionSystem")
