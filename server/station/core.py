@@ -69,8 +69,9 @@ class StationOptions:
     # The watchdog's margin past the deadline: a trigger not recorded by then is answered with
     # a recorded TIMEOUT (the link's own backstop comes a second later).
     answer_margin_s: float = 1.0
-    # Listeners (observers: an OPC UA client's ResultReadyEvent, ...) hear of a result this long
-    # after its append, when the answering link has answered: their work holds the GIL.
+    # Listeners (observers: the OPC UA link, whose process gets the result over its socket) hear
+    # of a result this long after its append, when the answering link has answered: handing it
+    # over holds the GIL.
     observer_delay_s: float = 0.005
 
 

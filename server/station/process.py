@@ -71,7 +71,8 @@ def run_station(settings: Settings, station: StationConfig, options: StationOpti
     """Run until SIGTERM/SIGINT; 0 on a clean stop. ``cpu``: the scheduling policy the process
     runs under (server.station.scheduling), shown in the status."""
     # A thread that wants the GIL (the trigger thread, the Modbus loop) gets it from a busy one
-    # (an OPC UA event being encoded) within 1 ms instead of CPython's default 5 ms.
+    # (the database commit, a store query for an OPC UA client) within 1 ms instead of CPython's
+    # default 5 ms.
     sys.setswitchinterval(0.001)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
