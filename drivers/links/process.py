@@ -49,6 +49,7 @@ STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this
 RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
 START_S = 25.0  # a child whose link has not started this long after its spawn is killed
 STOP_S = 3.0  # a child that has not ended this long after "stop" is killed
+BACKLOG_BYTES = 4 << 20  # a child that leaves this much unread (frozen, stopped) is killed
 _HEADER = struct.Struct("!I")
 _MAX_FRAME = 64 << 20
 # the StationHandler calls a child may make (its answers go back as replies)
@@ -70,6 +71,10 @@ class _Wire:
             return
         data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
         self.writer.write(_HEADER.pack(len(data)) + data)
+
+    def backlog(self) -> int:
+        """Bytes written that the other side has not read yet (beyond the socket's buffer)."""
+        return self.writer.transport.get_write_buffer_size()
 
     async def read(self) -> tuple[Any, ...] | None:
         """The next message; None when the other side has gone."""
@@ -118,6 +123,8 @@ class ProcessLink(Link):
         self._watch: asyncio.Task[None] | None = None
         self._calls: set[asyncio.Future[Any]] = set()
         self._listening = False
+        self.backlog_limit = BACKLOG_BYTES
+        self._killed_why = ""  # why this link killed its child, for last_exit
 
     # ------------------------------------------------------------------ Link
     async def start(self) -> None:
@@ -154,7 +161,7 @@ class ProcessLink(Link):
 
     def recipe_changed(self) -> None:
         if self._wire is not None:
-            self._wire.send("recipe_changed", self._snapshot())
+            self._send(self._wire, "recipe_changed", self._snapshot())
 
     # ------------------------------------------------------------------ the child
     async def _spawn(self) -> None:
@@ -203,7 +210,9 @@ class ProcessLink(Link):
             await self._serve(self._wire)
             self._wire, self._ready = None, False
             self.started.clear()
-            self.last_exit = f"process {self.pid} ended ({await self._reap(STOP_S)})"
+            how = await self._reap(STOP_S)
+            why, self._killed_why = self._killed_why, ""
+            self.last_exit = f"process {self.pid} ended ({how}{'; ' + why if why else ''})"
             if time.monotonic() - began > 60.0:
                 backoff = RESTART_S[0]
             while True:
@@ -235,13 +244,13 @@ class ProcessLink(Link):
 
     def _call(self, wire: _Wire, call_id: int, method: str, args: tuple[Any, ...]) -> None:
         if method not in CALLS:
-            wire.send("reply", call_id, False, ValueError(f"no handler call {method!r}"),
-                      self._snapshot())
+            self._send(wire, "reply", call_id, False,
+                       ValueError(f"no handler call {method!r}"), self._snapshot())
             return
         try:
             call = asyncio.ensure_future(getattr(self.handler, method)(*args))
         except Exception as err:  # noqa: BLE001 - the child's caller gets it
-            wire.send("reply", call_id, False, _portable(err), self._snapshot())
+            self._send(wire, "reply", call_id, False, _portable(err), self._snapshot())
             return
         self._calls.add(call)
 
@@ -252,12 +261,12 @@ class ProcessLink(Link):
             err = f.exception()
             try:
                 if err is None:
-                    wire.send("reply", call_id, True, f.result(), self._snapshot())
+                    self._send(wire, "reply", call_id, True, f.result(), self._snapshot())
                     return
             except (pickle.PicklingError, TypeError, AttributeError) as bad:
                 err = RuntimeError(f"{method}: the answer cannot cross to the link's process "
                                    f"({type(bad).__name__}: {bad})")
-            wire.send("reply", call_id, False, _portable(err), self._snapshot())
+            self._send(wire, "reply", call_id, False, _portable(err), self._snapshot())
 
         call.add_done_callback(done)
 
@@ -270,7 +279,20 @@ class ProcessLink(Link):
 
     def _forward(self, result: dict[str, Any]) -> None:
         if self._wire is not None:
-            self._wire.send("result", result)
+            self._send(self._wire, "result", result)
+
+    def _send(self, wire: _Wire, *message: Any) -> None:
+        """Send to the child; a child that has stopped reading (frozen, SIGSTOP) would make the
+        station buffer every result for it, so past ``backlog_limit`` unread bytes it is killed
+        (and started again, as after any death)."""
+        wire.send(*message)
+        if wire.closed or wire.backlog() <= self.backlog_limit:
+            return
+        self._killed_why = f"killed: it left {wire.backlog()} bytes unread"
+        log.error("%s link: process %d %s", self.name, self.pid, self._killed_why)
+        wire.close()
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self.pid, signal.SIGKILL)
 
     def _snapshot(self) -> tuple[int, Any]:
         return self.handler.selected_recipe(), self.handler.convention()

@@ -214,3 +214,30 @@ async def test_a_link_that_cannot_start_says_why_and_leaves_no_process(tmp_path:
     pid = link.status()["pid"]
     assert not Path(f"/proc/{pid}").exists()
     assert link.status()["error"] and not link.ready()
+
+
+async def test_a_child_that_stops_reading_is_killed_before_the_station_buffers_much(
+        hosted: tuple[ProcessLink, RecordingHandler]) -> None:
+    """A frozen child (SIGSTOP here) reads no results: past the link's backlog limit the station
+    kills it rather than keep every result for it, and a new child serves."""
+    link, handler = hosted
+    link.backlog_limit = 64 * 1024  # the default is 4 MiB; the socket's own buffer comes first
+    frozen = link.status()["pid"]
+    os.kill(frozen, signal.SIGSTOP)
+    part = "P" * 2000  # ~2 KB a result
+    for k in range(2000):
+        handler.record(LinkRequest("modbus", k, 0, None, part, 0), LinkOutcome(0, 0), "OK")
+        await asyncio.sleep(0)  # the listener's hand-over runs on this loop
+        if "unread" in (link.status().get("last_exit") or ""):
+            break
+    await until(lambda: "bytes unread" in (link.status().get("last_exit") or ""),
+                "the frozen child killed", 10.0)
+    assert "SIGKILL" in link.status()["last_exit"] and not Path(f"/proc/{frozen}").exists()
+    await until(lambda: link.started.is_set() and link.status()["pid"] != frozen,
+                "a new child listens", START_S)
+    session = await Session.open(link)
+    try:
+        rid, code, *_ = await session.measure("VIN-THAWED", 81)
+        assert code == 0 and (await session.events.next()).ResultId.Id == str(rid)
+    finally:
+        await session.close()
