@@ -9,7 +9,8 @@ child process instead:
 - :class:`ProcessLink` stands for it in the station (on the station's loop): it starts the child,
   serves the child's handler calls with the station's handler, forwards each result to it, and
   shows the child's status and readiness. A child that dies is started again (backoff 1 s to 30 s);
-  the station and its other links go on meanwhile.
+  the station and its other links go on meanwhile. A child that does not answer its start within
+  ``START_S``, or leaves ``BACKLOG_BYTES`` unread (frozen), is killed.
 - In the child, ``python -m drivers.links.process <backend>``, the backend runs unchanged against
   :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
   without a call (the selected recipe, its robot convention) comes with every reply and with each
@@ -302,8 +303,8 @@ class ProcessLink(Link):
         self.started.clear()
         if wire is not None:
             wire.send("stop")
-            with contextlib.suppress(Exception):
-                await wire.writer.drain()
+            with contextlib.suppress(Exception):  # a frozen child reads nothing: bounded
+                await asyncio.wait_for(wire.writer.drain(), STOP_S)
         if self._pidfd >= 0:
             code = await self._reap(STOP_S)
             self.last_exit = f"process {self.pid} ended ({code})"

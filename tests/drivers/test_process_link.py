@@ -24,7 +24,7 @@ from waiting import until
 
 from drivers.links import LinkOutcome, LinkRequest, open_links
 from drivers.links.opcua import MV_URI, MVPOSE_URI
-from drivers.links.process import ProcessLink
+from drivers.links.process import STOP_S, ProcessLink
 from mvpose_core.reasons import Reason
 
 START_S = 120.0  # importing the Machine Vision NodeSet takes seconds on a loaded machine
@@ -241,3 +241,24 @@ async def test_a_child_that_stops_reading_is_killed_before_the_station_buffers_m
         assert code == 0 and (await session.events.next()).ResultId.Id == str(rid)
     finally:
         await session.close()
+
+
+async def test_a_frozen_child_does_not_hold_up_the_stations_stop(tmp_path: Path) -> None:
+    """Stopped (SIGSTOP) with results waiting for it beyond the socket's buffer (under the
+    backlog limit): the station's stop neither waits for it to read them nor for it to end."""
+    handler = RecordingHandler()
+    (link,) = open_links({"opcua": link_config(tmp_path / "pki", security=["None"])}, handler)
+    assert isinstance(link, ProcessLink)
+    await link.start()
+    await until(link.started.is_set, "the child's server listens", START_S)
+    pid = link.status()["pid"]
+    os.kill(pid, signal.SIGSTOP)  # it will read neither the results nor "stop"
+    for k in range(400):  # ~800 KB: more than the socket holds, less than the limit
+        handler.record(LinkRequest("modbus", k, 0, None, "P" * 2000, 0), LinkOutcome(0, 0), "OK")
+        await asyncio.sleep(0)
+    assert link.ready()  # not killed: under the backlog limit
+    t = time.monotonic()
+    await link.stop()
+    assert time.monotonic() - t < 2 * STOP_S + 1.0
+    assert "SIGKILL" in (link.status().get("last_exit") or "")
+    assert not Path(f"/proc/{pid}").exists()
