@@ -49,7 +49,7 @@ CHILD_FD = 3  # the socket's descriptor in the child
 STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this often
 RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
 START_S = 25.0  # a child whose link has not started this long after its spawn is killed
-STOP_S = 3.0  # a child that has not ended this long after "stop" is killed
+STOP_S = 3.0  # a child that has not read "stop" and ended this long after it is killed
 BACKLOG_BYTES = 4 << 20  # a child that leaves this much unread (frozen, stopped) is killed
 _HEADER = struct.Struct("!I")
 _MAX_FRAME = 64 << 20
@@ -301,12 +301,13 @@ class ProcessLink(Link):
     async def _end_child(self) -> None:
         wire, self._wire, self._ready = self._wire, None, False
         self.started.clear()
+        deadline = time.monotonic() + STOP_S  # reading "stop" and ending, together
         if wire is not None:
             wire.send("stop")
             with contextlib.suppress(Exception):  # a frozen child reads nothing: bounded
                 await asyncio.wait_for(wire.writer.drain(), STOP_S)
         if self._pidfd >= 0:
-            code = await self._reap(STOP_S)
+            code = await self._reap(max(0.0, deadline - time.monotonic()))
             self.last_exit = f"process {self.pid} ended ({code})"
         if wire is not None:
             wire.close()

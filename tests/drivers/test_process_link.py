@@ -259,6 +259,6 @@ async def test_a_frozen_child_does_not_hold_up_the_stations_stop(tmp_path: Path)
     assert link.ready()  # not killed: under the backlog limit
     t = time.monotonic()
     await link.stop()
-    assert time.monotonic() - t < 2 * STOP_S + 1.0
+    assert time.monotonic() - t < STOP_S + 1.0  # within a container runtime's 5 s
     assert "SIGKILL" in (link.status().get("last_exit") or "")
     assert not Path(f"/proc/{pid}").exists()
