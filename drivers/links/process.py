@@ -114,9 +114,9 @@ class ProcessLink(Link):
         self.pid = 0
         self.starts = 0  # children started
         self.last_exit: str | None = None
-        self.started = threading.Event()  # the child's link is ready (for tests and threads)
+        # the child's link says it is ready (also waited on by tests and other threads)
+        self.started = threading.Event()
         self._status: dict[str, Any] = {"running": False, "starting": True, "error": None}
-        self._ready = False
         self._wire: _Wire | None = None
         self._pidfd = -1
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -146,7 +146,7 @@ class ProcessLink(Link):
             call.cancel()
 
     def ready(self) -> bool:
-        return self._ready and self._wire is not None
+        return self.started.is_set() and self._wire is not None
 
     def status(self) -> dict[str, Any]:
         return {**self._status, "pid": self.pid, "process_starts": self.starts,
@@ -209,7 +209,7 @@ class ProcessLink(Link):
             began = time.monotonic()
             assert self._wire is not None
             await self._serve(self._wire)
-            self._wire, self._ready = None, False
+            self._wire = None
             self.started.clear()
             how = await self._reap(STOP_S)
             why, self._killed_why = self._killed_why, ""
@@ -235,9 +235,11 @@ class ProcessLink(Link):
             if kind == "call":
                 self._call(wire, *message[1:])
             elif kind == "status":
-                self._status, self._ready = message[1], message[2]
-                if self._ready:
+                self._status = message[1]
+                if message[2]:
                     self.started.set()
+                else:
+                    self.started.clear()
             elif kind == "listen" and not self._listening:
                 self._listening = True  # once per ProcessLink: a restarted child gets the same
                 self.handler.add_listener(self._on_result)
@@ -299,7 +301,7 @@ class ProcessLink(Link):
         return self.handler.selected_recipe(), self.handler.convention()
 
     async def _end_child(self) -> None:
-        wire, self._wire, self._ready = self._wire, None, False
+        wire, self._wire = self._wire, None
         self.started.clear()
         deadline = time.monotonic() + STOP_S  # reading "stop" and ending, together
         if wire is not None:
