@@ -152,8 +152,10 @@ async def test_a_killed_child_is_started_again_and_serves_as_before(
     link, handler = hosted
     first = link.status()["pid"]
     os.kill(first, signal.SIGKILL)
+    # the link is down at once; why it ended is known once the child is reaped
     await until(lambda: not link.ready(), "the link is down")
-    assert "SIGKILL" in (link.status().get("last_exit") or ""), link.status()
+    await until(lambda: "SIGKILL" in (link.status().get("last_exit") or ""),
+                "the status names the SIGKILL")
     await until(lambda: link.started.is_set() and link.status()["pid"] != first,
                  "a new child listens", START_S)
     assert link.status()["process_starts"] == 2

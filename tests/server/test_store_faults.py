@@ -33,12 +33,12 @@ from server.store.writer import DurableWriter, Sealed
 HERE = Path(__file__).parent
 STATION = "station1"
 DB_WAIT_S = 0.005
-# What "never waits on the database" means in numbers: an append is one fsynced journal write
-# plus at most DB_WAIT_S; a frozen or stopped database would instead hold it for as long as the
-# fault lasts (half a second and more here). Beyond its journal write, an append may take
-# DB_WAIT_S and SLACK_S (a thread waking late on this shared 2-core VM): 50 ms. The journal
-# write is the disk's own time, whatever the database does.
-SLACK_S = 0.045
+# "Never waits on the database": an append is one fsynced journal write plus at most DB_WAIT_S.
+# An append that waited for the database instead would take the writer's connect timeout (1 s)
+# or stay blocked until the frozen server is let go (after all its appends). SLACK_S tells the
+# two apart with room for a thread that wakes late on a busy 2-core machine; it is no latency
+# figure (those are in `make bench`). The journal write is the disk's own time.
+SLACK_S = 0.5
 
 
 @pytest.fixture(scope="module")
