@@ -12,6 +12,7 @@ from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
 from server.api.deps import IdInt, OperatorUser, ReadUser, Uint32, VersionInt, ViewInt
+from server.auth import Role, authorize
 from server.errors import NotReadyError
 from server.store.schemas import MeasurementRecord
 
@@ -100,6 +101,9 @@ def teach(request: Request, user: OperatorUser,
 @router.post("/recipe")
 def select_recipe(request: Request, user: OperatorUser,
                   body: Annotated[RecipeBody, Body()]) -> dict[str, Any]:
-    """Select the recipe the station measures (and activate one of its stored versions)."""
+    """Select the recipe the station measures; with a version (engineer only), activate that
+    stored version first."""
+    if body.version is not None:  # activating a version is a change, as under /recipes
+        authorize(user, Role.ENGINEER)
     rec: dict[str, Any] = _station(request).activate_recipe(body.name, body.version, user.name)
     return {k: rec[k] for k in ("name", "version", "number", "sha256")}

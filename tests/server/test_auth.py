@@ -70,6 +70,31 @@ async def test_role_matrix(tmp_path: Path) -> None:
             assert got == expected[role], role
 
 
+async def test_activating_a_recipe_version_through_the_station_needs_the_engineer(
+    tmp_path: Path,
+) -> None:
+    async with running(create_app(settings(tmp_path)), ENGINEER) as (admin, _):
+        secrets = {}
+        for role in ("operator", "engineer"):
+            r = await admin.post("/api/v1/tokens", json={"name": f"t-{role}", "role": role})
+            secrets[role] = r.json()["token"]
+
+        async def select(role: str, body: dict[str, object]) -> tuple[int, str]:
+            r = await admin.post("/api/v1/station/recipe", json=body,
+                                 headers={"Authorization": f"Bearer {secrets[role]}"})
+            return r.status_code, r.json()["detail"]
+
+        # an operator selects among the active recipes (503 here: no station process) ...
+        code, _detail = await select("operator", {"name": "floor_panel"})
+        assert code == 503
+        # ... but activating a stored version is the engineer's, as under /recipes
+        code, detail = await select("operator", {"name": "floor_panel", "version": 1})
+        assert code == 403
+        assert "role 'operator'" in detail and "'engineer'" in detail
+        code, detail = await select("engineer", {"name": "floor_panel", "version": 1})
+        assert code == 503 and "without a station process" in detail
+
+
 async def test_a_401_never_echoes_what_was_sent(tmp_path: Path) -> None:
     secret = "mvp_0123456789abcdefghijklmnopqrstuvwxyzABCDEFG"
     async with running(create_app(settings(tmp_path))) as (client, _):
