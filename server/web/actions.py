@@ -15,6 +15,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Resp
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from mvpose_core.reasons import reason_name
 from server.auth import Role, authenticate
 from server.errors import ForbiddenError, NotReadyError
 from server.web import html
@@ -106,7 +107,10 @@ async def trigger(request: Request,
     await need(request, Role.OPERATOR)
     runtime = _station(request)
     out = await in_thread(lambda: runtime.trigger((body.part_id if body else None) or None, 0))
-    return {"message": f"{out.get('reason', '?')}: {out.get('message', '')}",
+    # The control channel answers the result code and the station's message; the name is ours.
+    reason, message = reason_name(out["result_code"]), out.get("message") or ""
+    return {"message": f"{reason}: {message}" if message else reason,
+            "reason": reason, "result_code": out["result_code"],
             "measurement_id": out.get("measurement_id")}
 
 

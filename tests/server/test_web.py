@@ -270,3 +270,34 @@ async def test_a_station_that_does_not_answer_is_shown_down(tmp_path: Path) -> N
         assert re.search(r"<button type=\"submit\" disabled[^>]*>Trigger now", page)
         r = await client.post("/web/actions/trigger", json={"part_id": "VIN1"}, headers=ORIGIN)
         assert r.status_code == 503 and "not running" in r.json()["detail"]
+
+
+@pytest.mark.timeout(300)
+async def test_the_trigger_message_names_the_stations_reason_and_message(tmp_path: Path) -> None:
+    import stations
+
+    from server.loopback import move_part, running_server
+    from server.station.client import StationClient
+
+    path = stations.station_file(tmp_path, "station1", stations.relaxed_deadline)
+    st_settings = stations.settings_for(path, tmp_path / "var")
+    async with running_server(st_settings, stations.runtime_options(), http_port=None) as srv:
+        rt = srv.runtime
+        app = create_app(st_settings, StationClient(st_settings.resolved_control_socket))
+        async with running(app) as (client, _):
+            await _login(client, stations.ENGINEER)
+            # no part in front of the simulated cameras yet: a refusal, with the station's words
+            r = await client.post("/web/actions/trigger", json={"part_id": "VIN1"},
+                                  headers=ORIGIN)
+            assert r.status_code == 200, r.text
+            body = r.json()
+            assert body["reason"] == "CAMERA_FAILED" and body["result_code"] != 0
+            assert body["message"].startswith("CAMERA_FAILED: too few marks"), body
+            assert "nothing to see" in body["message"]
+            await move_part(rt, None, rt.active.config.T_rf_from_pf0.matrix)  # type: ignore[arg-type]
+            r = await client.post("/web/actions/trigger", json={"part_id": "VIN2"},
+                                  headers=ORIGIN)
+            body = r.json()
+            assert body["reason"] == "OK" and body["result_code"] == 0, body
+            assert body["message"] == "OK" or body["message"].startswith("OK: "), body
+            assert body["measurement_id"] is not None
