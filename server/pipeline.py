@@ -209,7 +209,8 @@ class Pipeline:
         budget = max(0.001, self.deadline_s * self.options.capture_share - (time.monotonic() - t0))
         t = time.monotonic()
         try:
-            grabbed: dict[str, object] = dict(self.capture.grab_all(budget, camera_ids=list(cams)))
+            grabbed: dict[str, object] = dict(self.capture.grab_all(budget, camera_ids=list(cams),
+                                                                    view=view))
         except DriverError as group_err:  # the group itself failed: so did each of its cameras
             grabbed = {cid: group_err for cid in cams}
         vcap.timings_ms["capture"] = (time.monotonic() - t) * 1e3

@@ -210,6 +210,10 @@ class Camera(ABC):
             self._t_trigger = math.nan
         return Frame(self.camera_id, image, frame_id, t_trigger, t_received, ts)
 
+    def at_view(self, view: int) -> None:  # noqa: B027 - a no-op but for simulated cameras
+        """The next trigger is for ``view`` (where a robot-mounted rig is held). A real camera
+        sees whatever is in front of it; the simulated one shows that view of its scene."""
+
     def close(self) -> None:
         """Stop and disconnect; safe to call twice and after the device was lost."""
         with self._lock:

@@ -196,12 +196,14 @@ class CaptureGroup:
         return out
 
     def grab_all(
-        self, deadline_s: float, *, trigger: bool = True, camera_ids: Sequence[str] | None = None
+        self, deadline_s: float, *, trigger: bool = True, camera_ids: Sequence[str] | None = None,
+        view: int | None = None,
     ) -> dict[str, Result]:
         """Trigger (software-armed cameras) and grab every camera; never later than the deadline.
 
-        ``camera_ids`` limits the grab to some cameras (those of one view, say). The result has
-        each of them: a Frame, or the DriverError of that camera alone.
+        ``camera_ids`` limits the grab to some cameras (those of one view, say). ``view`` is the
+        view the trigger names (:meth:`Camera.at_view`: simulated cameras show it). The result
+        has each of them: a Frame, or the DriverError of that camera alone.
         """
         if self._closed:
             raise DriverOperationError("capture group is closed")
@@ -212,6 +214,9 @@ class CaptureGroup:
                 f"capture group has no cameras {unknown}; it has {list(self._workers)}"
             )
         t_end = time.monotonic() + deadline_s
+        if view is not None:
+            for cid in ids:  # before any job is queued: each grab then reads this view
+                self._workers[cid].cam.at_view(view)
         results: dict[str, Result] = {}
         pending: dict[str, Future[Result]] = {}
         for cid in ids:

@@ -3,7 +3,9 @@
 A :class:`SimScene` is what the simulated cameras look at. ``set_part_pose`` renders every
 camera of every view at once (as a real part is in the cell before the trigger) with
 :func:`mvpose_core.render.render_view`, and caches the frames; a :class:`SimCamera` then hands
-out the cached frame of its camera at the scene's current view, after ``driver.latency_ms``.
+out the cached frame of its camera at the scene's current view, after ``driver.latency_ms``. The
+view is the one each trigger names: the capture tells the cameras (``Camera.at_view``), so view
+k's grab shows view k in every mode, not only in the demo.
 Frames are shared read-only arrays, so a grab costs no copy (benchmarks use ``set_frames``
 with pre-rendered images). Image noise is drawn once per pose, not per grab.
 
@@ -162,6 +164,11 @@ class SimCamera(Camera):
         self._frame_id = 0
         self._down_until = 0.0
         self._roi = CameraSettings()
+
+    def at_view(self, view: int) -> None:
+        """Show ``view`` of the scene: its frames as rendered for that view's flange pose."""
+        if view != self.scene.view:
+            self.scene.set_view(view)
 
     def _open_device(self) -> None:
         wait = self._down_until - time.monotonic()

@@ -98,6 +98,23 @@ def test_all_cameras_of_a_fixed_station_in_one_call(scene: SimScene) -> None:
         assert max(starts) - min(starts) < 0.03 + SLACK_S
 
 
+def test_a_grab_for_a_view_shows_the_simulated_cameras_that_view() -> None:
+    station = small_station("lab")
+    scene = SimScene(station, None, np.random.default_rng(4))
+    scene.set_part_pose(station.recipe().T_rf_from_pf0.matrix)
+    assert scene.view == 1
+    with CaptureGroup(sim_cameras(scene)) as group:
+        assert all(e is None for e in group.wait_ready(5.0).values())
+        for view in (2, 1, 2):
+            frames = group.grab_all(1.0, view=view)
+            assert scene.view == view
+            for cid, f in frames.items():
+                assert isinstance(f, Frame)
+                np.testing.assert_array_equal(f.image, scene.truth(cid, view).image)
+                other = 3 - view
+                assert not np.array_equal(f.image, scene.truth(cid, other).image)
+
+
 def test_slow_camera_times_out_alone(scene: SimScene) -> None:
     cams = sim_cameras(scene)
     slow_cfg = cams[0].config.model_copy(

@@ -7,6 +7,7 @@ triggers over Modbus/TCP, and reads the result block; then MES reads everything 
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import io
 import os
@@ -223,3 +224,29 @@ def test_bad_link_options_stop_startup_naming_them(
         assert cli_main(args) == 2
         assert "MVPOSE_PLC_UNIT_ID" in capsys.readouterr().err
     assert not (tmp_path / "var").exists(), "nothing opened before the options were valid"
+
+
+@pytest.mark.timeout(300)
+async def test_lab_two_views_each_trigger_shows_the_view_it_names(tmp_path: Path) -> None:
+    """Nothing but the triggers says which view is measured (no test reaches into the scene):
+    view 2's capture must show view 2, or its marks are found in view 1's frames."""
+    from server.loopback import offset_error, running_server, true_offset
+    from server.station.client import StationClient
+
+    settings = settings_for(station_file(tmp_path, "lab", relaxed_deadline), tmp_path / "var")
+    rng = np.random.default_rng(11)
+    async with running_server(settings, runtime_options(11), http_port=None) as srv:
+        rt = srv.runtime
+        recipe = rt.active.config
+        client = StationClient(settings.resolved_control_socket, timeout_s=30.0)
+        for part in range(2):
+            T = recipe.T_rf_from_pf0.matrix @ random_displacement(rng, 20.0, 2.0)
+            await move_part(rt, None, T)  # type: ignore[arg-type]
+            first = await asyncio.to_thread(client.trigger, f"P{part}", 1)
+            assert not first["final"] and first["views_done"] == 1, first
+            last = await asyncio.to_thread(client.trigger, f"P{part}", 2)
+            assert last["final"] and last["result_code"] == 0, (last["result_code"],
+                                                                 last["message"])
+            deg, mm = offset_error(recipe, true_offset(recipe, T), np.array(last["offset"]))
+            assert deg <= recipe.tolerances.rotation_deg
+            assert mm <= recipe.tolerances.translation_mm
