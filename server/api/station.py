@@ -1,4 +1,5 @@
-"""Station endpoints: status, commissioning trigger, teach reference, recipe selection.
+"""Station endpoints: status, commissioning trigger, teach reference, recipe selection, and a
+rehearsal's move of the simulated part.
 
 They go to the station process through its control channel (``app.state.station``); with the
 station down they answer 503 while the rest of the API keeps serving history.
@@ -11,7 +12,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
-from server.api.deps import IdInt, OperatorUser, ReadUser, Uint32, VersionInt, ViewInt
+from server.api.deps import (
+    EngineerUser,
+    IdInt,
+    OperatorUser,
+    ReadUser,
+    Uint32,
+    VersionInt,
+    ViewInt,
+)
 from server.auth import Role, authorize
 from server.errors import NotReadyError
 from server.store.schemas import MeasurementRecord
@@ -58,6 +67,14 @@ class RecipeBody(BaseModel):
     name: str = Field(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)
     version: VersionInt | None = Field(None,
                                        description="activate this stored version first")
+
+
+class RehearsalPart(BaseModel):
+    offset: list[Annotated[float, Field(ge=-1e4, le=1e4, allow_inf_nan=False)]] = Field(
+        min_length=6, max_length=7,
+        description="where to put the simulated part: its offset from the active recipe's "
+        "reference in the recipe's robot convention (6 values; ABB: 7, X Y Z and a quaternion), "
+        "i.e. what the station should then measure")
 
 
 @router.get("/status")
@@ -107,3 +124,11 @@ def select_recipe(request: Request, user: OperatorUser,
         authorize(user, Role.ENGINEER)
     rec: dict[str, Any] = _station(request).activate_recipe(body.name, body.version, user.name)
     return {k: rec[k] for k in ("name", "version", "number", "sha256")}
+
+
+@router.post("/rehearsal/part")
+def rehearsal_part(request: Request, _user: EngineerUser,
+                   body: Annotated[RehearsalPart, Body()]) -> dict[str, Any]:
+    """Rehearsal on simulated cameras: move the simulated part (409 with real cameras)."""
+    result: dict[str, Any] = _station(request).move_part(body.offset)
+    return result

@@ -114,6 +114,16 @@ class StationClient:
                                            version=version, by=by)
         return result
 
+    def metrics_text(self) -> str:
+        """The station process's Prometheus text (its counters and histograms)."""
+        result: dict[str, Any] = self.call("metrics", timeout_s=2.0)
+        return str(result["text"])
+
+    def move_part(self, offset: list[float]) -> dict[str, Any]:
+        """Rehearsal on simulated cameras: the part at ``offset`` from the active reference."""
+        result: dict[str, Any] = self.call("move_part", timeout_s=35.0, offset=offset)
+        return result
+
     def reload_recipes(self) -> None:
         with contextlib.suppress(StationDownError):
             self.call("reload_recipes", timeout_s=35.0)

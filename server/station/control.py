@@ -2,7 +2,8 @@
 
 The API process (and `mvpose` tools) reach the station through it for what must go through the
 station: a commissioning trigger, teaching, recipe selection and activation, live status and
-readiness, and a stream of results for live pages. One request per line::
+readiness, the station's metrics (for the API's scrape), moving the simulated part (a rehearsal
+on simulated cameras), and a stream of results for live pages. One request per line::
 
     {"id": 7, "op": "status", "args": {}}
     → {"id": 7, "ok": true, "result": {...}}
@@ -25,8 +26,10 @@ from pathlib import Path
 from typing import Any
 
 from server.errors import ConflictError, InvalidInputError, NotFoundError
+from server.metrics import exposition
 from server.recipes import ActiveRecipe
 from server.station.core import Station
+from server.station.rehearsal import move_part
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +39,13 @@ MAX_LINE = 64 * 1024
 def recipe_info(rec: ActiveRecipe) -> dict[str, Any]:
     return {"name": rec.config.name, "version": rec.version, "number": rec.number,
             "sha256": rec.sha256, "T_rf_from_pf0": rec.config.T_rf_from_pf0.model_dump()}
+
+
+def station_metrics(st: Station) -> dict[str, str]:
+    """The station process's Prometheus text, for the API's scrape (server/metrics.py)."""
+    if st.services is None:
+        raise ConflictError("the station is not started")
+    return {"text": exposition(st.services.metrics)}
 
 
 class ControlServer:
@@ -102,6 +112,8 @@ class ControlServer:
             "activate_recipe": lambda: recipe_info(st.activate_recipe(
                 _text(args, "name"), _opt_int(args, "version"), _text(args, "by"))),
             "reload_recipes": lambda: {"changed": st.reload_recipes()},
+            "metrics": lambda: station_metrics(st),
+            "move_part": lambda: move_part(st, _floats(args, "offset")),
         }
         try:
             if op == "trigger":
@@ -182,6 +194,14 @@ def _int(args: dict[str, Any], name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise InvalidInputError(f"argument {name!r} must be an integer, got {value!r}")
     return value
+
+
+def _floats(args: dict[str, Any], name: str) -> list[float]:
+    value = args.get(name)
+    if not isinstance(value, list) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+        raise InvalidInputError(f"argument {name!r} must be a list of numbers, got {value!r}")
+    return [float(v) for v in value]
 
 
 def _opt_int(args: dict[str, Any], name: str) -> int | None:

@@ -191,6 +191,12 @@ async def test_without_its_station_process_the_api_serves_history_and_says_so(
         assert r.status_code == 503
         assert (await client.get("/api/v1/measurements")).status_code == 200
         assert (await client.get("/api/v1/health/live")).status_code == 200
+        # the scrape goes on without the station's counters, and says they are missing
+        r = await client.get("/api/v1/metrics")
+        assert r.status_code == 200
+        assert "mvpose_station_up 0.0" in r.text and "mvpose_chain_head_seq 0.0" in r.text
+        r = await client.post("/api/v1/station/rehearsal/part", json={"offset": [0.0] * 6})
+        assert r.status_code == 503
 
 async def test_a_malformed_station_file_stops_start_up(tmp_path: Path) -> None:
     data = yaml.safe_load(STATION1.read_text())

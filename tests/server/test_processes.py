@@ -139,3 +139,78 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
     assert code == 0, (tmp_path / "serve.log").read_text()[-3000:]
     assert stopped_s < 5.0, f"SIGTERM took {stopped_s:.1f} s"
     assert not (data / "station.sock").exists()
+
+
+def _samples(text: str, name: str) -> list[tuple[dict[str, str], float]]:
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return [(s.labels, s.value) for f in text_string_to_metric_families(text)
+            for s in f.samples if s.name == name]
+
+
+async def test_serve_measures_two_views_rehearses_and_scrapes_the_stations_metrics(
+    tmp_path: Path,
+) -> None:
+    """lab.yaml under `mvpose serve`: a trigger per view through REST gives OK (each view's
+    capture shows that view), the engineer moves the simulated part between parts (rehearsal),
+    and the API process's scrape has the station process's counters and histograms."""
+    import numpy as np
+
+    from mvpose_core.station import load_station
+    from server.loopback import offset_error
+
+    path = station_file(tmp_path, "lab", relaxed_deadline)
+    recipe = load_station(path).recipe()
+    data = tmp_path / "var"
+    env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=ENGINEER)
+    log = (tmp_path / "serve.log").open("wb")
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "server.cli", "serve", "--station", str(path), "--data-dir",
+         str(data), "--port", "0", "--plc-port", "0", "--log-level", "warning"],
+        env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        await _until("the station process answers", lambda: _ping(StationClient(
+            data / "station.sock")))
+        api = await _until("the API process answers", lambda: _api(data))
+        base = f"http://127.0.0.1:{api['port']}/api/v1"
+        async with httpx.AsyncClient(base_url=base, timeout=60,
+                                     headers={"Authorization": f"Bearer {ENGINEER}"}) as http:
+            r = await http.post("/tokens", json={"name": "op", "role": "operator"})
+            operator = {"Authorization": f"Bearer {r.json()['token']}"}
+            r = await http.post("/station/rehearsal/part", json={"offset": [0.0] * 6},
+                                headers=operator)
+            assert r.status_code == 403 and "'engineer'" in r.json()["detail"]
+            r = await http.post("/station/rehearsal/part", json={"offset": [1.0] * 3})
+            assert r.status_code == 422, r.text
+
+            for n, offset in enumerate(([0.0] * 6, [6.0, -4.0, 3.0, 0.4, -0.3, 0.6])):
+                r = await http.post("/station/rehearsal/part", json={"offset": offset})
+                assert r.status_code == 200, r.text
+                assert r.json()["convention"] == recipe.robot_convention.value
+                first = await http.post("/station/trigger", json={"part_id": f"P{n}", "view": 1})
+                assert first.status_code == 200, first.text
+                assert not first.json()["final"], first.json()
+                last = (await http.post("/station/trigger",
+                                        json={"part_id": f"P{n}", "view": 2})).json()
+                assert last["final"] and last["reason"] == "OK", (last["reason"],
+                                                                  last["message"])
+                deg, mm = offset_error(recipe, np.array(offset), np.array(last["offset"]))
+                assert deg <= recipe.tolerances.rotation_deg
+                assert mm <= recipe.tolerances.translation_mm
+
+            text = (await http.get("/metrics")).text
+        ok = [v for labels, v in _samples(text, "mvpose_measurements_total")
+              if labels["result"] == "OK"]
+        assert ok == [2.0], text
+        counts = {labels["stage"]: v for labels, v in
+                  _samples(text, "mvpose_stage_duration_seconds_count")}
+        assert counts and all(v >= 2 for v in counts.values()), counts
+        buckets = _samples(text, "mvpose_stage_duration_seconds_bucket")
+        assert {labels["le"] for labels, _ in buckets} >= {"0.05", "+Inf"}
+        assert _samples(text, "mvpose_chain_head_seq")[0][1] >= 2
+        assert _samples(text, "mvpose_station_up") == [({}, 1.0)]
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        code = serve.wait(timeout=30)
+        log.close()
+    assert code == 0, (tmp_path / "serve.log").read_text()[-3000:]
