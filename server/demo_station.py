@@ -19,6 +19,7 @@ from server.loopback import Loopback, TriggerRow, move_part, running_station, tr
 from server.pipeline import PipelineOptions, auto_detect_processes
 from server.settings import Settings
 from server.station.core import StationOptions
+from server.validation import TruthWriter
 
 
 def _free(port: int) -> int:
@@ -50,7 +51,7 @@ def _units(conv: RobotConvention) -> tuple[str, str]:
 def run_station_demo(
     station_path: str | Path, triggers: int | None, *, keep_serving: bool = False, seed: int = 1,
     port: int = 8000, data_dir: Path = Path("var") / "demo", max_mm: float = 20.0,
-    max_deg: float = 2.0,
+    max_deg: float = 2.0, truth: Path | None = None,
 ) -> int:
     """Run the demo; returns the number of OK results whose error is beyond the tolerances."""
     station = load_station(station_path)  # StationFileError names file, field and value
@@ -60,14 +61,15 @@ def run_station_demo(
     settings = Settings(station=Path(station_path), data_dir=data_dir, bootstrap_token=token)
     try:
         return asyncio.run(_demo(settings, triggers, keep_serving, seed, _free(port), token,
-                                 max_mm, max_deg))
+                                 max_mm, max_deg, truth))
     except KeyboardInterrupt:
         print("\nstopped")
         return 0
 
 
 async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, seed: int,
-                port: int, token: str, max_mm: float, max_deg: float) -> int:
+                port: int, token: str, max_mm: float, max_deg: float,
+                truth: Path | None = None) -> int:
     rng = np.random.default_rng(seed)
     # The pipeline as `mvpose serve` runs it on this machine.
     options = StationOptions(
@@ -98,6 +100,8 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         rows: list[TriggerRow] = []
         bad = nok = 0
         i = 0
+        # each row is flushed: a demo stopped with Ctrl-C leaves every answered trigger in it
+        writer = TruthWriter(truth, recipe) if truth is not None else None
         while triggers is None or i < triggers:
             T = recipe.T_rf_from_pf0.matrix @ random_displacement(rng, max_mm, max_deg)
             await move_part(rt, lb.twin, T)
@@ -106,6 +110,11 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
             if row is None:
                 continue
             rows.append(row)
+            if writer is not None:
+                ok = row.result_code == 0
+                writer.add(row.trigger_id, f"DEMO-{row.trigger_id}", row.true_offset,
+                           row.measured_offset if ok else None, reason_name(row.result_code),
+                           (row.rot_err_deg, row.trans_err_mm) if ok else None)
             print(f"{row.trigger_id:4d}  true   {_fmt(row.true_offset)}")
             if row.result_code == 0:
                 wrong = row.rot_err_deg > tol.rotation_deg or row.trans_err_mm > tol.translation_mm
@@ -119,10 +128,15 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
                 print(f"      NOK: {describe(row.result_code)} ({reason_name(row.result_code)}, "
                       f"code {row.result_code}) after {row.server_ms:.1f} ms\n           {msg}")
         _summary(rows, nok)
+        if writer is not None:
+            writer.close()
+            print(f"\ntrue and measured offsets per trigger in {truth} (`mvpose validate "
+                  "--truth` reads it)")
         print(f"\nOperator page: {lb.base_url}/  (log in with the token above); REST API "
               f"{lb.base_url}/api/v1; records in {settings.resolved_database_url}")
         if triggers is None or keep_serving:
-            print(f"\nREST API still up at {lb.base_url}/api/v1 — Ctrl-C to stop")
+            print(f"\nOperator page and REST API still up at {lb.base_url}/ — Ctrl-C to stop",
+                  flush=True)
             while True:
                 await asyncio.sleep(3600)
         return bad

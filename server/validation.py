@@ -25,6 +25,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -115,6 +116,38 @@ def read_offsets_csv(
     if not out:
         raise ValidationError(f"{name}: no rows")
     return out
+
+
+class TruthWriter:
+    """A truth file as :func:`read_offsets_csv` reads it, written a row per trigger as it comes
+    (a rehearsal on simulated cameras knows the truth): keys ``trigger_id`` and ``part_id``, the
+    true offset in the recipe's convention (``X Y Z W P R`` for FANUC), then what the station
+    answered beside it (``measured_X`` …, empty for a NOK; ``result``; the errors at the grasp),
+    which :func:`read_offsets_csv` ignores. Each row is flushed, so a run stopped with Ctrl-C
+    leaves every trigger answered so far."""
+
+    def __init__(self, path: Path, recipe: RecipeConfig) -> None:
+        self.path = Path(path)
+        self.labels = list(recipe.robot_convention.labels)
+        self._file: TextIO = self.path.open("w", newline="", encoding="utf-8")
+        self._csv = csv.writer(self._file, lineterminator="\n")
+        self._csv.writerow(["trigger_id", "part_id", *self.labels,
+                            *(f"measured_{lab}" for lab in self.labels), "result",
+                            "rot_err_deg", "trans_err_mm"])
+        self._file.flush()
+
+    def add(self, trigger_id: int, part_id: str, true_offset: Sequence[float] | Array,
+            measured_offset: Sequence[float] | Array | None, result: str,
+            errors: tuple[float, float] | None) -> None:
+        measured = [f"{v:.6f}" for v in measured_offset] if measured_offset is not None else [
+            ""] * len(self.labels)
+        err = [f"{errors[0]:.6f}", f"{errors[1]:.6f}"] if errors is not None else ["", ""]
+        self._csv.writerow([trigger_id, part_id, *(f"{v:.6f}" for v in true_offset),
+                            *measured, result, *err])
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
 
 
 @dataclass(frozen=True)

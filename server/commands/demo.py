@@ -4,7 +4,9 @@
 Modbus/TCP on loopback, the REST API): the PLC twin moves the part to random known displacements
 (the simulated cameras render the new position before the trigger), triggers, and the demo prints
 per trigger the true and the measured offset, the error, the 1σ and the server's latency. The
-REST API stays up at the printed address; ``--triggers N`` stops after N triggers.
+operator page and the REST API stay up at the printed address; ``--triggers N`` stops after N
+triggers (``--keep-serving``: and keeps serving until Ctrl-C); ``--truth-out FILE`` writes the
+true and measured offsets per trigger in the form ``mvpose validate --truth`` reads.
 
 ``mvpose demo --engine-only`` is the engine on its own (no cameras, PLC or server): for each
 station file it simulates the mark observations every camera would make (with the recipe's
@@ -106,7 +108,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--triggers", type=int, default=None,
                         help="stop after N triggers (default: trigger until Ctrl-C)")
     parser.add_argument("--keep-serving", action="store_true",
-                        help="with --triggers: keep the REST API up afterwards until Ctrl-C")
+                        help="with --triggers: keep the operator page and the REST API up "
+                        "afterwards, until Ctrl-C")
+    parser.add_argument("--truth-out", type=Path, default=None, metavar="FILE",
+                        help="write the true and the measured offset of every trigger to FILE "
+                        "(CSV, a row per trigger as it is answered; `mvpose validate --truth` "
+                        "reads it)")
     parser.add_argument("-n", type=int, default=10,
                         help="--engine-only: displacements per station (default 10)")
     parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
@@ -127,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"-n must be at least 1, got {args.n}")
     if args.triggers is not None and args.triggers < 1:
         raise CliError(f"--triggers must be at least 1, got {args.triggers}")
+    if args.engine_only and args.truth_out is not None:
+        raise CliError("--truth-out is for the server demo (without --engine-only)")
     try:
         if args.engine_only:
             bad = run_engine_demo(args.stations or DEFAULT_STATIONS, args.n, args.seed,
@@ -143,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
                 data_dir=args.data_dir,
                 max_mm=20.0 if args.max_mm is None else args.max_mm,
                 max_deg=2.0 if args.max_deg is None else args.max_deg,
+                truth=args.truth_out,
             )
     except StationFileError as err:
         raise CliError(str(err)) from None

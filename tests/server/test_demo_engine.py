@@ -24,3 +24,9 @@ def test_demo_cli_reports_a_bad_station_file(tmp_path, capsys) -> None:  # type:
     bad.write_text("name: x\n")
     assert main(["demo", str(bad)]) == 2
     assert str(bad) in capsys.readouterr().err
+
+
+def test_the_engine_demo_has_no_truth_file_to_write(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    assert main(["demo", "--engine-only", "--truth-out", str(tmp_path / "t.csv")]) == 2
+    assert "--truth-out is for the server demo" in capsys.readouterr().err
+    assert not (tmp_path / "t.csv").exists()

@@ -42,3 +42,59 @@ def test_demo_refuses_a_station_without_simulated_cameras(
     path.write_text(text)
     assert main(["demo", str(path), "--triggers", "1", "--data-dir", str(tmp_path)]) == 2
     assert "needs simulated cameras" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(300)
+def test_demo_writes_its_truth_file_and_keeps_serving_the_page_until_ctrl_c(
+    tmp_path: Path,
+) -> None:
+    import csv
+    import io
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import httpx
+
+    token = "mvp_demo-token-for-the-keep-serving-test"
+    truth = tmp_path / "truth.csv"
+    log_path = tmp_path / "demo.log"
+    env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=token, PYTHONUNBUFFERED="1")
+    with log_path.open("wb") as log:
+        demo = subprocess.Popen(
+            [sys.executable, "-m", "server.cli", "demo", "--triggers", "2", "--keep-serving",
+             "--truth-out", str(truth), "--port", "0", "--data-dir", str(tmp_path / "var"),
+             "--seed", "4"], env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 240
+            while not (found := re.search(r"still up at (http://127\.0\.0\.1:\d+)/",
+                                          log_path.read_text())):
+                assert demo.poll() is None, log_path.read_text()
+                assert time.monotonic() < deadline, log_path.read_text()
+                time.sleep(0.2)
+            base = found.group(1)
+            # after its triggers the demo still serves the operator page and the REST API
+            assert httpx.get(f"{base}/login", timeout=30).status_code == 200
+            export = httpx.get(f"{base}/api/v1/measurements/export", params={"format": "csv"},
+                               headers={"Authorization": f"Bearer {token}"}, timeout=30)
+            assert export.status_code == 200
+        finally:
+            demo.send_signal(signal.SIGINT)
+            code = demo.wait(timeout=60)
+    out = log_path.read_text()
+    assert code == 0 and "stopped" in out, out
+    rows = list(csv.DictReader(truth.open()))
+    assert [r["trigger_id"] for r in rows] == ["1", "2"]
+    assert [r["part_id"] for r in rows] == ["DEMO-1", "DEMO-2"]
+    measured = {r["trigger_id"]: r for r in csv.DictReader(io.StringIO(export.text))}
+    for r in rows:
+        assert r["result"] == "OK" and float(r["trans_err_mm"]) < 1.0, r
+        stored = [float(measured[r["trigger_id"]][f"o{k}"]) for k in range(1, 7)]
+        mine = [float(r[f"measured_{lab}"]) for lab in ("X", "Y", "Z", "W", "P", "R")]
+        assert max(abs(a - b) for a, b in zip(stored, mine, strict=True)) < 1e-3
+    (tmp_path / "export.csv").write_text(export.text)
+    station = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
+    assert main(["validate", "--station", str(station), "--truth", str(truth),
+                 "--measured", str(tmp_path / "export.csv")]) == 0
