@@ -24,7 +24,7 @@ from drivers.plc.registers import Status
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import to_robot
 from server.cli import main as cli_main
-from server.loopback import TriggerRow, move_part, running_station, trigger
+from server.loopback import TriggerRow, move_part, running_server, running_station, trigger
 from server.settings import Settings
 
 # Rendering four 4 MP frames per part move (~0.2 s of CPU) is what these tests cost. Both the
@@ -230,7 +230,7 @@ def test_bad_link_options_stop_startup_naming_them(
 async def test_lab_two_views_each_trigger_shows_the_view_it_names(tmp_path: Path) -> None:
     """Nothing but the triggers says which view is measured (no test reaches into the scene):
     view 2's capture must show view 2, or its marks are found in view 1's frames."""
-    from server.loopback import offset_error, running_server, true_offset
+    from server.loopback import offset_error, true_offset
     from server.station.client import StationClient
 
     settings = settings_for(station_file(tmp_path, "lab", relaxed_deadline), tmp_path / "var")
@@ -250,3 +250,20 @@ async def test_lab_two_views_each_trigger_shows_the_view_it_names(tmp_path: Path
             deg, mm = offset_error(recipe, true_offset(recipe, T), np.array(last["offset"]))
             assert deg <= recipe.tolerances.rotation_deg
             assert mm <= recipe.tolerances.translation_mm
+
+
+@pytest.mark.timeout(300)
+async def test_a_rehearsal_moves_only_a_simulated_part(tmp_path: Path) -> None:
+    from server.errors import ConflictError
+    from server.station.client import StationClient
+
+    def files_cameras(data: dict[str, Any]) -> None:
+        for cam in data["cameras"]:
+            cam["driver"] = {"kind": "files", "folder": str(tmp_path / "no-images")}
+
+    path = station_file(tmp_path, "lab", relaxed_deadline, files_cameras)
+    settings = settings_for(path, tmp_path / "var")
+    async with running_server(settings, runtime_options(), http_port=None):
+        client = StationClient(settings.resolved_control_socket)
+        with pytest.raises(ConflictError, match="not simulated"):
+            await asyncio.to_thread(client.move_part, [0.0] * 6)
