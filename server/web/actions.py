@@ -109,7 +109,7 @@ async def trigger(request: Request,
     out = await in_thread(lambda: runtime.trigger((body.part_id if body else None) or None, 0))
     # The control channel answers the result code and the station's message; the name is ours.
     reason, message = reason_name(out["result_code"]), out.get("message") or ""
-    return {"message": f"{reason}: {message}" if message else reason,
+    return {"message": f"{reason}: {message}" if message and message != reason else reason,
             "reason": reason, "result_code": out["result_code"],
             "measurement_id": out.get("measurement_id")}
 

@@ -301,3 +301,53 @@ def test_docs_work_offline(site: Site) -> None:
     assert outside == []
     site.shot(page, "docs", full_page=False)  # Swagger UI's whole page is long and slow
     page.context.close()
+
+
+@pytest.mark.timeout(300)
+def test_the_trigger_form_says_the_stations_reason_and_message(
+    site: Site, tmp_path: Path,
+) -> None:
+    """A station process behind a page of its own (simulated station 1; the site's browser):
+    the form shows what the control channel answered, the reason's name and the station's
+    message."""
+    import stations
+
+    from mvpose_core.station import load_station
+    from server.station.client import StationClient
+    from server.station.process import StationProcess
+
+    path = stations.station_file(tmp_path, "station1", stations.relaxed_deadline)
+    cfg = stations.settings_for(path, tmp_path / "var")
+    station = load_station(path)
+    modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
+    station = station.model_copy(update={"links": station.links.model_copy(
+        update={"modbus": modbus})})
+    proc = StationProcess(cfg, station, stations.runtime_options())
+    proc.start()
+    try:
+        app = create_app(cfg, StationClient(cfg.resolved_control_socket))
+        with serve(app) as base:
+            context = site.browser.new_context(viewport=VIEWPORT)
+            try:
+                page = context.new_page()
+                login(page, base, stations.ENGINEER)
+                msg = page.locator("section.actions .msg")
+                # nothing in front of the simulated cameras yet: a refusal, in the station's words
+                page.fill("#trigger-form input[name=part_id]", "VIN1")
+                page.click("#trigger-form button[type=submit]")
+                page.wait_for_function(
+                    "() => document.querySelector('section.actions .msg').textContent !== ''")
+                text = msg.inner_text()
+                assert text.startswith("CAMERA_FAILED: too few marks"), text
+                assert "error" in (msg.get_attribute("class") or "")
+                _in_thread(lambda: proc.station.scene.set_part_pose(
+                    proc.station.active.config.T_rf_from_pf0.matrix))
+                page.click("#trigger-form button[type=submit]")
+                page.wait_for_function(
+                    "() => document.querySelector('section.actions .msg').textContent"
+                    ".startsWith('OK')")
+                assert "done" in (msg.get_attribute("class") or "")
+            finally:
+                context.close()
+    finally:
+        proc.stop()

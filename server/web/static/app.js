@@ -52,7 +52,8 @@ function setupActions() {
   if (trig) trig.addEventListener("submit", (ev) => {
     ev.preventDefault();
     postJSON(trig.dataset.action, {part_id: trig.part_id.value || null})
-      .then((d) => say(trig, "measured: record #" + d.measurement_id, true))
+      .then((d) => say(trig, d.message + (d.measurement_id ? " (record #" + d.measurement_id + ")" : ""),
+                       d.result_code === 0))
       .catch((err) => say(trig, err.message, false));
   });
   const open = document.getElementById("teach-open");
