@@ -75,7 +75,8 @@ class RecordingHandler:
             "fanuc" if out.offset else None, out.offset, out.sigma_trans_mm, out.sigma_rot_deg)
         event = {
             "result_id": self.seq, "trigger_id": request.trigger_id, "part_id": request.part_id,
-            "recipe": f"recipe-{self.recipe}", "result": result, "reason_code": out.result_code,
+            "recipe": f"recipe-{self.recipe}", "recipe_version": 1, "result": result,
+            "reason_code": out.result_code,
             "reason": Reason(out.result_code).name, "message": "", "processing_ms": 12.0,
             "at": "2026-11-23T23:00:00+00:00", "convention": "fanuc",
             "offset": list(out.offset) if out.offset else None,

@@ -1,4 +1,5 @@
-"""Who may do what on the OPC UA link: users from the station file, roles per service and method."""
+"""Who may do what on the OPC UA link: users from the station file, roles per service and method,
+and the None channel kept to discovery unless the station file lists None."""
 
 from __future__ import annotations
 
@@ -8,9 +9,14 @@ import os
 from pathlib import Path
 from typing import Any
 
-from asyncua import ua
-from asyncua.common.utils import Buffer
+from asyncua import Server, ua
+from asyncua.common.utils import Buffer, ServiceError
 from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
+from asyncua.crypto.security_policies import (
+    CryptographyNone,
+    SecurityPolicyFactory,
+    SecurityPolicyNone,
+)
 from asyncua.server.user_managers import UserManager
 from asyncua.ua.ua_binary import struct_from_binary
 
@@ -91,3 +97,41 @@ class Roles(SimpleRoleRuleset):
         params = struct_from_binary(ua.CallParameters, body.copy())
         return any(m.MethodId in self.engineer_methods for m in params.MethodsToCall or [])
 
+
+
+# ---------------------------------------------------------------------------- the None channel
+class _NoSessions(CryptographyNone):
+    """The None channel's asymmetric part: as None, but no client signature is ever valid.
+    asyncua checks the client's signature (verify) only in ActivateSession on a None channel
+    (its chunks carry no signature), so ActivateSession is refused there before the user's
+    token is read."""
+
+    def verify(self, data: bytes, signature: bytes) -> None:
+        raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
+
+
+class _OnlyDiscovery(SimpleRoleRuleset):
+    """No service of a session on the None channel (discovery needs none)."""
+
+    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
+        raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
+
+
+class DiscoveryOnly(SecurityPolicyNone):
+    """The None channel when the station file does not list None. OPC UA keeps it open for
+    discovery (GetEndpoints, FindServers: OPC 10000-4 §5.4); asyncua would also let a client that
+    asks for it anyway activate a session there, its password in clear, and call methods
+    unchecked by the roles. Here ActivateSession is refused and so is every service of a
+    session: BadSecurityPolicyRejected."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.asymmetric_cryptography = _NoSessions()
+        self.permissions = _OnlyDiscovery()
+
+
+def keep_none_to_discovery(server: Server) -> None:
+    """Give the None channel of ``server`` (whose security lists no None) :class:`DiscoveryOnly`.
+    Before ``server.start()``: asyncua hands its list of policies to every connection."""
+    factory = SecurityPolicyFactory(DiscoveryOnly, ua.MessageSecurityMode.None_)
+    server._policies.insert(0, factory)  # noqa: SLF001 - asyncua has no public hook for it

@@ -51,7 +51,8 @@ from mvpose_core.reasons import Reason, reason_name
 
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
 from . import values as v
-from .access import Roles, Users, default_pki_dir
+from .access import Roles, Users, default_pki_dir, keep_none_to_discovery
+from .events import standard_event_filters
 from .management import Management
 from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
 
@@ -133,6 +134,8 @@ class OpcUaLink(Link):
             server.set_endpoint(f"opc.tcp://{cfg.host}:{cfg.port}/mvpose")
             server.set_security_policy([POLICIES[p] for p in cfg.security],
                                        permission_ruleset=self._roles)
+            if "None" not in cfg.security:
+                keep_none_to_discovery(server)
             tokens: list[type] = [ua.UserNameIdentityToken]
             if cfg.allow_anonymous:
                 tokens.append(ua.AnonymousIdentityToken)
@@ -315,6 +318,10 @@ class OpcUaLink(Link):
         etype = await server.create_custom_event_type(idx, "MvposeResultReadyEventType",
                                                       rre.nodeid, props)
         self._evgen = await server.get_event_generator(etype, vs.nodeid)
+        # the Server object notifies every event of the VisionSystem too (OPC 10000-3 §7.16:
+        # the notifier hierarchy), and OfType filters match subtypes (.events)
+        await server.nodes.server.add_reference(vs.nodeid, ua.ObjectIds.HasNotifier)
+        standard_event_filters(server)
 
     @staticmethod
     def _result_fields() -> list[tuple[str, Any, ua.VariantType]]:
@@ -533,44 +540,22 @@ class OpcUaLink(Link):
     async def _publish(self, r: dict[str, Any]) -> None:
         if self.server is None or self._evgen is None:
             return
-        ok = r.get("reason_code", 0) == 0 and r.get("result") == "OK"
-        at = v.when(r.get("at"))
-        offset = [float(v) for v in (r.get("offset") or [])]
-        values: dict[str, Any] = {
-            "ResultNumber": int(r["result_id"]), "TriggerId": int(r.get("trigger_id") or 0),
-            "PartId": str(r.get("part_id") or ""), "Recipe": str(r.get("recipe") or ""),
-            "ResultCode": int(r.get("reason_code", 0)),
-            "Reason": str(r.get("reason") or reason_name(int(r.get("reason_code", 0)))),
-            "ResultMessage": str(r.get("message") or ""), "Offset": offset,
-            "Convention": str(r.get("convention") or ""),
-            "SigmaTranslationMm": float(r.get("sigma_mm") or 0.0),
-            "SigmaRotationDeg": float(r.get("sigma_deg") or 0.0),
-            "ProcessingMs": float(r.get("processing_ms") or 0.0), "CreationTime": at,
-        }
+        own, standard = v.result_fields(r, self.management.in_use)
         async with self._lock:
             server = self.server
-            for name, _, vt in self._result_fields():  # the server's own write: no session
+            for name, value in own.items():  # the server's own write: no session
                 await server.write_attribute_value(self._nodes[f"last.{name}"].nodeid,
-                                                   ua.DataValue(ua.Variant(values[name], vt)))
+                                                   ua.DataValue(value))
             ev = self._evgen.event
-            for name, _, vt in self._result_fields():
-                if name not in ("PartId", "CreationTime"):
-                    setattr(ev, name, ua.Variant(values[name], vt))
-            ev.ResultId = _UA.ResultIdDataType(Id=str(values["ResultNumber"]))
-            ev.PartId = _UA.PartIdDataType(Id=values["PartId"])
-            ev.MeasId = _UA.MeasIdDataType(Id=str(values["TriggerId"]))
-            ev.JobId = _UA.JobIdDataType(Id=str(values["TriggerId"]))
-            ev.InternalRecipeId = v.recipe_id("RecipeIdInternalDataType", values["Recipe"],
-                                             int(r.get("recipe_version") or 0))
-            ev.IsPartial = False
-            ev.ResultState = v.int32(v.result_state(ok, values["ResultCode"]))
-            ev.CreationTime = at
-            ev.ResultContent = ua.Variant(
-                v.result_content(offset if ok else None, values["SigmaTranslationMm"],
-                                 values["SigmaRotationDeg"]), ua.VariantType.Variant)
-            ev.Severity = 100 if ok else 500
-            await self._evgen.trigger(
-                time_attr=at, message=f"result {values['ResultNumber']}: {values['Reason']}")
+            for name, value in {**own, **standard}.items():  # the standard's PartId, CreationTime
+                ev.add_property(name, value.Value, value.VariantType)
+            ev.Severity = 100 if standard["ResultState"].Value == v.RESULT_STATE_COMPLETED else 500
+            ev.emitting_node = self._nodes["vs"].nodeid
+            text = f"result {own['ResultNumber'].Value}: {own['Reason'].Value}"
+            await self._evgen.trigger(time_attr=standard["CreationTime"].Value, message=text)
+            # the same event through the Server object, the root of the notifier hierarchy
+            ev.emitting_node = server.nodes.server.nodeid
+            await server.iserver.subscription_service.trigger_event(ev)
             self.results += 1
 
     # ------------------------------------------------------------------ helpers

@@ -39,6 +39,7 @@ class Management:
         self.on_recipe_change = on_recipe_change
         self.error = error
         self.active_configuration: Node | None = None
+        self.in_use: CalibrationInfo | None = None  # as ActiveConfiguration last showed it
         self.engineer_methods: set[ua.NodeId] = set()
         # one management call at a time, whichever client, spacing_s apart (the station file's
         # query_spacing_s): clients queue instead of adding their load to the trigger path's
@@ -273,6 +274,7 @@ class Management:
         if self.active_configuration is None:
             return
         using = next((c for c in await self.handler.calibrations() if c.in_use), None)
+        self.in_use = using
         value = v.configuration(using) if using is not None else _UA.ConfigurationDataType()
         await self.active_configuration.write_value(ua.Variant(value))
 

@@ -7,6 +7,8 @@ from typing import Any
 
 from asyncua import ua
 
+from mvpose_core.reasons import reason_name
+
 from ..base import CalibrationInfo, StoredResult
 
 _UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
@@ -130,3 +132,61 @@ def when(value: Any) -> datetime:
         except ValueError:
             pass
     return datetime.now(UTC)
+
+
+def result_fields(r: dict[str, Any], configuration: CalibrationInfo | None
+                  ) -> tuple[dict[str, ua.Variant], dict[str, ua.Variant]]:
+    """One recorded answer (the station's listener dict ``r``) as the result event's fields:
+    (mvpose's own, ``ResultManagement/LastResult`` and the event subtype's; ResultReadyEventType's,
+    OPC 40100-1 §8.3.8.4, every Mandatory one filled as GetResultById fills it). The record's
+    calibration when ``r`` names it, else ``configuration``, the one the station measures with."""
+    code = int(r.get("reason_code", 0))
+    ok = code == 0 and r.get("result") == "OK"
+    at = when(r.get("at"))
+    ms = float(r.get("processing_ms") or 0.0)
+    offset = [float(x) for x in (r.get("offset") or [])]
+    sigma_mm, sigma_deg = float(r.get("sigma_mm") or 0.0), float(r.get("sigma_deg") or 0.0)
+    rid, trigger = int(r["result_id"]), int(r.get("trigger_id") or 0)
+    own = {
+        "ResultNumber": uint32(rid), "TriggerId": uint32(trigger),
+        "PartId": ua.Variant(str(r.get("part_id") or ""), ua.VariantType.String),
+        "Recipe": ua.Variant(str(r.get("recipe") or ""), ua.VariantType.String),
+        "ResultCode": int32(code),
+        "Reason": ua.Variant(str(r.get("reason") or reason_name(code)), ua.VariantType.String),
+        "ResultMessage": ua.Variant(str(r.get("message") or ""), ua.VariantType.String),
+        "Offset": ua.Variant(offset, ua.VariantType.Double),
+        "Convention": ua.Variant(str(r.get("convention") or ""), ua.VariantType.String),
+        "SigmaTranslationMm": ua.Variant(sigma_mm, ua.VariantType.Double),
+        "SigmaRotationDeg": ua.Variant(sigma_deg, ua.VariantType.Double),
+        "ProcessingMs": ua.Variant(ms, ua.VariantType.Double),
+        "CreationTime": ua.Variant(at, ua.VariantType.DateTime),
+    }
+    if "calibration_sha256" in r:
+        config = configuration_id(r.get("calibration_id"), r.get("calibration_sha256"),
+                                  r.get("calibration_version"))
+    elif configuration is not None:
+        config = configuration_id(configuration.calibration_id, configuration.sha256,
+                                  configuration.version)
+    else:
+        config = configuration_id(None, None, None)
+
+    def struct(value: Any) -> ua.Variant:
+        return ua.Variant(value, ua.VariantType.ExtensionObject)
+
+    standard = {
+        "ResultId": struct(_UA.ResultIdDataType(Id=str(rid))),
+        "IsPartial": boolean(False),
+        "ResultState": int32(result_state(ok, code)),
+        "MeasId": struct(_UA.MeasIdDataType(Id=str(trigger))),
+        "JobId": struct(_UA.JobIdDataType(Id=str(trigger))),
+        "PartId": struct(_UA.PartIdDataType(Id=str(r.get("part_id") or ""))),
+        "InternalRecipeId": struct(recipe_id("RecipeIdInternalDataType", str(r.get("recipe") or ""),
+                                             int(r.get("recipe_version") or 0))),
+        "InternalConfigurationId": struct(config),
+        "CreationTime": ua.Variant(at, ua.VariantType.DateTime),
+        "ProcessingTimes": struct(_UA.ProcessingTimesDataType(
+            StartTime=at, EndTime=at + timedelta(milliseconds=ms), ProcessingDuration=ms)),
+        "ResultContent": ua.Variant(result_content(offset if ok else None, sigma_mm, sigma_deg),
+                                    ua.VariantType.Variant),
+    }
+    return own, standard

@@ -1,0 +1,149 @@
+"""The OPC UA link keeps its contract as a second client stack sees it (issue 23, item 4).
+
+node-opcua's client (tests/node_opcua.py, tests/peers/node-opcua) beside asyncua's: sessions only
+on the security the station file lists, every Mandatory field of ResultReadyEventType filled,
+standard ``OfType`` filters, events through the Server object, Call arguments checked with the
+standard status codes, SystemState truthful. One server for the module (the NodeSet import takes
+seconds), Basic256Sha256 Sign and SignAndEncrypt; the station side is the tests' own handler.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import node_opcua
+import pytest
+import pytest_asyncio
+from asyncua import Client, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography.x509.oid import ExtendedKeyUsageOID
+from opcua_handler import PASSWORDS, RecordingHandler, link_config
+
+from drivers.links.opcua import OpcUaLink
+
+MODULE_LOOP = pytest.mark.asyncio(loop_scope="module")
+PEER_URI = "urn:mvpose:test:node-opcua"
+
+
+class Served:
+    def __init__(self, link: OpcUaLink, handler: RecordingHandler, pki: Path, root: Path,
+                 key: Path, cert: Path) -> None:
+        self.link, self.handler, self.pki, self.root = link, handler, pki, root
+        self.key, self.cert = key, cert
+
+    @property
+    def url(self) -> str:
+        return f"opc.tcp://127.0.0.1:{self.link.port}/mvpose"
+
+    async def peer(self, steps: list[dict[str, Any]], mode: str = "SignAndEncrypt",
+                   policy: str = "Basic256Sha256", user: str | None = "olga",
+                   insist: bool = False) -> dict[str, Any]:
+        """node-opcua's client: ``steps`` over a channel of ``mode`` / ``policy`` (``insist``:
+        even one the server does not offer)."""
+        return await node_opcua.run({
+            "url": self.url, "mode": mode, "policy": policy, "cert": str(self.cert),
+            "key": str(self.key), "pki": str(self.root / "node-pki"),
+            "applicationUri": PEER_URI, "user": user,
+            "password": PASSWORDS.get(user or "", ""), "insist": insist, "steps": steps})
+
+    async def client(self, user: str = "olga") -> Client:
+        client = Client(self.url, timeout=10)
+        client.application_uri = PEER_URI
+        await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(self.cert),
+                                  private_key=str(self.key),
+                                  mode=ua.MessageSecurityMode.SignAndEncrypt)
+        client.set_user(user)
+        client.set_password(PASSWORDS[user])
+        await client.connect()
+        return client
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def served(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Served]:
+    root = tmp_path_factory.mktemp("opcua-contract")
+    pki = root / "pki"
+    handler = RecordingHandler()
+    link = OpcUaLink(link_config(pki, query_spacing_s=0.0), handler)
+    await link.start()
+    await link.wait_ready(120)
+    key, cert = root / "peer_key.pem", root / "peer_cert.der"
+    await setup_self_signed_certificate(key, cert, PEER_URI, socket.gethostname(),
+                                        [ExtendedKeyUsageOID.CLIENT_AUTH],
+                                        {"commonName": "node-opcua peer"})
+    shutil.copy(cert, pki / "trusted" / cert.name)
+    try:
+        yield Served(link, handler, pki, root, key, cert)
+    finally:
+        await link.stop()
+
+
+def _measure(trigger: int, part: str = "VIN-N") -> dict[str, Any]:
+    return {"do": "call", "object": ["mv:VisionSystem"], "method": "mvpose:Measure",
+            "args": [{"type": "String", "value": part}, {"type": "UInt16", "value": 0},
+                     {"type": "UInt32", "value": trigger}]}
+
+
+# ---------------------------------------------------------------------------- security
+@MODULE_LOOP
+async def test_a_session_over_an_unlisted_none_channel_is_refused(served: Served) -> None:
+    before = len(served.handler.records)
+    got = await served.peer([{"do": "endpoints"}, {"do": "session"}, _measure(1)],
+                            mode="None", policy="None", insist=True)
+    assert got["connected"], got  # discovery (GetEndpoints) over None stays possible
+    assert sorted(map(tuple, got["results"][0])) == [("Basic256Sha256", "Sign"),
+                                                     ("Basic256Sha256", "SignAndEncrypt")]
+    assert "BadSecurityPolicyRejected" in got.get("error", ""), got
+    assert len(served.handler.records) == before  # nothing measured, nothing stored
+
+
+# ---------------------------------------------------------------------------- result events
+MANDATORY = ["mv:ResultId", "mv:IsPartial", "mv:ResultState", "mv:JobId", "mv:CreationTime",
+             "mv:InternalRecipeId", "mv:InternalConfigurationId"]
+OPTIONAL = ["mv:MeasId", "mv:PartId", "mv:ProcessingTimes", "mv:ResultContent"]
+
+
+def _subscribe(label: str, node: Any, fields: list[str]) -> dict[str, Any]:
+    """A standard client's subscription: OfType ResultReadyEventType (node-opcua's
+    constructEventFilter, one OfType operator), on ``node``."""
+    return {"do": "subscribe", "label": label, "node": node, "ofType": ["mv:ResultReadyEventType"],
+            "fields": ["EventType", "SourceNode", *fields]}
+
+
+@MODULE_LOOP
+async def test_an_of_type_filter_gets_every_mandatory_field_on_the_vision_system_and_server(
+        served: Served) -> None:
+    got = await served.peer([
+        _subscribe("vs", ["mv:VisionSystem"], MANDATORY + OPTIONAL),
+        _subscribe("server", "Server", MANDATORY),
+        _measure(31, "VIN-EV"),
+        {"do": "wait_events", "label": "vs", "count": 1},
+        {"do": "wait_events", "label": "server", "count": 1},
+    ])
+    assert "error" not in got, got
+    call, on_vs, on_server = got["results"][2:]
+    assert call["status"] == "Good" and call["outputs"][1] == 0
+    rid = call["outputs"][0]
+    stored = served.handler.stored[rid]
+    assert len(on_vs) == 1 and len(on_server) == 1, got  # 0 of n before: OfType missed our events
+    ev = on_vs[0]
+    assert ev["mv:ResultId"]["id"] == str(rid)
+    assert ev["mv:IsPartial"] is False
+    assert ev["mv:ResultState"] == 1
+    assert ev["mv:JobId"]["id"] == ev["mv:MeasId"]["id"] == "31"
+    assert ev["mv:PartId"]["id"] == "VIN-EV"
+    assert ev["mv:CreationTime"] == stored.triggered_at.isoformat().replace("+00:00", ".000Z")
+    assert (ev["mv:InternalRecipeId"]["id"], ev["mv:InternalRecipeId"]["version"]) == (
+        stored.recipe, str(stored.recipe_version))
+    assert (ev["mv:InternalConfigurationId"]["id"],
+            ev["mv:InternalConfigurationId"]["version"]) == ("cal-b", "2")
+    times = ev["mv:ProcessingTimes"]
+    assert times["startTime"] == ev["mv:CreationTime"]
+    assert times["endTime"] > times["startTime"] and times["processingDuration"] == 12.0
+    assert ev["mv:ResultContent"] == [*(stored.offset or ()), 0.05, 0.01]
+    assert on_server[0]["mv:ResultId"] == ev["mv:ResultId"]
+    assert all(on_server[0][f] is not None for f in MANDATORY), on_server[0]
