@@ -147,3 +147,41 @@ async def test_an_of_type_filter_gets_every_mandatory_field_on_the_vision_system
     assert ev["mv:ResultContent"] == [*(stored.offset or ()), 0.05, 0.01]
     assert on_server[0]["mv:ResultId"] == ev["mv:ResultId"]
     assert all(on_server[0][f] is not None for f in MANDATORY), on_server[0]
+
+
+# ---------------------------------------------------------------------------- call arguments
+def _call(obj: list[str], method: str, *args: tuple[str, Any]) -> dict[str, Any]:
+    return {"do": "call", "object": obj, "method": method,
+            "args": [{"type": t, "value": value} for t, value in args]}
+
+
+@MODULE_LOOP
+async def test_call_arguments_are_checked_with_the_standard_status_codes(served: Served) -> None:
+    before = len(served.handler.records)
+    vs, auto = ["mv:VisionSystem"], ["mv:VisionSystem", "mv:VisionStateMachine",
+                                     "mv:AutomaticModeStateMachine"]
+    got = await served.peer([
+        _call(vs, "mvpose:Measure", ("String", "VIN-T"), ("String", "1"), ("UInt32", 5)),
+        _call(vs, "mvpose:Measure", ("String", "VIN-T"), ("UInt32", 1), ("UInt32", 5)),
+        _call(vs, "mvpose:Measure", ("String", "VIN-T"), ("UInt16", 0)),
+        _call(vs, "mvpose:Measure", ("String", "VIN-T"), ("UInt16", 0), ("UInt32", 5),
+              ("UInt32", 6)),
+        _call(auto, "mv:StartSingleJob", ("String", "8"), ("String", "VIN-T"), ("String", ""),
+              ("String", ""), ("Null", None)),
+        _call(["mv:VisionSystem", "mv:ResultManagement"], "mv:GetResultById"),
+    ])
+    assert "error" not in got, got
+    wrong, wider, missing, extra, job, nothing = got["results"]
+    assert (wrong["status"], wrong["inputArgumentResults"]) == (
+        "BadInvalidArgument", ["Good", "BadTypeMismatch", "Good"])
+    assert (wider["status"], wider["inputArgumentResults"]) == (  # no implicit conversion
+        "BadInvalidArgument", ["Good", "BadTypeMismatch", "Good"])
+    assert missing["status"] == "BadArgumentsMissing"
+    assert extra["status"] == "BadTooManyArguments"
+    assert job["status"] == "BadInvalidArgument"
+    assert job["inputArgumentResults"][:3] == ["BadTypeMismatch"] * 3
+    assert nothing["status"] == "BadArgumentsMissing"  # not BadUnexpectedError
+    assert len(served.handler.records) == before  # nothing measured, nothing stored
+    # the right types still measure
+    ok = await served.peer([_measure(9, "VIN-T")])
+    assert ok["results"][0]["status"] == "Good" and len(served.handler.records) == before + 1

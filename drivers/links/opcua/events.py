@@ -16,32 +16,40 @@ from asyncua import Server, ua
 from asyncua.server.address_space import AddressSpace
 from asyncua.server.monitored_item_service import WhereClauseEvaluator
 
+_UA: Any = ua  # asyncua's stubs are strict about a NodeId's identifier
+_HAS_SUBTYPE = _UA.NodeId(ua.ObjectIds.HasSubtype)
+
 
 class TypeHierarchy:
-    """An ObjectType and its supertypes (inverse HasSubtype), read from the address space once
-    per type."""
+    """A type (ObjectType, DataType) and its supertypes (inverse HasSubtype), read from the
+    address space once per type."""
 
     def __init__(self, aspace: AddressSpace) -> None:
         self._aspace = aspace
         self._known: dict[ua.NodeId, frozenset[ua.NodeId]] = {}
 
+        self._chains: dict[ua.NodeId, tuple[ua.NodeId, ...]] = {}
+
+    def chain(self, type_id: ua.NodeId) -> tuple[ua.NodeId, ...]:
+        """``type_id``, its supertype, that one's, ... up to the root (types have one)."""
+        known = self._chains.get(type_id)
+        if known is None:
+            found: list[ua.NodeId] = []
+            current: ua.NodeId | None = type_id
+            while current is not None and current not in found:
+                found.append(current)
+                node = self._aspace.get(current)
+                current = next((ref.NodeId for ref in (node.references if node else [])
+                                if ref.ReferenceTypeId == _HAS_SUBTYPE and not ref.IsForward),
+                               None)
+            known = self._chains[type_id] = tuple(found)
+        return known
+
     def supertypes(self, type_id: ua.NodeId) -> frozenset[ua.NodeId]:
         """``type_id`` and every type it is a subtype of."""
         known = self._known.get(type_id)
         if known is None:
-            found: set[ua.NodeId] = set()
-            todo = [type_id]
-            while todo:
-                current = todo.pop()
-                if current in found:
-                    continue
-                found.add(current)
-                node = self._aspace.get(current)
-                for ref in node.references if node is not None else ():
-                    if ref.ReferenceTypeId == ua.NodeId(ua.ObjectIds.HasSubtype) \
-                            and not ref.IsForward:
-                        todo.append(ref.NodeId)
-            known = self._known[type_id] = frozenset(found)
+            known = self._known[type_id] = frozenset(self.chain(type_id))
         return known
 
 

@@ -52,6 +52,7 @@ from mvpose_core.reasons import Reason, reason_name
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
 from . import values as v
 from .access import Roles, Users, default_pki_dir, keep_none_to_discovery
+from .arguments import check_arguments
 from .events import standard_event_filters
 from .management import Management
 from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
@@ -318,6 +319,7 @@ class OpcUaLink(Link):
         etype = await server.create_custom_event_type(idx, "MvposeResultReadyEventType",
                                                       rre.nodeid, props)
         self._evgen = await server.get_event_generator(etype, vs.nodeid)
+        await check_arguments(server, vs)
         # the Server object notifies every event of the VisionSystem too (OPC 10000-3 §7.16:
         # the notifier hierarchy), and OfType filters match subtypes (.events)
         await server.nodes.server.add_reference(vs.nodeid, ua.ObjectIds.HasNotifier)
