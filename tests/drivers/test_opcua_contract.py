@@ -9,6 +9,7 @@ seconds), Basic256Sha256 Sign and SignAndEncrypt; the station side is the tests'
 
 from __future__ import annotations
 
+import asyncio
 import shutil
 import socket
 from collections.abc import AsyncIterator
@@ -23,8 +24,9 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from opcua_handler import PASSWORDS, RecordingHandler, link_config
+from waiting import until
 
-from drivers.links.opcua import OpcUaLink
+from drivers.links.opcua import MV_URI, OpcUaLink
 
 MODULE_LOOP = pytest.mark.asyncio(loop_scope="module")
 PEER_URI = "urn:mvpose:test:node-opcua"
@@ -185,3 +187,41 @@ async def test_call_arguments_are_checked_with_the_standard_status_codes(served:
     # the right types still measure
     ok = await served.peer([_measure(9, "VIN-T")])
     assert ok["results"][0]["status"] == "Good" and len(served.handler.records) == before + 1
+
+
+# ---------------------------------------------------------------------------- SystemState
+@MODULE_LOOP
+async def test_system_state_is_production_while_a_job_runs_and_stand_by_between(
+        served: Served) -> None:
+    system_state = {"do": "read", "path": ["mv:VisionSystem", "mv:SystemState"]}
+    idle = await served.peer([system_state])
+    assert "error" not in idle, idle
+    assert idle["results"][0]["value"]["state"] == 2  # SBY_2, never NST_6 (the model's default)
+    h = served.handler
+    h.gate, h.started = asyncio.Event(), asyncio.Event()
+    try:
+        job = asyncio.ensure_future(served.peer([_measure(41, "VIN-S")]))
+        await asyncio.wait_for(h.started.wait(), 60)
+        busy = await served.peer([system_state])
+        assert busy["results"][0]["value"]["state"] == 1  # PRD_1: the vision system measures
+    finally:
+        h.gate.set()
+        h.gate = None
+    assert (await job)["results"][0]["status"] == "Good"
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        mv = await client.get_namespace_index(MV_URI)
+        vs = await client.nodes.objects.get_child(f"{mv}:VisionSystem")
+        state = await vs.get_child(f"{mv}:SystemState")
+        await until(lambda: served.link.jobs == 0, "the job's end")
+        assert int((await state.read_value()).State) == 2
+        sm = await vs.get_child(f"{mv}:VisionStateMachine")
+        await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
+                             ua.Variant("", ua.VariantType.String))
+        assert int((await state.read_value()).State) == 4  # SDT_4: halted on request
+        await sm.call_method(f"{mv}:Reset", ua.Variant(0, ua.VariantType.Int32),
+                             ua.Variant("", ua.VariantType.String))
+        assert int((await state.read_value()).State) == 2
+    finally:
+        await client.disconnect()

@@ -270,6 +270,7 @@ class OpcUaLink(Link):
         n = self._nodes
         n["vs"], n["sm"], n["auto"] = vs, sm, auto
         n["sm_state"] = await sm.get_child("0:CurrentState")
+        n["system_state"] = await vs.get_child(f"{mv}:SystemState")
         n["auto_state"] = await auto.get_child("0:CurrentState")
         sm_type = server.get_node(v.typedef(await sm.read_type_definition()))
         auto_type = server.get_node(v.typedef(await auto.read_type_definition()))
@@ -352,6 +353,8 @@ class OpcUaLink(Link):
             await node.write_value(ua.LocalizedText(text))
             await (await node.get_child("0:Id")).write_value(
                 self._state_ids[state] if active else ua.NodeId())
+        await self._nodes["system_state"].write_value(
+            ua.Variant(v.system_state(self.state, self.auto_state)))
 
     async def _selected(self) -> RecipeInfo | None:
         return next((r for r in await self.handler.recipes() if r.selected), None)

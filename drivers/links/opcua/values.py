@@ -190,3 +190,17 @@ def result_fields(r: dict[str, Any], configuration: CalibrationInfo | None
                                     ua.VariantType.Variant),
     }
     return own, standard
+
+
+# SystemStateDataType (OPC 40100-1 §12.21, the SEMI E10 states): PRD_1 production, a job runs;
+# SBY_2 stand-by, ready for a command; SDT_4 scheduled downtime (halted on request). The
+# automatic mode's states, and Halted, as the link shows them (.link: _show_states).
+SYSTEM_STATES = {"SingleExecution": 1, "ContinuousExecution": 1, "Ready": 2, "Initialized": 2}
+SYSTEM_STATE_HALTED = 4
+
+
+def system_state(state: str, auto_state: str) -> Any:
+    """VisionSystem/SystemState (SystemStateDescriptionDataType) for the VisionStateMachine's
+    ``state`` and the automatic mode's ``auto_state``."""
+    code = SYSTEM_STATES.get(auto_state, 2) if state == "Operational" else SYSTEM_STATE_HALTED
+    return _UA.SystemStateDescriptionDataType(State=_UA.SystemStateDataType(code))
