@@ -51,7 +51,8 @@ class Served:
             "url": self.url, "mode": mode, "policy": policy, "cert": str(self.cert),
             "key": str(self.key), "pki": str(self.root / "node-pki"),
             "applicationUri": PEER_URI, "user": user,
-            "password": PASSWORDS.get(user or "", ""), "insist": insist, "steps": steps})
+            "password": PASSWORDS.get(user or "", ""), "insist": insist,
+            "serverCert": str(self.pki / "server_cert.der"), "steps": steps})
 
     async def client(self, user: str = "olga") -> Client:
         client = Client(self.url, timeout=10)
@@ -102,6 +103,33 @@ async def test_a_session_over_an_unlisted_none_channel_is_refused(served: Served
     assert "BadSecurityPolicyRejected" in got.get("error", ""), got
     assert len(served.handler.records) == before  # nothing measured, nothing stored
 
+
+
+@MODULE_LOOP
+async def test_a_security_mode_the_station_file_does_not_list_gets_no_channel(
+        served: Served) -> None:
+    """A station that lists Sign only: a client that insists on SignAndEncrypt (it knows the
+    server's certificate, so it opens the channel without looking at the endpoints) gets no
+    channel; Sign is the one endpoint and works."""
+    pki = served.root / "pki-sign-only"
+    link = OpcUaLink(link_config(pki, security=["Basic256Sha256_Sign"]), served.handler)
+    await link.start()
+    try:
+        await link.wait_ready(120)
+        (pki / "trusted").mkdir(parents=True, exist_ok=True)
+        shutil.copy(served.cert, pki / "trusted" / served.cert.name)
+        other = Served(link, served.handler, pki, served.root, served.key, served.cert)
+        before = len(served.handler.records)
+        got = await other.peer([{"do": "session"}, _measure(2)], mode="SignAndEncrypt",
+                               insist=True)
+        # asyncua sends no Error message for it: the client's OpenSecureChannel times out
+        assert not got["connected"] and "OpenSecureChannel" in got["error"], got
+        assert len(served.handler.records) == before
+        listed = await other.peer([{"do": "endpoints"}, _measure(3, "VIN-SIGN")], mode="Sign")
+        assert listed["results"][0] == [["Basic256Sha256", "Sign"]], listed
+        assert listed["results"][1]["status"] == "Good"
+    finally:
+        await link.stop()
 
 # ---------------------------------------------------------------------------- result events
 MANDATORY = ["mv:ResultId", "mv:IsPartial", "mv:ResultState", "mv:JobId", "mv:CreationTime",

@@ -19,6 +19,7 @@ import {
     Variant, constructEventFilter, makeBrowsePath, ofType, promoteOpaqueStructure,
     resolveNodeId,
 } from "node-opcua-client";
+import { readFileSync } from "node:fs";
 import { OPCUACertificateManager } from "node-opcua-certificate-manager";  // node-opcua-client's own
 
 const spec = JSON.parse(process.argv[2]);
@@ -159,7 +160,8 @@ async function step(s) {
 }
 
 // node-opcua's client will not open a session on a security mode the server does not offer; a
-// client that insists (as an attacker's would) takes an offered endpoint and claims it has ours.
+// client that insists (as an attacker's would) takes an offered endpoint and claims it has ours;
+// with "serverCert" (the server's DER) it also opens a secure channel of any mode unchecked.
 async function insist() {
     const offered = await client.getEndpoints();
     const own = client.findEndpoint.bind(client);
@@ -177,6 +179,8 @@ async function main() {
         securityMode: MessageSecurityMode[spec.mode], securityPolicy: SecurityPolicy[spec.policy],
         certificateFile: spec.cert, privateKeyFile: spec.key, clientCertificateManager: pki,
         endpointMustExist: false, connectionStrategy: { maxRetry: 0, initialDelay: 100 },
+        // known up front, node-opcua opens the channel without checking the offered endpoints
+        serverCertificate: spec.insist && spec.serverCert ? readFileSync(spec.serverCert) : undefined,
         requestedSessionTimeout: 30000,
     });
     try {
