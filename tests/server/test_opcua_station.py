@@ -12,6 +12,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import node_opcua
 import pytest
 from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
@@ -110,7 +111,8 @@ def _opcua(pki: Path) -> Any:
     return edit
 
 
-async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
+async def _trusted_certificate(tmp_path: Path) -> tuple[Path, Path]:
+    """A client key and certificate (made once), the certificate trusted by the station."""
     key, cert = tmp_path / "client.pem", tmp_path / "client.der"
     if not cert.exists():
         await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
@@ -119,6 +121,11 @@ async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
         trusted = tmp_path / "pki" / "trusted"
         trusted.mkdir(parents=True, exist_ok=True)
         (trusted / "client.der").write_bytes(cert.read_bytes())
+    return key, cert
+
+
+async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
+    key, cert = await _trusted_certificate(tmp_path)
     client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15)
     client.application_uri = CLIENT_URI
     await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
@@ -339,3 +346,49 @@ async def test_unprepare_and_the_calibration_versions_go_through_the_station(
         finally:
             await engineer.disconnect()
             await operator.disconnect()
+
+
+async def test_a_second_client_stack_gets_the_stations_records_as_standard_events(
+        tmp_path: Path) -> None:
+    """node-opcua (tests/node_opcua.py) subscribes as a generic OPC 40100 client does (OfType
+    ResultReadyEventType, on the VisionSystem and on the Server object) and triggers; each event
+    has every Mandatory field as the store has the record; SystemState is stand-by after."""
+    async with _opcua_station(tmp_path) as (lb, link):
+        station = lb.runtime
+        await move_part(station, lb.twin, station.active.config.T_rf_from_pf0.matrix)
+        key, cert = await _trusted_certificate(tmp_path)
+        fields = ["EventType", "mv:ResultId", "mv:IsPartial", "mv:ResultState", "mv:JobId",
+                  "mv:CreationTime", "mv:InternalRecipeId", "mv:InternalConfigurationId",
+                  "mv:ProcessingTimes"]
+        got = await node_opcua.run({
+            "url": f"opc.tcp://127.0.0.1:{link.port}/mvpose", "mode": "SignAndEncrypt",
+            "policy": "Basic256Sha256", "cert": str(cert), "key": str(key),
+            "pki": str(tmp_path / "node-pki"), "applicationUri": CLIENT_URI, "user": "olga",
+            "password": "pw", "steps": [
+                *({"do": "subscribe", "label": label, "node": node, "fields": fields,
+                   "ofType": ["mv:ResultReadyEventType"]}
+                  for label, node in (("vs", ["mv:VisionSystem"]), ("server", "Server"))),
+                {"do": "call", "object": ["mv:VisionSystem"], "method": "mvpose:Measure",
+                 "args": [{"type": "String", "value": "VIN-NODE"},
+                          {"type": "UInt16", "value": 0}, {"type": "UInt32", "value": 61}]},
+                {"do": "wait_events", "label": "vs", "count": 1, "timeout_ms": 30000},
+                {"do": "wait_events", "label": "server", "count": 1, "timeout_ms": 30000},
+                {"do": "read", "path": ["mv:VisionSystem", "mv:SystemState"]}]})
+        assert "error" not in got, got
+        call, on_vs, on_server, state = got["results"][2:]
+        rid = call["outputs"][0]
+        station.wait_idle()
+        rec = next(iter(station.services.store.measurements.iterate(
+            MeasurementFilter(result_id=rid)))).record
+        assert (len(on_vs), len(on_server)) == (1, 1), got
+        ev = on_vs[0]
+        assert on_server[0] == ev  # the same event through the Server object
+        assert (ev["mv:ResultId"]["id"], ev["mv:JobId"]["id"]) == (str(rid), "61")
+        assert ev["mv:IsPartial"] is False
+        assert ev["mv:ResultState"] == (1 if rec.reason_code == 0 else -rec.reason_code)
+        assert ev["mv:CreationTime"][:19] == rec.triggered_at.isoformat()[:19]
+        assert (ev["mv:InternalRecipeId"]["id"], ev["mv:InternalRecipeId"]["version"]) == (
+            rec.recipe, str(rec.recipe_version))
+        assert ev["mv:InternalConfigurationId"]["id"] == ""  # the station file has none
+        assert ev["mv:ProcessingTimes"]["startTime"] == ev["mv:CreationTime"]
+        assert state["value"]["state"] == 2  # SBY_2 once the job is done
