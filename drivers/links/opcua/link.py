@@ -12,14 +12,18 @@ One ``VisionSystem`` object (``VisionSystemType`` of the OPC Foundation's Machin
   ``VisionSystem.Measure`` (mvpose's own method) triggers and waits for the outcome;
 - ``RecipeManagement``, ``ResultManagement``, ``ConfigurationManagement``: :mod:`.management`;
   a ``ResultReadyEvent`` (our subtype ``MvposeResultReadyEventType``) for every recorded answer
-  whichever link or client caused it, ``ResultId`` = the record's seq; the last result also as
-  variables (``ResultManagement/LastResult``).
+  whichever link or client caused it, ``ResultId`` = the record's seq, notified through the
+  VisionSystem and the Server object; the last result also as variables
+  (``ResultManagement/LastResult``);
+- ``SystemState``: the SEMI E10 state (production while a job runs, stand-by, scheduled downtime
+  while halted).
 
 Security (:mod:`.access`): Basic256Sha256 Sign / SignAndEncrypt by default with a server
 certificate made at the first start in ``pki_dir``; client certificates must be in
 ``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in with a name
 and password checked against the station file's pbkdf2 hashes and get the read, operator (may
-call methods) or engineer role (also ActivateConfiguration, writes). In a station the server runs
+call methods) or engineer role (also ActivateConfiguration, writes); no session on the None
+channel unless the station file lists None. In a station the server runs
 in a process of its own (:mod:`drivers.links.process`): building and encoding each result event
 is pure Python that would otherwise hold the station process's GIL beside the trigger path.
 """
