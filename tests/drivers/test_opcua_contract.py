@@ -10,6 +10,7 @@ seconds), Basic256Sha256 Sign and SignAndEncrypt; the station side is the tests'
 from __future__ import annotations
 
 import asyncio
+import logging
 import shutil
 import socket
 from collections.abc import AsyncIterator
@@ -93,14 +94,21 @@ def _measure(trigger: int, part: str = "VIN-N") -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- security
 @MODULE_LOOP
-async def test_a_session_over_an_unlisted_none_channel_is_refused(served: Served) -> None:
+async def test_a_session_over_an_unlisted_none_channel_is_refused(
+        served: Served, caplog: pytest.LogCaptureFixture) -> None:
+    """node-opcua made to insist on None (the station lists Basic256Sha256 only): discovery
+    works, CreateSession is refused, so the password is never sent; nothing is measured."""
     before = len(served.handler.records)
-    got = await served.peer([{"do": "endpoints"}, {"do": "session"}, _measure(1)],
-                            mode="None", policy="None", insist=True)
+    with caplog.at_level(logging.INFO, logger="asyncua.server.uaprocessor"):
+        got = await served.peer([{"do": "endpoints"}, {"do": "session"}, _measure(1)],
+                                mode="None", policy="None", insist=True)
     assert got["connected"], got  # discovery (GetEndpoints) over None stays possible
     assert sorted(map(tuple, got["results"][0])) == [("Basic256Sha256", "Sign"),
                                                      ("Basic256Sha256", "SignAndEncrypt")]
-    assert "BadSecurityPolicyRejected" in got.get("error", ""), got
+    assert got["error"].startswith("session:") and "BadSecurityPolicyRejected" in got["error"]
+    said = [r.getMessage() for r in caplog.records]
+    assert any("Create session request" in m for m in said), said
+    assert not any("Activate session request" in m for m in said), said  # no user token sent
     assert len(served.handler.records) == before  # nothing measured, nothing stored
 
 

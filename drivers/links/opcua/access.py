@@ -120,14 +120,22 @@ class _OnlyDiscovery(SimpleRoleRuleset):
 class DiscoveryOnly(SecurityPolicyNone):
     """The None channel when the station file does not list None. OPC UA keeps it open for
     discovery (GetEndpoints, FindServers: OPC 10000-4 §5.4); asyncua would also let a client that
-    asks for it anyway activate a session there, its password in clear, and call methods
-    unchecked by the roles. Here ActivateSession is refused and so is every service of a
-    session: BadSecurityPolicyRejected."""
+    asks for it anyway open a session there, send its password in clear, and call methods
+    unchecked by the roles. Here CreateSession is refused, and behind it ActivateSession and
+    every service of a session: BadSecurityPolicyRejected."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.asymmetric_cryptography = _NoSessions()
         self.permissions = _OnlyDiscovery()
+
+    @property
+    def AsymmetricSignatureURI(self) -> str:  # type: ignore[override]  # noqa: N802
+        """asyncua's server reads it only to sign its CreateSession answer (the secure channel's
+        own messages use the class's crypto objects): so CreateSession is refused here, before
+        a client sends a user token. A later asyncua that read it elsewhere would break
+        discovery on this channel, which the tests do."""
+        raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
 
 
 def keep_none_to_discovery(server: Server) -> None:
