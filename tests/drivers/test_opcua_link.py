@@ -173,6 +173,13 @@ async def test_a_method_call_triggers_and_each_result_is_one_event_with_its_reco
         std = await generic.next()
         assert (std.ResultId.Id, std.PartId.Id, std.ResultState) == (str(out.result_id),
                                                                      "VIN-1", 1)
+        # every Mandatory field of ResultReadyEventType, as GetResultById has the record
+        assert (std.IsPartial, std.CreationTime, std.JobId.Id) == (False, AT, "7")
+        assert (std.InternalRecipeId.Id, std.InternalRecipeId.Version) == ("recipe-1", "1")
+        assert (std.InternalConfigurationId.Id, std.InternalConfigurationId.Version) == (
+            "cal-b", "2")
+        assert (std.ProcessingTimes.StartTime, std.ProcessingTimes.ProcessingDuration) == (
+            AT, 12.0)
 
         # StartSingleJob (the standard's trigger) answers at once; the result follows as event
         auto = await vs.get_child([f"{mv}:VisionStateMachine", f"{mv}:AutomaticModeStateMachine"])
