@@ -1,7 +1,7 @@
 """The OPC UA backend of the link seam: a Machine Vision server (OPC 40100-1) with asyncua.
 
 - :mod:`.nodesets`: the OPC Foundation's NodeSet2 files (npm, pinned, hash-checked);
-- :mod:`.access`: users and roles; the None channel kept to discovery unless listed;
+- :mod:`.access`: users and roles; channels of unlisted security (None) kept to discovery;
 - :mod:`.link`: :class:`OpcUaLink`, the server with the station's ``VisionSystem`` object, its
   state machines, triggers (single and continuous) and result events;
 - :mod:`.management`: result, recipe and configuration management methods;

@@ -1,5 +1,5 @@
 """Who may do what on the OPC UA link: users from the station file, roles per service and method,
-and the None channel kept to discovery unless the station file lists None."""
+and channels of a security the station file does not list (None among them) kept to discovery."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ from asyncua import Server, ua
 from asyncua.common.utils import Buffer, ServiceError
 from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
 from asyncua.crypto.security_policies import (
+    SECURITY_POLICY_TYPE_MAP,
     CryptographyNone,
+    SecurityPolicy,
     SecurityPolicyFactory,
     SecurityPolicyNone,
 )
@@ -99,7 +101,7 @@ class Roles(SimpleRoleRuleset):
 
 
 
-# ---------------------------------------------------------------------------- the None channel
+# ---------------------------------------------------------------------------- unlisted security
 class _NoSessions(CryptographyNone):
     """The None channel's asymmetric part: as None, but no client signature is ever valid.
     asyncua checks the client's signature (verify) only in ActivateSession on a None channel
@@ -111,35 +113,59 @@ class _NoSessions(CryptographyNone):
 
 
 class _OnlyDiscovery(SimpleRoleRuleset):
-    """No service of a session on the None channel (discovery needs none)."""
+    """No service of a session on a discovery-only channel (discovery needs none)."""
 
     def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
         raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
 
 
-class DiscoveryOnly(SecurityPolicyNone):
-    """The None channel when the station file does not list None. OPC UA keeps it open for
-    discovery (GetEndpoints, FindServers: OPC 10000-4 §5.4); asyncua would also let a client that
-    asks for it anyway open a session there, send its password in clear, and call methods
-    unchecked by the roles. Here CreateSession is refused, and behind it ActivateSession and
-    every service of a session: BadSecurityPolicyRejected."""
+def _refuse_sessions(policy: SecurityPolicy) -> str:
+    """asyncua's server reads ``AsymmetricSignatureURI`` only to sign its CreateSession answer
+    (a channel's own messages use the policy's crypto objects): so CreateSession is refused,
+    before a client sends a user token. A later asyncua that read it elsewhere would break
+    discovery on such a channel, which the tests do."""
+    raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.asymmetric_cryptography = _NoSessions()
+
+def discovery_only(cls: type[SecurityPolicy]) -> type[SecurityPolicy]:
+    """``cls`` for a secure channel of a policy and mode the station file does not list.
+
+    OPC UA keeps the None channel open for discovery (GetEndpoints, FindServers: OPC 10000-4
+    §5.4), and asyncua let a client that asked for it anyway open a session there, send its
+    password in clear and call methods unchecked by the roles (a None channel has no roles).
+    On such a channel CreateSession is refused, and behind it ActivateSession and every service
+    of a session: BadSecurityPolicyRejected. A Basic256Sha256 channel of a mode that is not
+    listed is opened the same way, discovery only, so such a client learns at once why (asyncua
+    would not answer its OpenSecureChannel at all)."""
+
+    def init(self: SecurityPolicy, *args: Any, **kwargs: Any) -> None:
+        cls.__init__(self, *args, **kwargs)
         self.permissions = _OnlyDiscovery()
+        if cls is SecurityPolicyNone:
+            self.asymmetric_cryptography = _NoSessions()
 
-    @property
-    def AsymmetricSignatureURI(self) -> str:  # type: ignore[override]  # noqa: N802
-        """asyncua's server reads it only to sign its CreateSession answer (the secure channel's
-        own messages use the class's crypto objects): so CreateSession is refused here, before
-        a client sends a user token. A later asyncua that read it elsewhere would break
-        discovery on this channel, which the tests do."""
-        raise ServiceError(ua.StatusCodes.BadSecurityPolicyRejected)
+    return type(f"DiscoveryOnly{cls.__name__}", (cls,),
+                {"__init__": init, "AsymmetricSignatureURI": property(_refuse_sessions),
+                 "__doc__": discovery_only.__doc__})
 
 
-def keep_none_to_discovery(server: Server) -> None:
-    """Give the None channel of ``server`` (whose security lists no None) :class:`DiscoveryOnly`.
-    Before ``server.start()``: asyncua hands its list of policies to every connection."""
-    factory = SecurityPolicyFactory(DiscoveryOnly, ua.MessageSecurityMode.None_)
-    server._policies.insert(0, factory)  # noqa: SLF001 - asyncua has no public hook for it
+def keep_unlisted_to_discovery(server: Server, listed: list[ua.SecurityPolicyType],
+                               known: list[ua.SecurityPolicyType]) -> list[str]:
+    """Channels of the ``known`` policies (the station file's choices) that are not ``listed``
+    become :func:`discovery_only`; the secure ones only once the server has its certificate.
+    Before ``server.start()``: asyncua hands its list of policies to every connection. Returns
+    what was added, as "<policy>#<mode>"."""
+    added = []
+    for kind in known:
+        if kind in listed:
+            continue
+        cls: type[SecurityPolicy]
+        mode: ua.MessageSecurityMode
+        cls, mode, _ = SECURITY_POLICY_TYPE_MAP[kind]  # type: ignore[assignment]
+        cert, key = server.iserver.certificate, server.iserver.private_key
+        if cls is not SecurityPolicyNone and (cert is None or key is None):
+            continue  # no secure channel at all without a certificate
+        factory = SecurityPolicyFactory(discovery_only(cls), mode, cert, key)
+        server._policies.insert(0, factory)  # noqa: SLF001 - asyncua has no public hook for it
+        added.append(f"{cls.URI.rsplit('#', 1)[-1]}#{mode.name}")
+    return added

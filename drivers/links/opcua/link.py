@@ -22,8 +22,8 @@ Security (:mod:`.access`): Basic256Sha256 Sign / SignAndEncrypt by default with 
 certificate made at the first start in ``pki_dir``; client certificates must be in
 ``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in with a name
 and password checked against the station file's pbkdf2 hashes and get the read, operator (may
-call methods) or engineer role (also ActivateConfiguration, writes); no session on the None
-channel unless the station file lists None. In a station the server runs
+call methods) or engineer role (also ActivateConfiguration, writes); no session on a channel
+whose security the station file does not list (None among them). In a station the server runs
 in a process of its own (:mod:`drivers.links.process`): building and encoding each result event
 is pure Python that would otherwise hold the station process's GIL beside the trigger path.
 """
@@ -55,7 +55,7 @@ from mvpose_core.reasons import Reason, reason_name
 
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
 from . import values as v
-from .access import Roles, Users, default_pki_dir, keep_none_to_discovery
+from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
 from .arguments import check_arguments
 from .events import standard_event_filters
 from .management import Management
@@ -139,14 +139,14 @@ class OpcUaLink(Link):
             server.set_endpoint(f"opc.tcp://{cfg.host}:{cfg.port}/mvpose")
             server.set_security_policy([POLICIES[p] for p in cfg.security],
                                        permission_ruleset=self._roles)
-            if "None" not in cfg.security:
-                keep_none_to_discovery(server)
             tokens: list[type] = [ua.UserNameIdentityToken]
             if cfg.allow_anonymous:
                 tokens.append(ua.AnonymousIdentityToken)
             server.set_identity_tokens(tokens)
             if self._pki is not None:
                 await self._secure(server, self._pki)
+            keep_unlisted_to_discovery(server, [POLICIES[p] for p in cfg.security],
+                                       list(POLICIES.values()))
             t = time.monotonic()
             for path in self._order:
                 await server.import_xml(str(path), strict_mode=path.name == MACHINE_VISION)
