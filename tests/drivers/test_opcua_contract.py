@@ -159,16 +159,18 @@ async def test_an_of_type_filter_gets_every_mandatory_field_on_the_vision_system
     got = await served.peer([
         _subscribe("vs", ["mv:VisionSystem"], MANDATORY + OPTIONAL),
         _subscribe("server", "Server", MANDATORY),
+        {**_subscribe("base", ["mv:VisionSystem"], ["mv:ResultId"]), "ofType": "BaseEventType"},
         _measure(31, "VIN-EV"),
         {"do": "wait_events", "label": "vs", "count": 1},
         {"do": "wait_events", "label": "server", "count": 1},
+        {"do": "wait_events", "label": "base", "count": 1},
     ])
     assert "error" not in got, got
-    call, on_vs, on_server = got["results"][2:]
+    call, on_vs, on_server, on_base = got["results"][3:]
     assert call["status"] == "Good" and call["outputs"][1] == 0
     rid = call["outputs"][0]
     stored = served.handler.stored[rid]
-    assert len(on_vs) == 1 and len(on_server) == 1, got  # 0 of n before: OfType missed our events
+    assert (len(on_vs), len(on_server), len(on_base)) == (1, 1, 1), got  # OfType missed them
     ev = on_vs[0]
     assert ev["mv:ResultId"]["id"] == str(rid)
     assert ev["mv:IsPartial"] is False
@@ -184,7 +186,7 @@ async def test_an_of_type_filter_gets_every_mandatory_field_on_the_vision_system
     assert times["startTime"] == ev["mv:CreationTime"]
     assert times["endTime"] > times["startTime"] and times["processingDuration"] == 12.0
     assert ev["mv:ResultContent"] == [*(stored.offset or ()), 0.05, 0.01]
-    assert on_server[0]["mv:ResultId"] == ev["mv:ResultId"]
+    assert on_server[0]["mv:ResultId"] == on_base[0]["mv:ResultId"] == ev["mv:ResultId"]
     assert all(on_server[0][f] is not None for f in MANDATORY), on_server[0]
 
 

@@ -123,7 +123,8 @@ async function step(s) {
             maxNotificationsPerPublish: 1000, publishingEnabled: true, priority: 1 });
         const fields = [];
         for (const f of s.fields) fields.push(await qualified(f));
-        const type = s.ofType ? await resolve(s.ofType, "i=2041") : null;  // under BaseEventType
+        const type = s.ofType === "BaseEventType" ? resolveNodeId("i=2041")
+            : s.ofType ? await resolve(s.ofType, "i=2041") : null;  // a path under BaseEventType
         const filter = constructEventFilter(fields, type ? ofType(type) : undefined);
         const item = ClientMonitoredItem.create(sub, {
             nodeId: await resolve(s.node), attributeId: AttributeIds.EventNotifier,
