@@ -72,7 +72,8 @@ async def served(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Serv
     root = tmp_path_factory.mktemp("opcua-contract")
     pki = root / "pki"
     handler = RecordingHandler()
-    link = OpcUaLink(link_config(pki, query_spacing_s=0.0), handler)
+    # a job held inside the station (SystemState) must not meet the link's backstop on a busy host
+    link = OpcUaLink(link_config(pki, query_spacing_s=0.0, measure_timeout_s=300.0), handler)
     await link.start()
     await link.wait_ready(120)
     key, cert = root / "peer_key.pem", root / "peer_cert.der"

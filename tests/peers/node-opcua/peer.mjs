@@ -148,7 +148,7 @@ async function step(s) {
     }
     case "wait_events": {
         const got = subscriptions[s.label];
-        const deadline = Date.now() + (s.timeout_ms ?? 10000);
+        const deadline = Date.now() + (s.timeout_ms ?? 30000);
         while (got.events.length < s.count && Date.now() < deadline) {
             await new Promise((r) => setTimeout(r, 20));
         }
