@@ -36,7 +36,7 @@ def install() -> str:
     return commands["node"]
 
 
-async def run(spec: dict[str, Any], timeout_s: float = 90.0) -> dict[str, Any]:
+async def run(spec: dict[str, Any], timeout_s: float = 180.0) -> dict[str, Any]:
     """Run ``peer.mjs`` with ``spec``; its JSON answer (``connected``, ``results``, ``error``)."""
     node = install()
     proc = await asyncio.create_subprocess_exec(

@@ -254,7 +254,7 @@ async def test_system_state_is_production_while_a_job_runs_and_stand_by_between(
         mv = await client.get_namespace_index(MV_URI)
         vs = await client.nodes.objects.get_child(f"{mv}:VisionSystem")
         state = await vs.get_child(f"{mv}:SystemState")
-        await until(lambda: served.link.jobs == 0, "the job's end")
+        await until(lambda: _system_state(served.link) == 2, "SBY_2 after the job")
         assert int((await state.read_value()).State) == 2
         sm = await vs.get_child(f"{mv}:VisionStateMachine")
         await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
@@ -265,3 +265,11 @@ async def test_system_state_is_production_while_a_job_runs_and_stand_by_between(
         assert int((await state.read_value()).State) == 2
     finally:
         await client.disconnect()
+
+
+def _system_state(link: OpcUaLink) -> int:
+    """SystemState's State as the server holds it now (its address space, no session)."""
+    assert link.server is not None
+    value = link.server.iserver.aspace.read_attribute_value(
+        link._nodes["system_state"].nodeid, ua.AttributeIds.Value).Value
+    return int(value.Value.State) if value is not None else 0

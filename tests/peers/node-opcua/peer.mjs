@@ -182,7 +182,8 @@ async function main() {
         endpointMustExist: false, connectionStrategy: { maxRetry: 0, initialDelay: 100 },
         // known up front, node-opcua opens the channel without checking the offered endpoints
         serverCertificate: spec.insist && spec.serverCert ? readFileSync(spec.serverCert) : undefined,
-        requestedSessionTimeout: 30000,
+        requestedSessionTimeout: 120000,
+        defaultTransactionTimeout: 120000,  // a call held inside the station (a test) waits
     });
     try {
         await client.connect(spec.url);
