@@ -12,6 +12,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
+from drivers.links.result import ResultEvent
 from server.api.deps import (
     EngineerUser,
     IdInt,
@@ -55,6 +56,9 @@ class TriggerAnswer(BaseModel):
         "OK)")
     measurement_id: int | None
     record: MeasurementRecord | None
+    event: ResultEvent | None = Field(
+        None, description="the recorded answer as every outlet shows it (null: not recorded, "
+        "e.g. an intermediate view)")
 
 
 class TeachBody(BaseModel):
@@ -99,6 +103,7 @@ def trigger(request: Request, user: OperatorUser,
         processing_ms=out["processing_ms"], result_id=out["result_id"], offset=out["offset"],
         measurement_id=out["measurement_id"],
         record=MeasurementRecord.model_validate(out["record"]) if out["record"] else None,
+        event=ResultEvent.from_dict(out["event"]) if out.get("event") else None,
     )
 
 

@@ -170,6 +170,7 @@ class ControlServer:
             "sigma_trans_mm": out.sigma_trans_mm, "sigma_rot_deg": out.sigma_rot_deg,
             "message": answer.message, "measurement_id": db_id,
             "record": answer.record.model_dump(mode="json") if answer.record else None,
+            "event": answer.event.to_dict() if answer.event is not None else None,
         }
 
 

@@ -38,7 +38,8 @@ import numpy as np
 from drivers.cameras import CaptureGroup, make_camera
 from drivers.links import Link, LinkOutcome, LinkRequest, open_links, relay
 from drivers.links.modbus import ModbusLink
-from mvpose_core.reasons import Reason, reason_name
+from drivers.links.result import ResultEvent
+from mvpose_core.reasons import Reason
 from mvpose_core.station import StationConfig
 from mvpose_core.transforms import RobotConvention
 from server.pipeline import Pipeline, PipelineOptions
@@ -48,6 +49,7 @@ from server.station import scheduling
 from server.station.queries import StationQueries
 from server.station.records import Provenance, failure_record, result_record
 from server.station.sequence import Step, ViewSequence
+from server.store.events import record_event
 from server.store.outbox import OutboxRows
 from server.store.schemas import ImageRef, MeasurementRecord
 
@@ -151,6 +153,7 @@ class Answer:
     message: str
     db_id: int | None = None
     on_committed: Callable[[Callable[[int], object]], None] | None = None
+    event: ResultEvent | None = None  # the recorded answer's event (None: not recorded)
 
 
 class _Ticket:
@@ -192,7 +195,7 @@ class Station(StationQueries):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._watch: asyncio.Task[None] | None = None
-        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._listeners: list[Callable[[ResultEvent], None]] = []
         # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
         self.status_parts: dict[str, Callable[[], dict[str, Any]]] = {}
 
@@ -576,41 +579,26 @@ class Station(StationQueries):
                           None, f"the record could not be stored: {err}")
         if self.pipeline is not None:
             self.pipeline.note_append_ms((time.monotonic() - t) * 1e3)
-        ok = record.result == "OK"
-        offset = None
-        unc = record.uncertainty
-        if ok and record.offset is not None:
-            offset = tuple(record.offset.values)
-        outcome = LinkOutcome(
-            result_code=record.reason_code, result_id=done.result_id, offset=offset,
-            sigma_trans_mm=unc.sigma_mm if unc else 0.0,
-            sigma_rot_deg=unc.sigma_deg if unc else 0.0,
-            processing_ms=(time.monotonic() - t0) * 1e3,
-            views_done=max(1, len({d.view for d in record.detections})), final=True)
+        event = record_event(record, done.result_id)
+        outcome = LinkOutcome.from_event(event, processing_ms=(time.monotonic() - t0) * 1e3)
         with self._lock:
-            self.counts["ok" if ok else "nok"] += 1
-            self.last = {
-                "result_id": done.result_id, "measurement_id": done.db_id,
-                "trigger_id": record.trigger_id, "part_id": record.part_id,
-                "recipe": record.recipe, "recipe_version": record.recipe_version,
-                "link": link, "result": record.result,
-                "reason_code": record.reason_code, "reason": reason_name(record.reason_code),
+            self.counts["ok" if event.ok else "nok"] += 1
+            self.last = {  # the status page's last result: the event, and how it was answered
+                **event.to_dict(), "measurement_id": done.db_id, "link": link,
                 "message": message, "processing_ms": outcome.processing_ms,
                 "at": record.triggered_at.isoformat(),
-                "convention": record.offset.convention.value if record.offset else None,
-                "offset": list(offset) if offset is not None else None,
+                "offset": list(outcome.offset) if outcome.offset is not None else None,
                 "sigma_mm": outcome.sigma_trans_mm, "sigma_deg": outcome.sigma_rot_deg,
             }
-            event = dict(self.last)
         if done.db_id is None and done.on_committed is not None:
             done.on_committed(lambda db_id: self._committed(done.result_id, db_id))
         if self._listeners:
             self._tell_later(event)
-        answer = Answer(outcome, record, message, done.db_id)
+        answer = Answer(outcome, record, message, done.db_id, event=event)
         answer.on_committed = done.on_committed
         return answer
 
-    def _tell_later(self, event: dict[str, Any]) -> None:
+    def _tell_later(self, event: ResultEvent) -> None:
         """Call the listeners with ``event`` observer_delay_s from now, on the station loop (at
         once on this thread when there is no loop to wait on)."""
         loop, delay = self._loop, self.options.observer_delay_s
@@ -620,7 +608,7 @@ class Station(StationQueries):
                 return
         self._tell(event)
 
-    def _tell(self, event: dict[str, Any]) -> None:
+    def _tell(self, event: ResultEvent) -> None:
         for listen in list(self._listeners):
             try:
                 listen(event)
@@ -724,8 +712,8 @@ class Station(StationQueries):
         if self._archive_exec is not None:
             self._archive_exec.submit(lambda: None).result(timeout=timeout_s)
 
-    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
-        """Call ``listen(last_result)`` after each recorded answer, observer_delay_s after its
+    def add_listener(self, listen: Callable[[ResultEvent], None]) -> None:
+        """Call ``listen(event)`` after each recorded answer, observer_delay_s after its
         append, on the station loop's thread."""
         self._listeners.append(listen)
 

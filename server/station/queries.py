@@ -15,10 +15,12 @@ import asyncio
 import time
 from typing import TYPE_CHECKING, cast
 
-from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, StoredResult
+from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery
+from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
 from server.errors import NotFoundError
-from server.store.schemas import MeasurementFilter, MeasurementSummary
+from server.store.events import summary_event
+from server.store.schemas import MeasurementFilter
 
 if TYPE_CHECKING:
     from server.station.core import Station
@@ -28,20 +30,6 @@ MAX_PAGE = 1000  # the most records one query returns (a bigger ask gets this ma
 DECODE_CHUNK = 5  # records decoded between two offers of the GIL to the trigger thread
 
 
-def stored_result(s: MeasurementSummary) -> StoredResult:
-    ok = s.result == "OK"
-    offset = s.offset if ok else None
-    unc = s.uncertainty
-    return StoredResult(
-        result_id=s.seq, trigger_id=s.trigger_id, part_id=s.part_id or "", recipe=s.recipe,
-        recipe_version=s.recipe_version, ok=ok, reason_code=s.reason_code,
-        message=s.message or "", triggered_at=s.triggered_at, total_ms=s.total_ms,
-        calibration_id=s.calibration_id, calibration_sha256=s.calibration_hash,
-        convention=offset.convention.value if offset is not None else None,
-        offset=tuple(offset.values) if offset is not None else None,
-        sigma_mm=unc.sigma_mm if unc else 0.0, sigma_deg=unc.sigma_deg if unc else 0.0)
-
-
 class StationQueries:
     """The StationHandler's queries, for :class:`server.station.core.Station`."""
 
@@ -49,18 +37,18 @@ class StationQueries:
         return cast("Station", self)
 
     # ------------------------------------------------------------------ results
-    async def get_result(self, result_id: int) -> StoredResult | None:
+    async def get_result(self, result_id: int) -> ResultEvent | None:
         return await asyncio.to_thread(self._get_result, result_id)
 
-    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+    async def find_results(self, query: ResultQuery) -> tuple[list[ResultEvent], int]:
         return await asyncio.to_thread(self._find_results, query)
 
-    def _get_result(self, result_id: int) -> StoredResult | None:
+    def _get_result(self, result_id: int) -> ResultEvent | None:
         repo = self._store().measurements
         rows, _ = repo.summary_page(MeasurementFilter(result_id=result_id), None, 1)
-        return stored_result(rows[0]) if rows else None
+        return summary_event(rows[0]) if rows else None
 
-    def _find_results(self, q: ResultQuery) -> tuple[list[StoredResult], int]:
+    def _find_results(self, q: ResultQuery) -> tuple[list[ResultEvent], int]:
         result = None if q.ok is None else ("OK" if q.ok else "NOK")
         total, summaries = self._store().measurements.summaries_from(
             MeasurementFilter(result=result, reason_code=q.reason_code, recipe=q.recipe,
@@ -70,7 +58,7 @@ class StationQueries:
         for i, summary in enumerate(summaries):
             if i and i % DECODE_CHUNK == 0:
                 time.sleep(0)  # hand the GIL to the trigger thread if it waits for it
-            out.append(stored_result(summary))
+            out.append(summary_event(summary))
         return out, total
 
     # ------------------------------------------------------------------ recipes

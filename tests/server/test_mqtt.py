@@ -25,6 +25,7 @@ from mqtt_broker import Mosquitto, Subscriber, wait_until
 from sqlalchemy import create_engine, text
 from stations import ENGINEER, relaxed_deadline, station_file
 
+from drivers.links.result import ResultEvent
 from server.station.client import StationClient, StationDownError
 
 START_S = 120.0  # migrations, four simulated 4 MP cameras and their warm-up on a loaded machine
@@ -164,6 +165,9 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
             row.id, row.hash, row.trigger_id, row.part_id, row.result, row.reason_code, "OK")
         assert p["offset"]["convention"] and len(p["offset"]["values"]) >= 6
         assert p["sigma_mm"] > 0 and p["recipe_version"] >= 1
+        # every field of the result event
+        assert set(ResultEvent.__dataclass_fields__) <= set(p)
+        assert p["convention"] == p["offset"]["convention"] and p["processing_ms"] > 0
     assert [a["result_id"] for a in answers] == sorted(p["result_id"] for p in got.values())
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
     body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])

@@ -50,6 +50,7 @@ from mvpose_core.linkconfig import OpcUaLinkConfig
 from mvpose_core.reasons import Reason, reason_name
 
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
+from ..result import ResultEvent
 from . import values as v
 from .access import Roles, Users, default_pki_dir
 from .management import Management
@@ -328,6 +329,7 @@ class OpcUaLink(Link):
             ("SigmaRotationDeg", 0.0, ua.VariantType.Double),
             ("ProcessingMs", 0.0, ua.VariantType.Double),
             ("CreationTime", datetime.now(UTC), ua.VariantType.DateTime),
+            *((node, default, vt) for node, _, default, vt in v.shown_fields()),
         ]
 
     # ------------------------------------------------------------------ states
@@ -524,28 +526,27 @@ class OpcUaLink(Link):
                 await self._show_states()
 
     # ------------------------------------------------------------------ results
-    def _on_result(self, result: dict[str, Any]) -> None:
+    def _on_result(self, event: ResultEvent) -> None:
         """The station's listener (on the station loop): publish on our loop."""
         loop = self._loop
         if self._listening and loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(lambda: self._spawn(self._publish(result)))
+            loop.call_soon_threadsafe(lambda: self._spawn(self._publish(event)))
 
-    async def _publish(self, r: dict[str, Any]) -> None:
+    async def _publish(self, r: ResultEvent) -> None:
         if self.server is None or self._evgen is None:
             return
-        ok = r.get("reason_code", 0) == 0 and r.get("result") == "OK"
-        at = v.when(r.get("at"))
-        offset = [float(v) for v in (r.get("offset") or [])]
+        ok = r.ok
+        at = r.triggered_at
+        offset = [float(x) for x in (r.robot_offset or ())]
         values: dict[str, Any] = {
-            "ResultNumber": int(r["result_id"]), "TriggerId": int(r.get("trigger_id") or 0),
-            "PartId": str(r.get("part_id") or ""), "Recipe": str(r.get("recipe") or ""),
-            "ResultCode": int(r.get("reason_code", 0)),
-            "Reason": str(r.get("reason") or reason_name(int(r.get("reason_code", 0)))),
-            "ResultMessage": str(r.get("message") or ""), "Offset": offset,
-            "Convention": str(r.get("convention") or ""),
-            "SigmaTranslationMm": float(r.get("sigma_mm") or 0.0),
-            "SigmaRotationDeg": float(r.get("sigma_deg") or 0.0),
-            "ProcessingMs": float(r.get("processing_ms") or 0.0), "CreationTime": at,
+            "ResultNumber": r.result_id, "TriggerId": r.trigger_id,
+            "PartId": r.part_id or "", "Recipe": r.recipe, "ResultCode": r.reason_code,
+            "Reason": r.reason or reason_name(r.reason_code),
+            "ResultMessage": r.message, "Offset": offset, "Convention": r.convention or "",
+            "SigmaTranslationMm": r.sigma_mm or 0.0, "SigmaRotationDeg": r.sigma_deg or 0.0,
+            "ProcessingMs": r.processing_ms or 0.0, "CreationTime": at,
+            **{node: (getattr(r, name) if getattr(r, name) is not None else default)
+               for node, name, default, _ in v.shown_fields()},
         }
         async with self._lock:
             server = self.server
@@ -561,7 +562,7 @@ class OpcUaLink(Link):
             ev.MeasId = _UA.MeasIdDataType(Id=str(values["TriggerId"]))
             ev.JobId = _UA.JobIdDataType(Id=str(values["TriggerId"]))
             ev.InternalRecipeId = v.recipe_id("RecipeIdInternalDataType", values["Recipe"],
-                                             int(r.get("recipe_version") or 0))
+                                             r.recipe_version)
             ev.IsPartial = False
             ev.ResultState = v.int32(v.result_state(ok, values["ResultCode"]))
             ev.CreationTime = at

@@ -20,7 +20,8 @@ from asyncua import Node, Server, ua
 
 from mvpose_core.reasons import Reason
 
-from ..base import CalibrationInfo, ResultQuery, StationHandler, StoredResult
+from ..base import CalibrationInfo, ResultQuery, StationHandler
+from ..result import ResultEvent
 from . import values as v
 
 log = logging.getLogger(__name__)
@@ -143,7 +144,7 @@ class Management:
         return out, code
 
     # ------------------------------------------------------------------ results
-    async def _one_result(self, method: str, rid: ua.Variant) -> StoredResult | None:
+    async def _one_result(self, method: str, rid: ua.Variant) -> ResultEvent | None:
         wanted = v.struct_id(rid.Value)
         found = None
         if wanted.isdigit() and 0 < int(wanted) < 2**63:
@@ -292,7 +293,7 @@ def _structs(items: list[Any]) -> ua.Variant:
     return ua.Variant(items, ua.VariantType.ExtensionObject)
 
 
-def _components(r: StoredResult | None, versions: dict[str, int]) -> Outputs:
+def _components(r: ResultEvent | None, versions: dict[str, int]) -> Outputs:
     """GetResultComponentsById's outputs but Error, from ResultDataType's fields."""
     d = v.result_data(r, versions) if r is not None else _UA.ResultDataType()
     return [

@@ -7,7 +7,8 @@ from typing import Any
 
 from asyncua import ua
 
-from ..base import CalibrationInfo, StoredResult
+from ..base import CalibrationInfo
+from ..result import ResultEvent
 
 _UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
 RESULT_STATE_COMPLETED = 1  # ResultStateDataType (OPC 40100-1 §12.19): processing completed
@@ -97,20 +98,20 @@ def result_content(offset: Any, sigma_mm: float, sigma_deg: float) -> list[ua.Va
             for v in (*offset, sigma_mm, sigma_deg)]
 
 
-def result_data(r: StoredResult, config_versions: dict[str, int]) -> Any:
-    """A stored record as the standard's ResultDataType."""
+def result_data(r: ResultEvent, config_versions: dict[str, int]) -> Any:
+    """A stored record's event as the standard's ResultDataType."""
     processing = None
-    if r.total_ms is not None:
+    if r.processing_ms is not None:
         processing = _UA.ProcessingTimesDataType(
             StartTime=r.triggered_at,
-            EndTime=r.triggered_at + timedelta(milliseconds=r.total_ms),
-            ProcessingDuration=float(r.total_ms))
+            EndTime=r.triggered_at + timedelta(milliseconds=r.processing_ms),
+            ProcessingDuration=float(r.processing_ms))
     return _UA.ResultDataType(
         ResultId=_UA.ResultIdDataType(Id=str(r.result_id)),
         IsPartial=False,
         ResultState=result_state(r.ok, r.reason_code),
         MeasId=_UA.MeasIdDataType(Id=str(r.trigger_id)),
-        PartId=_UA.PartIdDataType(Id=r.part_id),
+        PartId=_UA.PartIdDataType(Id=r.part_id or ""),
         InternalRecipeId=recipe_id("RecipeIdInternalDataType", r.recipe, r.recipe_version),
         InternalConfigurationId=configuration_id(
             r.calibration_id, r.calibration_sha256,
@@ -118,7 +119,8 @@ def result_data(r: StoredResult, config_versions: dict[str, int]) -> Any:
         JobId=_UA.JobIdDataType(Id=str(r.trigger_id)),
         CreationTime=r.triggered_at,
         ProcessingTimes=processing,
-        ResultContent=result_content(r.offset, r.sigma_mm, r.sigma_deg) or None)
+        ResultContent=result_content(r.robot_offset, r.sigma_mm or 0.0, r.sigma_deg or 0.0)
+        or None)
 
 
 def when(value: Any) -> datetime:
@@ -130,3 +132,21 @@ def when(value: Any) -> datetime:
         except ValueError:
             pass
     return datetime.now(UTC)
+
+
+_VARIANTS: dict[type, tuple[Any, ua.VariantType]] = {
+    bool: (False, ua.VariantType.Boolean), int: (0, ua.VariantType.Int64),
+    float: (0.0, ua.VariantType.Double), str: ("", ua.VariantType.String),
+}
+
+
+def shown_fields() -> list[tuple[str, str, Any, ua.VariantType]]:
+    """The result event's SHOWN fields as LastResult variables and event properties: (node
+    name in CamelCase, field name, value when the event has none, variant type)."""
+    out = []
+    for name, tp in ResultEvent.shown():
+        if tp not in _VARIANTS:
+            raise TypeError(f"result event field {name!r}: no OPC UA type for {tp!r}")
+        default, vt = _VARIANTS[tp]
+        out.append(("".join(p.title() for p in name.split("_")), name, default, vt))
+    return out
