@@ -60,6 +60,8 @@ class ResultEvent:
     final: bool = True  # every recorded answer ends its trigger's sequence
     length_unit: str = "mm"
     angle_unit: str = "deg"
+    # the station's cycle count: answers recorded since its store was created (the chain's seq)
+    cycle: int = field(default=0, metadata=SHOWN)
 
     @property
     def ok(self) -> bool:

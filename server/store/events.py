@@ -67,6 +67,7 @@ def result_event(rec: RecordFields, *, seq: int, stored_at: datetime | None = No
         processing_ms=rec.timings_ms.get("total"), timings_ms=dict(rec.timings_ms),
         calibration_id=rec.calibration_id, calibration_sha256=rec.calibration_hash,
         stored_at=stored_at, hash=hash, views=views,
+        cycle=seq,  # one record per cycle, every one in the chain: its seq counts them
     )
 
 

@@ -84,6 +84,7 @@ async def test_csv_and_json_export(tmp_path: Path, db: dict[str, str]) -> None:
             else:
                 assert row["o1"] == "" and row["sigma_mm"] == ""
             assert json.loads(row["timings_ms"]) == m.record.timings_ms
+            assert int(row["cycle"]) == m.seq  # a SHOWN field of the result event
 
         r = await client.get("/api/v1/measurements/export",
                              params={"format": "json", "result": "NOK"})

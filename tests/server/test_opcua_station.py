@@ -95,6 +95,13 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
                 assert ev.Offset == offset and ev.Convention == rec.offset.convention.value
             assert (ev2.ResultId.Id, ev2.TriggerId, ev2.PartId.Id) == (
                 str(other.outcome.result_id), 32, "VIN-REST")
+            # the result event's SHOWN fields are event properties and LastResult variables:
+            # the station's cycle count is the record's seq
+            assert (ev.Cycle, ev2.Cycle) == (rid, other.outcome.result_id)
+            cycle = await vs.get_child([f"{mv}:ResultManagement", f"{own}:LastResult",
+                                        f"{own}:Cycle"])
+            # (written before the event is triggered)
+            assert await cycle.read_value() == other.outcome.result_id
             assert events.queue.empty()
         finally:
             await client.disconnect()

@@ -118,7 +118,7 @@ async def test_rest_trigger_teach_and_plc_teach_make_new_recipe_versions(tmp_pat
             assert answer["record"]["trigger_id"] == 0 and answer["record"]["part_id"] == "COMM-1"
             assert np.abs(answer["offset"][:3]).max() > 1.0  # the part is displaced
             event = answer["event"]  # the result event, every field of it
-            assert event["result_id"] == answer["result_id"]
+            assert event["cycle"] == event["result_id"] == answer["result_id"]
             assert (event["part_id"], event["offset"], event["length_unit"]) == (
                 "COMM-1", answer["offset"], "mm")
 
