@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import timedelta
 from typing import Any
 
 from asyncua import ua
@@ -121,17 +121,6 @@ def result_data(r: ResultEvent, config_versions: dict[str, int]) -> Any:
         ProcessingTimes=processing,
         ResultContent=result_content(r.robot_offset, r.sigma_mm or 0.0, r.sigma_deg or 0.0)
         or None)
-
-
-def when(value: Any) -> datetime:
-    if isinstance(value, datetime):
-        return value
-    if isinstance(value, str):
-        try:
-            return datetime.fromisoformat(value)
-        except ValueError:
-            pass
-    return datetime.now(UTC)
 
 
 _VARIANTS: dict[type, tuple[Any, ua.VariantType]] = {
