@@ -60,8 +60,8 @@ class ResultEvent:
     final: bool = True  # every recorded answer ends its trigger's sequence
     length_unit: str = "mm"
     angle_unit: str = "deg"
-    # the station's cycle count: answers recorded since its store was created (the chain's seq)
-    cycle: int = field(default=0, metadata=SHOWN)
+    # the pose fit's RMS reprojection residual over every used observation, px (None: no fit)
+    residual_rms_px: float | None = field(default=None, metadata=SHOWN)
 
     @property
     def ok(self) -> bool:

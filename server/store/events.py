@@ -13,7 +13,13 @@ from datetime import datetime
 from typing import Protocol
 
 from drivers.links.result import ResultEvent
-from server.store.schemas import MeasurementRecord, MeasurementSummary, Offset, Uncertainty
+from server.store.schemas import (
+    MeasurementRecord,
+    MeasurementSummary,
+    Offset,
+    Residuals,
+    Uncertainty,
+)
 
 
 class RecordFields(Protocol):
@@ -47,6 +53,8 @@ class RecordFields(Protocol):
     def uncertainty(self) -> Uncertainty | None: ...
     @property
     def timings_ms(self) -> Mapping[str, float]: ...
+    @property
+    def residuals(self) -> Residuals | None: ...
 
 
 def result_event(rec: RecordFields, *, seq: int, stored_at: datetime | None = None,
@@ -67,7 +75,7 @@ def result_event(rec: RecordFields, *, seq: int, stored_at: datetime | None = No
         processing_ms=rec.timings_ms.get("total"), timings_ms=dict(rec.timings_ms),
         calibration_id=rec.calibration_id, calibration_sha256=rec.calibration_hash,
         stored_at=stored_at, hash=hash, views=views,
-        cycle=seq,  # one record per cycle, every one in the chain: its seq counts them
+        residual_rms_px=rec.residuals.rms_px if rec.residuals is not None else None,
     )
 
 

@@ -165,8 +165,8 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
             row.id, row.hash, row.trigger_id, row.part_id, row.result, row.reason_code, "OK")
         assert p["offset"]["convention"] and len(p["offset"]["values"]) >= 6
         assert p["sigma_mm"] > 0 and p["recipe_version"] >= 1
-        # every field of the result event, the station's cycle count among them
-        assert p["cycle"] == p["result_id"] and set(ResultEvent.__dataclass_fields__) <= set(p)
+        # every field of the result event, the fit's residual among them
+        assert p["residual_rms_px"] > 0 and set(ResultEvent.__dataclass_fields__) <= set(p)
         assert p["convention"] == p["offset"]["convention"] and p["processing_ms"] > 0
     assert [a["result_id"] for a in answers] == sorted(p["result_id"] for p in got.values())
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0

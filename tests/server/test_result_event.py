@@ -33,8 +33,8 @@ def _summary(seq: int, rec_json: dict[str, object]) -> MeasurementSummary:
 def test_an_ok_records_event_and_its_summarys_are_the_same_but_for_views() -> None:
     rec = make_record(np.random.default_rng(1), trigger_id=7)
     event = record_event(rec, 41, stored_at=STORED_AT, hash="ab" * 32)
-    assert (event.result_id, event.cycle, event.trigger_id, event.part_id) == (
-        41, 41, 7, "VIN000007")
+    assert (event.result_id, event.trigger_id, event.part_id) == (41, 7, "VIN000007")
+    assert event.residual_rms_px == (rec.residuals.rms_px if rec.residuals else None)
     assert event.ok and event.robot_offset == tuple(rec.offset.values)
     assert (event.convention, event.length_unit, event.angle_unit) == ("fanuc", "mm", "deg")
     assert event.sigma_mm == rec.uncertainty.sigma_mm
@@ -66,8 +66,8 @@ def test_the_json_shape_round_trips_and_names_what_does_not_fit() -> None:
     assert data["triggered_at"].endswith("+00:00") and isinstance(data["offset"], list)
     with pytest.raises(ValueError, match="unknown field.*colour"):
         ResultEvent.from_dict({**data, "colour": "red"})
-    with pytest.raises(ValueError, match="'cycle'"):
-        ResultEvent.from_dict({**data, "cycle": "twelve"})
+    with pytest.raises(ValueError, match="'residual_rms_px'"):
+        ResultEvent.from_dict({**data, "residual_rms_px": "twelve"})
     with pytest.raises(ValueError, match="'result_id'.*must not be null"):
         ResultEvent.from_dict({**data, "result_id": None})
     with pytest.raises(ValueError, match="'triggered_at'.*zone"):
@@ -79,5 +79,5 @@ def test_the_json_shape_round_trips_and_names_what_does_not_fit() -> None:
         ResultEvent.from_json("[1]")
 
 
-def test_the_shown_fields_are_the_cycle_count() -> None:
-    assert ResultEvent.shown() == [("cycle", int)]
+def test_the_shown_fields_are_the_fits_residual() -> None:
+    assert ResultEvent.shown() == [("residual_rms_px", float)]
