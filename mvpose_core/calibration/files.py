@@ -260,8 +260,8 @@ def report_rig_sigmas(calib: CalibrationFile) -> dict[str, dict[str, float]]:
     station's uncertainty model (:class:`mvpose_core.uncertainty_settings.UncertaintyConfig`).
 
     The report's figures are of the reference camera's pose (``T_gf_from_cf`` or
-    ``T_rf_from_cf``), RSS over the axes; of the covariance's and the jackknife's figure the
-    larger is taken (the jackknife also sees robot pose errors during calibration).
+    ``T_rf_from_cf``), RSS over the axes: the weighted adjustment's 1σ, which counts the robot
+    pose errors (the jackknife beside it is a cross-check and not used).
     """
     mounted = [rid for rid, r in calib.rigs.items()
                if r.T_gf_from_rig is not None or r.T_rf_from_rig is not None]
@@ -270,7 +270,11 @@ def report_rig_sigmas(calib: CalibrationFile) -> dict[str, dict[str, float]]:
     for rep in calib.report.values():
         sigma = rep.get("sigma", {}) if isinstance(rep, dict) else {}
         for key, value in sigma.items():
-            if not key.startswith(("T_gf_from_cf ", "T_rf_from_cf ")) or value is None:
+            if (
+                not key.startswith(("T_gf_from_cf ", "T_rf_from_cf "))
+                or "(jackknife)" in key
+                or value is None
+            ):
                 continue
             (mm if " translation mm" in key else deg if " rotation deg" in key else []).append(
                 float(value)

@@ -57,7 +57,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument(
                 "--fix-intrinsics",
                 action="store_true",
-                help="hold the intrinsics in the final joint refinement",
+                help="hold the intrinsics in the bundle adjustment (always so with --base)",
+            )
+            p.add_argument(
+                "--robot-sigma",
+                nargs=2,
+                type=float,
+                metavar=("MM", "DEG"),
+                help="the robot's pose accuracy per axis (1σ): position mm, rotation deg "
+                "(default: the station's uncertainty.robot_repeatability, else 0.05 0.01)",
             )
             p.add_argument(
                 "--board-pose",
@@ -249,6 +257,7 @@ def _board_depths(ctx: dict[str, Any], models: dict[str, Any], cid: str) -> list
 
 
 def _step_handeye(args: argparse.Namespace) -> int:
+    from mvpose_core.calibration.errors import CalibrationError
     from mvpose_core.calibration.handeye import HandEyeOptions, build_problem, calibrate_handeye
     from mvpose_core.calibration.report import handeye_report, stereo_report
     from mvpose_core.calibration.robotposes import load_robot_poses
@@ -289,18 +298,40 @@ def _step_handeye(args: argparse.Namespace) -> int:
         if "board" not in bp:
             raise CliError(f"{args.board_pose}: expected one pose with id 'board', got {list(bp)}")
         T_rf_from_bf = bp["board"]
-    # Intrinsics taken from --base were chosen by the engineer: hold them. Otherwise refine them
-    # with the hand-eye, where the robot poses pin the focal length down better.
+    # Intrinsics taken from --base were chosen by the engineer: hold them. Otherwise adjust them
+    # with the hand-eye: the images hold their information, the robot poses are weighted.
     from_base = ctx["base"] is not None and all(c in ctx["base"].cameras for c in cams)
-    opt = HandEyeOptions(refine_intrinsics=not (from_base or args.fix_intrinsics))
-    res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
-    reports.append((handeye_report(problem, res, intrinsics=opt.refine_intrinsics), res.residuals))
+    mm, deg = _robot_sigma(args, ctx["station"])
+    opt = HandEyeOptions(
+        refine_intrinsics=not (from_base or args.fix_intrinsics),
+        robot_sigma_mm=mm,
+        robot_sigma_deg=deg,
+    )
+    try:
+        res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
+    except CalibrationError as err:
+        raise CliError(f"{args.poses}: {err}") from None
+    reports.append((handeye_report(problem, res), res.residuals))
     models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
     rig = _rig(
         res.X @ invert(T_rig_from_ref), None, {c: T_rig_from_ref @ invert(rel[c]) for c in cams}
     )
     return _write(args, ctx, "handeye", models, {rig_id: rig}, reports, poses_file=args.poses)
+
+
+def _robot_sigma(args: argparse.Namespace, station: Any) -> tuple[float, float]:
+    """The robot's per-axis 1σ: --robot-sigma, else the station file's (an RSS figure over
+    three axes), else a good industrial robot's."""
+    if args.robot_sigma is not None:
+        mm, deg = args.robot_sigma
+        if not (mm > 0 and deg > 0):
+            raise CliError(f"--robot-sigma: both values must be > 0, got {mm:g} {deg:g}")
+        return float(mm), float(deg)
+    rep = station.uncertainty.robot_repeatability if station is not None else None
+    if rep is not None and rep.mm > 0 and rep.deg > 0:
+        return rep.mm / np.sqrt(3.0), rep.deg / np.sqrt(3.0)
+    return 0.05, 0.01
 
 
 def _step_station(args: argparse.Namespace) -> int:
