@@ -282,19 +282,18 @@ def calibrate_handeye(
             sid: float(np.sqrt(np.mean(np.sum(v * v, axis=1))))
             for sid, v in scaled.residuals.items()
         }
-        bad = {
-            sid: f"reprojection RMS {rms[sid]:.2f} px (median {np.median(list(rms.values())):.2f})"
-            for sid in find_outliers(rms, min_excess_px=options.min_excess_px)
-        }
-        chi = scaled.robot_chi2()
-        for sid in find_pose_outliers(chi):
+        med = float(np.median(list(rms.values())))
+        why: dict[str, list[str]] = {}
+        for sid in find_outliers(rms, min_excess_px=options.min_excess_px):
+            why.setdefault(sid, []).append(f"reprojection RMS {rms[sid]:.2f} px (median {med:.2f})")
+        for sid in find_pose_outliers(scaled.robot_chi2()):
             c = scaled.robot_corrections[sid]
-            bad.setdefault(
-                sid,
+            why.setdefault(sid, []).append(
                 f"robot pose off the fit by {np.linalg.norm(c[3:]):.2f} mm / "
                 f"{np.linalg.norm(c[:3]):.3f}° (the others: robot σ "
-                f"{scaled.weights.robot_mm:.3f} mm / {scaled.weights.robot_deg:.4f}° per axis)",
+                f"{scaled.weights.robot_mm:.3f} mm / {scaled.weights.robot_deg:.4f}° per axis)"
             )
+        bad = {sid: ", ".join(reasons) for sid, reasons in why.items()}
         if not bad:
             break
         left_out.update(bad)

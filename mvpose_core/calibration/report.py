@@ -68,7 +68,7 @@ class CalibrationReport:
         lines += [f"  {k}: {_fmt(v)}" for k, v in self.result.items()]
         if self.repeatability:
             r = self.repeatability
-            spread = ", ".join(f"{k} {_fmt(v)}" for k, v in r.max_dev.items())
+            spread = ", ".join(f"{k} {v:.2g}" for k, v in r.max_dev.items())
             lines.append(
                 f"  {r.method} ({r.n} runs): largest change {spread} (sample {r.most_influential})"
             )
