@@ -121,6 +121,7 @@ def handeye_report(
     ref = result.reference
     f = result.cameras[ref].fx
     rep = None
+    warnings = list(result.warnings)
     sd = np.sqrt(np.diag(result.cov))
     sigma: dict[str, float] = {
         f"{name} translation mm": _sig(result.sigma_mm),
@@ -145,6 +146,7 @@ def handeye_report(
             v = np.array([[rep.runs[s][f"{p}{a}"] for a in "xyz"] for s in ids])
             ss = float(np.sum((v - v.mean(axis=0)) ** 2))
             sigma[f"{name} {part} (jackknife)"] = _sig(float(np.sqrt((n - 1) / n * ss)))
+        warnings += _jackknife_warning(sigma, name, n)
     w = result.weights
     sigma["detector noise px (from residuals)"] = _sig(w.px)
     sigma["robot pose per axis mm (from the fit)"] = _sig(w.robot_mm)
@@ -197,8 +199,30 @@ def handeye_report(
         result=values,
         methods={k: v.status for k, v in result.methods.items()},
         repeatability=rep,
-        warnings=list(result.warnings),
+        warnings=warnings,
     )
+
+
+#: A jackknife 1σ this many times the adjustment's is beyond its sampling spread (≈ 35 % at
+#: 18 samples): the samples scatter more than the model's errors explain.
+JACKKNIFE_EXCESS = 2.0
+
+
+def _jackknife_warning(sigma: dict[str, float], name: str, n: int) -> list[str]:
+    ratios = [
+        sigma[f"{name} {part} (jackknife)"] / sigma[f"{name} {part}"]
+        for part in ("translation mm", "rotation deg")
+        if sigma[f"{name} {part}"] > 0
+    ]
+    worst = max(ratios, default=0.0)
+    if worst <= JACKKNIFE_EXCESS:
+        return []
+    return [
+        f"the leave-one-out 1σ is {worst:.1f}× the adjustment's over {n} samples: the samples "
+        "scatter more than the pixel noise and the robot σ explain (a robot less accurate than "
+        "stated: give --robot-sigma; or image errors repeated within an image: blur, a bent "
+        "board); the station takes the jackknife figure for this calibration"
+    ]
 
 
 def rounded(value: float, sigma: float) -> float:
