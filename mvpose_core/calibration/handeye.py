@@ -254,8 +254,7 @@ def calibrate_handeye(
         raise CalibrationError(
             f"{what}: no solver gave a plausible answer: "
             + "; ".join(f"{k}: {v.status}" for k, v in checks.items())
-            + "; robot poses in the wrong convention, a TCP instead of the flange, or exported "
-            "inverted (T_gf_from_rf)?"
+            + "; robot poses in the wrong convention or exported inverted (T_gf_from_rf)?"
         )
 
     # Start from the medoid: the answer closest to all others, robust to one bad solver.
@@ -386,8 +385,8 @@ def _check_fit(r: Refined, options: HandEyeOptions, what: str) -> None:
             f"{what}: the robot poses do not fit the images: they scatter {w.robot_mm:.2f} mm / "
             f"{w.robot_deg:.3f}° per axis around the fit (limit {options.max_robot_mm:g} mm / "
             f"{options.max_robot_deg:g}°), reprojection RMS {rms:.1f} px (limit "
-            f"{options.max_rms_px:g} px); wrong robot convention, a TCP instead of the flange, "
-            "or poses exported inverted (T_gf_from_rf)?"
+            f"{options.max_rms_px:g} px); wrong robot convention, poses exported inverted "
+            "(T_gf_from_rf), or poses and images paired wrongly?"
         )
 
 
