@@ -340,7 +340,7 @@ def calibrate_handeye(
         warnings.append(
             f"the robot poses scatter {r.weights.robot_mm:.3f} mm / {r.weights.robot_deg:.4f}° "
             f"per axis, more than the stated {stated.robot_mm:g} mm / {stated.robot_deg:g}°; "
-            "the 1σ uses the scatter"
+            "the 1σ counts it (pooled with the stated σ)"
         )
     return HandEyeResult(
         mount=problem.mount,

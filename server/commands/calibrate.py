@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -346,6 +347,11 @@ def _step_handeye(args: argparse.Namespace) -> int:
         res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
     except CalibrationError as err:
         raise CliError(f"{args.poses}: {err}") from None
+    # The steps before wrote start values; the file holds the hand-eye's, and says so.
+    reports = [
+        (replace(r, kind=f"{r.kind}, start of the hand-eye (the file holds the values below)"), x)
+        for r, x in reports
+    ]
     reports.append((handeye_report(problem, res), res.residuals))
     models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
