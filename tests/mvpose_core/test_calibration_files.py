@@ -189,3 +189,12 @@ def test_weighted_sigma_sees_robot_pose_errors() -> None:
     for figure in (cov, jack):
         ratio = spread / np.mean(figure, axis=0)
         assert np.all(ratio > 1 / 1.5) and np.all(ratio < 1.5), (spread, np.mean(figure, axis=0))
+
+
+def test_report_values_carry_the_digits_their_sigma_needs() -> None:
+    from mvpose_core.calibration.report import rounded
+
+    assert rounded(2911.51234, 0.45) == 2911.51
+    assert rounded(250.001312, 0.0004) == 250.00131
+    assert rounded(179.4123, 2.6) == 179.4
+    assert rounded(1.23456, float("nan")) == 1.23456  # no σ: as held
