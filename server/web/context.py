@@ -15,7 +15,7 @@ from server.errors import ForbiddenError, UnauthenticatedError
 from server.state import Services
 from server.web import html
 from server.web.live import LiveFeed
-from server.web.reader import Reader, age_words
+from server.web.reader import Reader, RecordView, age_words
 from server.web.session import cookie_authorization
 
 #: where the drift engineer's detector answers (server/api/drift.py); the page shows it if mounted
@@ -117,7 +117,14 @@ def calibration_words(reader: Reader) -> str:
 
 def render_status(app: Any, reader: Reader) -> str:
     status, error = station_status(app)
-    return html.status_panel(status, error, calibration_words(reader))
+    window, counts = reader.shift()
+    return html.status_panel(status, error, calibration_words(reader),
+                             html.shift_words(window, counts, zone_of(reader)))
+
+
+def zone_of(reader: Reader) -> str:
+    station = reader.services.station
+    return station.time_zone if station is not None else "UTC"
 
 
 def deadline_ms(reader: Reader) -> float | None:
@@ -126,21 +133,26 @@ def deadline_ms(reader: Reader) -> float | None:
 
 
 def render_live_result(reader: Reader, newest: int | None,
-                       frames_id: int | None) -> tuple[str, str, int | None]:
-    """The Live page's result and frames panels; the frames are the newest record's when it
-    kept them, else the record that last did (the archive keeps NOK always, OK 1 in N)."""
+                       frames_id: int | None) -> tuple[str, str, int | None, bool]:
+    """The Live page's result and frames panels, both of the newest record: its frames where
+    the archive has them (NOK always, OK 1 in N), its overlays always. A record that kept no
+    frames links to the newest one that did (``frames_id``: the last one known), never shows
+    that older record's images next to its own result. Returns the panels, the newest record
+    with frames, and whether the newest record's planned frames are all on disk yet."""
     if newest is None:
         empty = '<section id="result" class="panel"><h2>Last result</h2><p>none yet</p></section>'
-        return empty, html.frames_panel(None, None), None
+        return empty, html.frames_panel(None, None), None, True
     view = reader.get(newest)
-    framed = view if view.has_frames else None
+    planned = {(i.view, i.camera_id) for i in view.stored.record.images}
+    complete = planned <= set(view.frames)
+    framed: RecordView | None = view if view.has_frames else None
     if framed is None and frames_id is not None:
-        framed = reader.get(frames_id)
-        framed = framed if framed.has_frames else None
+        hint = reader.get(frames_id)
+        framed = hint if hint.has_frames else None
     if framed is None:
         framed = reader.latest_with_frames()
     return (html.result_panel(newest, view.stored.record, deadline_ms(reader)),
-            html.frames_panel(framed, newest), framed.stored.id if framed else None)
+            html.frames_panel(view, framed), framed.stored.id if framed else None, complete)
 
 
 async def in_thread(fn: Any, *args: Any) -> Any:
