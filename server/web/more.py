@@ -54,7 +54,7 @@ def _charts_page(title: str, active: str, intro: str, kind: str, user: Any,
                  extra: str = "") -> HTMLResponse:
     body = f"""<section class="panel"><h2>{html.esc(title)}</h2>{intro}
 <form id="trend-filters" class="filters"><label>points <input name="limit" type="number"
- min="10" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
+ min="1" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
 <button type="submit">Show</button></form>
 <div id="charts" data-kind="{kind}" data-src="/web/trends.json"></div></section>{extra}"""
     return HTMLResponse(html.layout(title, user, body, active))

@@ -148,7 +148,7 @@ function chart(host, title, x, series, opts) {
   }
   const width = Math.max(Math.min(host.clientWidth - 10, 1400), 320);
   const plot = new uPlot({width: width, height: opts.height || 220, series: spec,
-    scales: {x: {time: true, range: timeRange}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
+    scales: {x: {time: true, range: timeRange(x)}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
     axes: [{values: timeTicks, label: "UTC"},
            {label: opts.unit || "", values: opts.log ? undefined : numberTicks}],
     cursor: {drag: {x: true, y: false}}}, data, box);
@@ -156,10 +156,15 @@ function chart(host, title, x, series, opts) {
   return plot;
 }
 
-// The time axis spans the points; one point (or several at one instant) gets a minute.
-function timeRange(u, min, max) {
-  if (min === null || max === null) return [0, 60];
-  return max - min < 1 ? [min - 30, max + 30] : [min, max];
+// The time axis spans the points; one point (or several at one instant) gets a minute
+// (uPlot would give a lone point 86,400 of its units: 1000 days when they are seconds).
+function timeRange(x) {
+  const lo = x.length ? x[0] : null, hi = x.length ? x[x.length - 1] : null;
+  return (u, min, max) => {
+    if (min === null || max === null) return [0, 60];
+    if (lo !== null && hi - lo < 1 && min === lo) return [lo - 30, hi + 30];
+    return max - min < 1 ? [min - 30, max + 30] : [min, max];
+  };
 }
 
 // Time ticks in UTC, as precise as the tick step needs and with the date once the span
@@ -245,6 +250,7 @@ function setupCharts() {
     const q = new URLSearchParams();
     new FormData(form).forEach((v, k) => { if (v) q.set(k, v); });
     host.textContent = "loading…";
+    delete host.dataset.points;
     const t0 = performance.now();
     fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
       .then((r) => r.json()).then((d) => {
@@ -254,6 +260,7 @@ function setupCharts() {
         host.dataset.renderMs = String(Math.round(performance.now() - t1));
         host.dataset.loadMs = String(Math.round(t1 - t0));
         host.dataset.points = String(d.columns.t.length);
+        host.dataset.limit = q.get("limit") || "";
       }).catch((err) => { host.textContent = "could not load: " + err.message; });
   };
   form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });
