@@ -25,6 +25,7 @@ from system_packages import ensure_commands
 
 from mvpose_core.offset import frame_offsets
 from mvpose_core.reasons import Reason
+from mvpose_core.shifts import DEFAULT_SHIFTS, shift_at, time_zone
 from server.app import create_app
 from server.auth import Role, create_token
 from server.state import Services, open_services
@@ -273,7 +274,8 @@ def test_live_counts_the_shift_from_the_store(site: Site) -> None:
     process (or API process) does not start them at 0."""
     page = site.page("read")
     page.wait_for_function("document.getElementById('live').dataset.connected === '1'")
-    window, counts = site.app.state.web_reader.shift()
+    window = shift_at(DEFAULT_SHIFTS, time_zone("UTC"), datetime.now(UTC))
+    counts = site.writer.store.shifts.counts(window.start, window.end)
     assert page.locator('#status [data-count="ok"]').inner_text() == str(counts.ok)
     assert page.locator('#status [data-count="nok"]').inner_text() == str(counts.nok)
     assert window.name in page.locator("#status .counts").inner_text()
@@ -514,14 +516,14 @@ def test_the_trigger_form_says_the_stations_reason_and_message(
                 assert "done" in (msg.get_attribute("class") or "")
                 # The station goes down under an open Live page: its actions grey out, with
                 # the status pushed to the page (no reload)
-                actions = page.locator("[data-needs-station]")
-                assert actions.count() == 2
+                actions = page.locator("section.actions button")
+                assert actions.all_inner_texts() == ["Trigger now", "Arm teach"]
                 assert all(not b.is_disabled() for b in actions.all())
                 page.evaluate("window.__same_page = 7")
                 proc.stop()
                 stopped = True
                 page.wait_for_function(
-                    "[...document.querySelectorAll('[data-needs-station]')].every("
+                    "[...document.querySelectorAll('section.actions button')].every("
                     "(b) => b.disabled)", timeout=15000)
                 assert page.locator("#status .state").inner_text() == "station down"
                 assert page.evaluate("window.__same_page") == 7
