@@ -37,6 +37,13 @@ LAST_NOKS = 6
 THUMB_W = 320
 
 
+#: the station's states (OPC 40100's, as the PLC reads them) in words
+STATES = {"READY": "ready", "SINGLE_EXECUTION": "measuring",
+          "PREOPERATIONAL": "waiting for the PLC", "HALTED": "halted (trigger disabled)",
+          "INITIALIZED": "no recipe selected",
+          "ERROR": "error, needs a reset", "STOPPED": "link stopped"}
+
+
 @dataclass(frozen=True)
 class LineFigures:
     """Everything the line view shows, read once per refresh."""
@@ -118,13 +125,13 @@ async def line_thumb(
 
 # ---------------------------------------------------------------------------- HTML
 def render(f: LineFigures, zone: str) -> str:
-    e = html.esc
     return f"""<div id="line-view" hx-get="/web/line/fragment" hx-trigger="every {POLL_S}s"
  hx-swap="outerHTML" data-newest="{f.newest.id if f.newest else ''}">
 <div class="line-grid"><section aria-label="last result">{tile(f)}{states(f)}{streak(f)}</section>
-<section class="panel shift" aria-label="this shift"><h2>Shift {e(f.window.name)}</h2>
+<section class="panel shift" aria-label="this shift"><h2>This shift</h2>
 {shift_table(f, zone)}</section></div>
-<section class="panel" aria-label="last NOKs"><h2>Last NOKs</h2>{nok_strip(f, zone)}</section>
+<section class="panel line-noks" aria-label="last NOKs"><h2>Last NOKs</h2>
+{nok_strip(f, zone)}</section>
 </div>"""
 
 
@@ -151,8 +158,8 @@ def states(f: LineFigures) -> str:
         station, link, good_s, good_l = "station down", "link: unknown", False, False
     else:
         state = str(f.status.get("state", "?"))
-        station = f"station {state}"
-        good_s = state.lower() in ("ready", "running", "idle", "ok", "measuring")
+        station = f"station: {STATES.get(state, state)}"
+        good_s = state in ("READY", "SINGLE_EXECUTION")
         links = f.status.get("links") or ({"plc": f.status["plc"]} if f.status.get("plc")
                                           else {})
         words = [f"{name}: {html.link_words(v)}" for name, v in links.items()]
