@@ -131,7 +131,7 @@ def render(f: LineFigures, zone: str) -> str:
 <section class="panel shift" aria-label="this shift"><h2>This shift</h2>
 {shift_table(f, zone)}</section></div>
 <section class="panel line-noks" aria-label="last NOKs"><h2>Last NOKs</h2>
-{nok_strip(f, zone)}</section>
+{nok_strip(f)}</section>
 </div>"""
 
 
@@ -196,7 +196,7 @@ def shift_table(f: LineFigures, zone: str) -> str:
             f'<dt>cycle max</dt><dd data-count="max">{ms(c.max_ms)}</dd></dl>')
 
 
-def nok_strip(f: LineFigures, zone: str) -> str:
+def nok_strip(f: LineFigures) -> str:
     if not f.noks:
         return '<p class="muted">No NOK results.</p>'
     items = []
