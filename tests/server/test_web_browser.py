@@ -387,6 +387,24 @@ def test_chart_axes_are_readable_at_few_and_many_points(site: Site) -> None:
         cols = page.request.get(f"{site.base}/web/trends.json?limit={limit}").json()["columns"]
         span = cols["t"][-1] - cols["t"][0]
         _assert_readable_ticks(page.evaluate(_TICKS), points, span)
+    # the page's own chart() on made-up series up to 100,000 points (more than the store above
+    # holds): a walk, a flat line near zero and a flat 100 %, 30 s apart
+    for n in (3, 1000, 100_000):
+        page.evaluate("""(n) => {
+            const host = document.getElementById('charts');
+            host.textContent = '';
+            const x = [], walk = [], zero = [], full = [];
+            let v = 0;
+            for (let i = 0; i < n; i++) {
+                x.push(1793772000 + 30 * i);
+                v += Math.sin(i * 12.9898) * 0.01;
+                walk.push(v); zero.push(-1e-17); full.push(100);
+            }
+            chart(host, 'walk', x, [{label: 'W', values: walk}], {unit: '°'});
+            chart(host, 'zero', x, [{label: 'P', values: zero}], {unit: '°'});
+            chart(host, 'full', x, [{label: 'NOK %', values: full}], {unit: '%'});
+        }""", n)
+        _assert_readable_ticks(page.evaluate(_TICKS), n, 30.0 * (n - 1))
     page.context.close()
 
 
