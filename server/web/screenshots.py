@@ -115,8 +115,8 @@ def main(argv: list[str] | None = None) -> int:
             "links": station.links.model_copy(update={"modbus": modbus})}))
         try:
             line = populate(writer, end=datetime.now(UTC) - timedelta(seconds=20))
-            line.store(*line.record(missing="B2", frames=True))  # Live and Line show a NOK
             newest = writer.store.measurements.summary_page(MeasurementFilter(), None, 1)[0]
+            line.store(*line.record(missing="B2", frames=True))  # Live and Line show a NOK
             proc.start()
             app = create_app(settings, StationClient(settings.resolved_control_socket))
             with serve(app) as base, sync_playwright() as pw:
