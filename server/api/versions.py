@@ -9,7 +9,7 @@ from fastapi import APIRouter, Body, Path, Request
 from pydantic import BaseModel, Field, StrictBool
 
 from mvpose_core.station import StationConfig
-from server.api.deps import EngineerUser, ReadUser, ServicesDep
+from server.api.deps import EngineerUser, ReadUser, ServicesDep, station_of
 from server.store.versions import Kind, VersionInfo, VersionSummary
 from server.version_checks import check_calibration, check_recipe
 
@@ -108,6 +108,6 @@ calibrations_router = version_router("calibration", check_calibration)
 def _tell_station(request: Request) -> None:
     """The station picks an activated version up within a second by itself; this makes it now,
     so the next trigger measures with it."""
-    station = getattr(request.app.state, "station", None)
+    station = station_of(request.app)
     if station is not None:
         station.reload_recipes()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import anyio.to_thread
 from fastapi import Request
@@ -17,6 +17,9 @@ from server.web import html
 from server.web.live import LiveFeed
 from server.web.reader import Reader, RecordView, age_words
 from server.web.session import cookie_authorization
+
+if TYPE_CHECKING:  # server.app imports this package
+    from server.app import StationHandle
 
 #: where the drift engineer's detector answers (server/api/drift.py); the page shows it if mounted
 DRIFT_ENDPOINT = "/api/v1/drift"
@@ -71,9 +74,10 @@ def live_feed(request: Request) -> LiveFeed:
     return feed
 
 
-def runtime_of(app: Any) -> Any:
+def runtime_of(app: Any) -> StationHandle | None:
     """The station handle (server.station.client.StationClient on ``app.state.station``)."""
-    return getattr(app.state, "station", None)
+    runtime: StationHandle | None = getattr(app.state, "station", None)
+    return runtime
 
 
 def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
@@ -82,7 +86,7 @@ def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
     if runtime is None:
         return None, None
     try:
-        return dict(runtime.status()), None
+        return runtime.status().model_dump(mode="json"), None
     except Exception as err:  # a station handle that cannot answer is a station that is down
         return None, f"the station does not answer: {type(err).__name__}: {err}"
 

@@ -82,7 +82,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
         for _ in range(n):
             k = len(answers) + 1
             got = client.trigger(part_id=f"P{k}", trigger_id=k)
-            assert got["result_code"] == 0, got
+            assert got.result_code == 0, got
             answers.append(got)
 
     try:
@@ -94,7 +94,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
 
         trigger(5)
         wait_until("5 results at the subscriber", lambda: len(sub.results()) == 5)
-        mqtt = client.status()["mqtt"]  # the station's status shows its publisher
+        mqtt = client.status().part("mqtt")  # the station's status shows its publisher
         assert mqtt["connected"] and mqtt["broker"].endswith(f":{broker.port}")
 
         # the broker is killed mid-run (once its state holds what it acknowledged: a crash
@@ -129,7 +129,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
             url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0)
 
         # SIGKILL: the broker publishes the last will, retained
-        pid = client.status()["pid"]
+        pid = client.status().pid
         os.kill(pid, signal.SIGKILL)
         proc.wait(timeout=10)
         will = wait_until("the last will", lambda: [
@@ -191,7 +191,7 @@ def test_a_record_is_published_once_committed_not_at_the_next_poll(tmp_path: Pat
                    lambda: [s for s in sub.on("/mvpose/state") if s["online"]], 30)
         for k in (1, 2, 3):
             got = client.trigger(part_id=f"P{k}", trigger_id=k)
-            assert got["result_code"] == 0, got
+            assert got.result_code == 0, got
             wait_until(f"result {k} at the subscriber", lambda k=k: len(sub.results()) == k, 2.0)
     finally:
         proc.send_signal(signal.SIGTERM)

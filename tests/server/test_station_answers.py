@@ -189,4 +189,4 @@ async def test_the_apis_status_calls_reach_the_station_at_most_every_quarter_sec
         assert again is first  # served from the last answer: the station was not asked
         await asyncio.sleep(0.3)
         fresh = await asyncio.to_thread(client.status)
-        assert fresh is not first and fresh["station"] == "station1"
+        assert fresh is not first and fresh.station == "station1"
