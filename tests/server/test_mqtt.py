@@ -27,6 +27,7 @@ from stations import ENGINEER, relaxed_deadline, station_file
 
 from drivers.links.result import ResultEvent
 from server.station.client import StationClient, StationDownError
+from server.station.messages import TriggerAnswer
 
 START_S = 120.0  # migrations, four simulated 4 MP cameras and their warm-up on a loaded machine
 PLANT = {"enterprise": "acme", "site": "wob", "area": "body", "line": "l3"}
@@ -76,7 +77,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
     log = tmp_path / "station.log"
     client = StationClient(data / "station.sock")
     proc = _station(path, data, log)
-    answers: list[dict[str, Any]] = []
+    answers: list[TriggerAnswer] = []
 
     def trigger(n: int) -> None:
         for _ in range(n):
@@ -168,7 +169,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
         # every field of the result event, the fit's residual among them
         assert p["residual_rms_px"] > 0 and set(ResultEvent.__dataclass_fields__) <= set(p)
         assert p["convention"] == p["offset"]["convention"] and p["processing_ms"] > 0
-    assert [a["result_id"] for a in answers] == sorted(p["result_id"] for p in got.values())
+    assert [a.result_id for a in answers] == sorted(p["result_id"] for p in got.values())
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
     body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])
     assert body == got[("station1", 1)]
