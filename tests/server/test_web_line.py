@@ -73,7 +73,8 @@ class Line:
 
     def trigger(self, part_id: str) -> dict[str, Any]:
         out: list[dict[str, Any]] = []
-        t = threading.Thread(target=lambda: out.append(self.client.trigger(part_id=part_id)))
+        t = threading.Thread(target=lambda: out.append(
+            self.client.trigger(part_id=part_id).model_dump(mode="json")))
         t.start()
         t.join(60)
         return out[0]
