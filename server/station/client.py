@@ -19,7 +19,13 @@ from typing import Any, TypeVar
 
 from pydantic import ValidationError
 
-from server.errors import ConflictError, InvalidInputError, NotFoundError, NotReadyError
+from server.errors import (
+    ConflictError,
+    InvalidInputError,
+    NotFoundError,
+    NotReadyError,
+    StationFailedError,
+)
 from server.station.control import ChannelError, read_answer, request_line
 from server.station.messages import (
     ActivateRecipeRequest,
@@ -100,8 +106,8 @@ class StationClient:
             return read_answer(data)
         except ChannelError as err:
             exc = _KINDS.get(err.kind)
-            if exc is None:
-                raise RuntimeError(f"the station failed: {err.message}") from None
+            if exc is None:  # "internal" and any kind this client does not know
+                raise StationFailedError(f"the station failed: {err.message}") from None
             raise exc(err.message) from None
 
     def ask(self, request: Request, answer: type[A], timeout_s: float | None = None) -> A:

@@ -8,6 +8,7 @@ import asyncio
 import json
 import os
 import socket
+import threading
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import pytest
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
 from mvpose_core.station import load_station
-from server.errors import InvalidInputError
+from server.errors import InvalidInputError, StationFailedError
 from server.loopback import running_server
 from server.station.client import StationClient
 from server.station.control import ControlServer
@@ -167,3 +168,30 @@ async def test_the_client_maps_invalid_and_refuses_a_wrong_answer_model(tmp_path
             "kind": "invalid", "message": "not a control request"}
     finally:
         await server.stop()
+
+
+def test_a_failure_inside_the_station_is_a_gateway_error_not_a_bug_of_the_api(
+        tmp_path: Path) -> None:
+    """A station that answers 'internal' (an exception in its own code) reaches the API as
+    StationFailedError (502 problem), never as an unhandled exception (a 500)."""
+    path = tmp_path / "control.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(path))
+    listener.listen(1)
+
+    def answer_once() -> None:  # the wire's other end, as a failing station writes it
+        conn, _ = listener.accept()
+        with conn:
+            request = json.loads(conn.makefile().readline())
+            conn.sendall(json.dumps({"id": request["id"], "ok": False, "error": {
+                "kind": "internal", "message": "KeyError: 'x'"}}).encode() + b"\n")
+
+    server = threading.Thread(target=answer_once, daemon=True)
+    server.start()
+    try:
+        with pytest.raises(StationFailedError, match="the station failed: KeyError") as info:
+            StationClient(path, timeout_s=10).call("ping")
+        assert info.value.status == 502
+    finally:
+        server.join(10)
+        listener.close()
