@@ -9,16 +9,17 @@ STAMP := $(VENV)/.installed-stamp
 venv: $(STAMP)
 
 $(STAMP): pyproject.toml server/web/package-lock.json drivers/links/opcua_nodesets/package-lock.json \
-		tests/peers/node-opcua/package-lock.json
+		tests/peers/axe-core/package-lock.json tests/peers/node-opcua/package-lock.json
 	@echo "mvpose: setting up $(VENV) (the first time takes a minute or two) ..."
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	@echo "mvpose: [1/3] pip"
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	@echo "mvpose: [2/3] Python packages (numpy, OpenCV, FastAPI, pymodbus, camera SDKs, test peers)"
 	$(BIN)/python -m pip install --quiet --progress-bar on -e ".[test,dev]"
-	@echo "mvpose: [3/3] from npm, pinned: operator page assets (htmx, uPlot, Swagger UI), OPC UA NodeSets, node-opcua (a test peer)"
+	@echo "mvpose: [3/3] from npm, pinned: operator page assets (htmx, uPlot, Swagger UI), OPC UA NodeSets, axe-core and node-opcua (tests)"
 	npm ci --prefix server/web --ignore-scripts --no-audit --no-fund --loglevel=error
 	npm ci --prefix drivers/links/opcua_nodesets --ignore-scripts --no-audit --no-fund --loglevel=error
+	npm ci --prefix tests/peers/axe-core --ignore-scripts --no-audit --no-fund --loglevel=error
 	npm ci --prefix tests/peers/node-opcua --ignore-scripts --no-audit --no-fund --loglevel=error
 	touch $(STAMP)
 	@echo "mvpose: $(VENV) ready"

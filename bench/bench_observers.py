@@ -114,7 +114,7 @@ class Server:
                 raise RuntimeError(f"mvpose serve exited with {self.proc.returncode}: "
                                    f"{self._tail()}")
             with contextlib.suppress(StationDownError):
-                status = self.client.status()
+                status = self.client.status().model_dump(mode="json")
                 if cond(status):
                     return status
             time.sleep(0.2)

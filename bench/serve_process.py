@@ -45,7 +45,7 @@ class Serve:
         return StationClient(self.data_dir / "station.sock", timeout_s=5.0)
 
     def status(self) -> dict:
-        return self.client.status()
+        return self.client.status().model_dump(mode="json")
 
     def stop(self, timeout_s: float = 20.0) -> float:
         """SIGTERM the supervisor; the seconds until it exited (killed after ``timeout_s``)."""
@@ -88,7 +88,7 @@ def start_serve(station_file: Path, station: str, data_dir: Path, *,
                                f"{log.read_text(errors='replace')[-3000:]}")
         if status is None:
             with contextlib.suppress(StationDownError):
-                status = client.status()
+                status = client.status().model_dump(mode="json")
         if not base_url:
             try:
                 info = json.loads(address.read_text())

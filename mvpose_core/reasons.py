@@ -95,3 +95,51 @@ def describe(code: int) -> str:
         return DESCRIPTIONS[Reason(code)]
     except (ValueError, KeyError):
         return f"unknown result code {code}"
+
+
+# What to check when a result has this reason: the line view's hint under each NOK and the
+# table in docs/operations.md (tests/mvpose_core/test_reasons.py holds the docs to this table).
+CHECKS: dict[Reason, str] = {
+    Reason.OK: "nothing: the offset was sent",
+    Reason.MARKS_MISSING: "dirt on a mark, the lighting, the part off its place",
+    Reason.NOT_CONVERGED: "a mark mix-up or a bad calibration",
+    Reason.RESIDUAL_RMS_HIGH: "a false mark, a moved camera, a stale calibration",
+    Reason.RESIDUAL_MAX_HIGH: "a false mark, a moved camera, a stale calibration",
+    Reason.ROTATION_UNCERTAINTY_HIGH: "marks seen too close together; the recipe's tolerance",
+    Reason.TRANSLATION_UNCERTAINTY_HIGH: "marks seen too close together; the recipe's tolerance",
+    Reason.OFFSET_TRANSLATION_OUT_OF_RANGE: "the part's place on the fixture (max_offset_mm)",
+    Reason.OFFSET_ROTATION_OUT_OF_RANGE: "the part's place on the fixture (max_offset_deg)",
+    Reason.BAD_INPUT: "the recipe and the station file (the record's message says what)",
+    Reason.TOO_FEW_MARKS: "dirt, the lighting, a camera's view blocked",
+    Reason.POSE_NOT_DETERMINED: "the recipe's marks and sightings (too few in one line)",
+    Reason.MARK_BEHIND_CAMERA: "a mark mix-up or a camera's pose in the calibration",
+    Reason.CAMERA_FAILED: "the camera's cable, power and status on the Live page",
+    Reason.DETECTION_FAILED: "the camera's image size and pixel format against the station file",
+    Reason.DEADLINE_EXCEEDED: "the cycle times on Trends; a slow camera or a busy machine",
+    Reason.UNKNOWN_RECIPE: "the recipe number the PLC sends",
+    Reason.UNKNOWN_VIEW: "the view index the PLC sends",
+    Reason.INTERNAL_ERROR: "the log: it has the traceback; call the engineer",
+    Reason.STORE_FAILED: "the disk (full?) and the database",
+    Reason.TIMEOUT: "a stuck camera or detector: the camera's status, the log",
+    Reason.HANDLER_FAILED: "the log: the station failed to answer",
+    Reason.INVALID_OUTCOME: "the log: the answer did not fit the link's format",
+    Reason.BUSY: "the PLC's handshake: a trigger sent while one was running",
+    Reason.UNKNOWN_COMMAND: "the command code the PLC sends",
+    Reason.BAD_ARGUMENT: "the command argument the PLC sends",
+}
+
+
+def what_to_check(code: int) -> str:
+    """What to look at for a result with ``code`` (the line view's hint)."""
+    try:
+        return CHECKS[Reason(code)]
+    except (ValueError, KeyError):
+        return "the record's message and the log"
+
+
+def reasons_table() -> str:
+    """The Markdown table of every code, its name, its words and what to check
+    (docs/operations.md holds a copy; a test keeps it equal to this)."""
+    rows = ["| code | name | meaning | what to check |", "|---|---|---|---|"]
+    rows += [f"| {r.value} | {r.name} | {DESCRIPTIONS[r]} | {CHECKS[r]} |" for r in Reason]
+    return "\n".join(rows)

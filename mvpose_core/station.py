@@ -38,6 +38,7 @@ from pydantic import (
 from mvpose_core.camera import CameraModel
 from mvpose_core.linkconfig import LinksConfig
 from mvpose_core.plantconfig import PlantConfig
+from mvpose_core.shifts import DEFAULT_SHIFTS, Shift, check_shifts, time_zone
 from mvpose_core.transforms import (
     Array,
     RobotConvention,
@@ -395,6 +396,8 @@ class RecipeConfig(_Model):
     detector_noise_px: float = Field(0.1, gt=0, description="a-priori σ of a mark centre")
     tolerances: Tolerances = Tolerances()
     robust: RobustConfig = RobustConfig()
+    nok_streak_warning: int = Field(
+        3, ge=1, le=1000, description="the line view warns after this many NOKs in a row")
 
     @model_validator(mode="after")
     def _check(self) -> RecipeConfig:
@@ -466,6 +469,14 @@ class StationConfig(_Model):
     uncertainty: UncertaintyConfig = Field(
         UncertaintyConfig(), description="detector noise pooling and calibration 1σ"
     )
+    shifts: list[Shift] = Field(list(DEFAULT_SHIFTS), description="shift starts (line view)")
+    time_zone: str = Field("UTC", description="the plant's IANA time zone (shift starts)")
+
+    @model_validator(mode="after")
+    def _check_shifts(self) -> StationConfig:
+        check_shifts(self.shifts)
+        time_zone(self.time_zone)
+        return self
 
     @model_validator(mode="after")
     def _cross_check(self) -> StationConfig:

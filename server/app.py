@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator, Mapping
 from contextlib import asynccontextmanager
-from typing import Any, Protocol, TypedDict
+from typing import Protocol, TypedDict
 
 import anyio.to_thread
 from fastapi import FastAPI
@@ -21,17 +21,58 @@ from server.api import PREFIX, api_router
 from server.api.problems import BodyLimitMiddleware, install_problem_handlers
 from server.settings import Settings
 from server.state import Services, open_services
+from server.station.messages import (
+    ArmTeachAnswer,
+    MovePartAnswer,
+    RecipeAnswer,
+    StationStatus,
+    TriggerAnswer,
+)
 from server.web import install as install_web
 
 
 class StationHandle(Protocol):
-    """What the API needs of the station process (server.station.client.StationClient)."""
+    """What the API and the operator page call on the station process: every operation of
+    server.station.client.StationClient they use, with the control channel's models
+    (server.station.messages). A station that does not answer raises
+    server.station.client.StationDownError (503), except ``readiness`` (``station: False``)
+    and ``reload_recipes`` (the station reads the store when it starts)."""
 
     def readiness(self) -> Mapping[str, bool]:
         """Named checks for /health/ready, e.g. {"station": True, "cameras": True}."""
         ...
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> StationStatus:
+        """The live status: state, cameras, links, recipe, counts, last result."""
+        ...
+
+    def trigger(self, part_id: str | None = None, view_index: int = 0,
+                trigger_id: int | None = None) -> TriggerAnswer:
+        """Measure now, as a link's trigger would (same thread, same record)."""
+        ...
+
+    def arm_teach(self, by: str) -> ArmTeachAnswer:
+        """The next final OK result becomes the selected recipe's reference."""
+        ...
+
+    def teach_from_measurement(self, measurement_id: int, by: str) -> RecipeAnswer:
+        """A stored OK measurement becomes the selected recipe's reference: a new version."""
+        ...
+
+    def activate_recipe(self, name: str, version: int | None, by: str) -> RecipeAnswer:
+        """Select recipe ``name`` (activating its stored ``version`` first)."""
+        ...
+
+    def reload_recipes(self) -> None:
+        """Measure with the versions activated in the store from the next trigger on."""
+        ...
+
+    def metrics_text(self) -> str:
+        """The station process's Prometheus text, for the API's scrape."""
+        ...
+
+    def move_part(self, offset: list[float]) -> MovePartAnswer:
+        """Rehearsal on simulated cameras: the part at ``offset`` from the active reference."""
         ...
 
 

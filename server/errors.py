@@ -64,3 +64,12 @@ class NotReadyError(DomainError):
     status = 503
     title = "Not ready"
     slug = "not-ready"
+
+
+class StationFailedError(DomainError):
+    """The station process answered, but with a failure of its own (a bug there, not the
+    client's request): the gateway's answer, not a 500 of the API."""
+
+    status = 502
+    title = "Station failed"
+    slug = "station-failed"

@@ -17,8 +17,8 @@ from drivers.links.base import (
     LinkRequest,
     RecipeInfo,
     ResultQuery,
-    StoredResult,
 )
+from drivers.links.result import ResultEvent
 from mvpose_core.linkconfig import OpcUaLinkConfig, hash_password
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
@@ -34,11 +34,11 @@ class RecordingHandler:
     def __init__(self) -> None:
         self.seq = 100
         self.records: list[tuple[LinkRequest, LinkOutcome]] = []
-        self.stored: dict[int, StoredResult] = {}
+        self.stored: dict[int, ResultEvent] = {}
         self.calibs = [CalibrationInfo(1, "cal-a", "aa" * 32, AT, "eve", "first", False, False),
                        CalibrationInfo(2, "cal-b", "bb" * 32, AT, "eve", "second", True, True)]
         self.queries = 0
-        self.listeners: list[Callable[[dict[str, Any]], None]] = []
+        self.listeners: list[Callable[[ResultEvent], None]] = []
         self.recipe = 1
         self.gate: asyncio.Event | None = None
         self.permits: asyncio.Queue[None] | None = None  # one per measurement, when set
@@ -69,19 +69,15 @@ class RecordingHandler:
         out = LinkOutcome(out.result_code, self.seq, out.offset, out.sigma_trans_mm,
                           out.sigma_rot_deg, out.processing_ms)
         self.records.append((request, out))
-        self.stored[self.seq] = StoredResult(
-            self.seq, request.trigger_id, request.part_id, f"recipe-{self.recipe}", 1,
-            out.result_code == 0, out.result_code, "", AT, 12.0, "cal-b", "bb" * 32,
-            "fanuc" if out.offset else None, out.offset, out.sigma_trans_mm, out.sigma_rot_deg)
-        event = {
-            "result_id": self.seq, "trigger_id": request.trigger_id, "part_id": request.part_id,
-            "recipe": f"recipe-{self.recipe}", "recipe_version": 1, "result": result,
-            "reason_code": out.result_code,
-            "reason": Reason(out.result_code).name, "message": "", "processing_ms": 12.0,
-            "at": "2026-11-23T23:00:00+00:00", "convention": "fanuc",
-            "offset": list(out.offset) if out.offset else None,
-            "sigma_mm": out.sigma_trans_mm, "sigma_deg": out.sigma_rot_deg,
-        }
+        code = out.result_code
+        event = ResultEvent(
+            result_id=self.seq, trigger_id=request.trigger_id, part_id=request.part_id,
+            result=result, reason_code=code, reason=Reason(code).name, message="",
+            triggered_at=AT, recipe=f"recipe-{self.recipe}", recipe_version=1,
+            convention="fanuc" if out.offset else None, offset=out.offset,
+            sigma_mm=out.sigma_trans_mm, sigma_deg=out.sigma_rot_deg, processing_ms=12.0,
+            calibration_id="cal-b", calibration_sha256="bb" * 32)
+        self.stored[self.seq] = event
         for listen in self.listeners:
             th = threading.Thread(target=listen, args=(event,))
             th.start()
@@ -110,7 +106,7 @@ class RecordingHandler:
     def selected_recipe(self) -> int:
         return self.recipe
 
-    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
+    def add_listener(self, listen: Callable[[ResultEvent], None]) -> None:
         self.listeners.append(listen)
 
     async def unselect_recipe(self) -> int:
@@ -121,11 +117,11 @@ class RecordingHandler:
         return [RecipeInfo(n, f"recipe-{n}", n + 2, f"{n:02d}" * 32, n == self.recipe)
                 for n in (1, 2)]
 
-    async def get_result(self, result_id: int) -> StoredResult | None:
+    async def get_result(self, result_id: int) -> ResultEvent | None:
         self.queries += 1
         return self.stored.get(result_id)
 
-    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+    async def find_results(self, query: ResultQuery) -> tuple[list[ResultEvent], int]:
         self.queries += 1
         q = query
         found = [r for r in self.stored.values()

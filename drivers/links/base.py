@@ -8,7 +8,10 @@ word order, scaling; nodes and events). What crosses this seam is in the station
   in the recipe's robot convention (``mvpose_core.transforms.to_robot`` form), part id, recipe;
 - a :class:`LinkOutcome`: one result code from the one reason table (``mvpose_core.reasons``),
   the durable result id (the record's ``seq``: never reused, the same number in the record, the
-  REST API and every link), the offset at full precision in the recipe's robot convention, 1σ.
+  REST API and every link), the offset at full precision in the recipe's robot convention, 1σ;
+  a recorded answer's outcome is derived from its :class:`~drivers.links.result.ResultEvent`;
+- a :class:`~drivers.links.result.ResultEvent`: a recorded answer, as the station's listeners
+  hear of it and its result queries (OPC UA GetResultById ...) return it.
 
 The station implements :class:`StationHandler`; every answer it gives has a record with the same
 code. A link that cannot get an answer (its own backstop timeout, a handler that raised) asks the
@@ -26,6 +29,8 @@ from datetime import datetime
 from typing import Any, ClassVar, Protocol, TypeVar
 
 from mvpose_core.transforms import RobotConvention
+
+from .result import ResultEvent
 
 S = TypeVar("S")
 D = TypeVar("D")
@@ -56,27 +61,14 @@ class LinkOutcome:
     views_done: int = 1
     final: bool = True  # False: an intermediate view of a robot-mounted rig is done
 
-
-@dataclass(frozen=True)
-class StoredResult:
-    """One stored record as a link reports it when asked (OPC UA GetResultById ...)."""
-
-    result_id: int  # the record's seq
-    trigger_id: int
-    part_id: str
-    recipe: str
-    recipe_version: int
-    ok: bool
-    reason_code: int
-    message: str
-    triggered_at: datetime
-    total_ms: float | None  # the trigger's processing time, when the record has it
-    calibration_id: str | None
-    calibration_sha256: str | None
-    convention: str | None  # the offset's robot convention (None unless OK)
-    offset: tuple[float, ...] | None  # recipe convention, full precision; None unless OK
-    sigma_mm: float
-    sigma_deg: float
+    @classmethod
+    def from_event(cls, event: ResultEvent, processing_ms: float) -> LinkOutcome:
+        """The answer to the trigger whose record ``event`` is; ``processing_ms``: the time
+        to the answer as the station measured it."""
+        return cls(result_code=event.reason_code, result_id=event.result_id,
+                   offset=event.robot_offset, sigma_trans_mm=event.sigma_mm or 0.0,
+                   sigma_rot_deg=event.sigma_deg or 0.0, processing_ms=processing_ms,
+                   views_done=max(1, event.views or 1), final=event.final)
 
 
 @dataclass(frozen=True)
@@ -162,12 +154,12 @@ class StationHandler(Protocol):
         """Every recipe of the station, by number."""
         ...
 
-    async def get_result(self, result_id: int) -> StoredResult | None:
+    async def get_result(self, result_id: int) -> ResultEvent | None:
         """The stored record with seq ``result_id``, None if there is none. Queries run off the
         station's loop and trigger thread (they never delay a trigger)."""
         ...
 
-    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+    async def find_results(self, query: ResultQuery) -> tuple[list[ResultEvent], int]:
         """The page of stored records ``query`` asks for, and how many match in all."""
         ...
 
@@ -180,12 +172,10 @@ class StationHandler(Protocol):
         from the next trigger: (0, "") or (a Reason code, what is wrong)."""
         ...
 
-    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
-        """Call ``listen(result)`` after every recorded answer, whichever link or client caused
+    def add_listener(self, listen: Callable[[ResultEvent], None]) -> None:
+        """Call ``listen(event)`` after every recorded answer, whichever link or client caused
         it, a few milliseconds after the answer (on the station's own thread: hand it over to
-        your own loop). The dict holds result_id, trigger_id, part_id, recipe, result,
-        reason_code, reason, message, processing_ms, at, offset (recipe convention, or None),
-        sigma_mm, sigma_deg."""
+        your own loop)."""
         ...
 
 

@@ -20,7 +20,8 @@ The child is started with ``posix_spawn`` under the normal scheduling policy: a 
 threads run under SCHED_FIFO does not pass its real-time priority on. It ends when its socket
 closes, so a station killed with SIGKILL leaves no child behind. The socket is a private
 socketpair between the station and its own child; messages are pickled frames (length, pickle) of
-this module's tuples and the seam's dataclasses. This module is the only one that knows them.
+this module's tuples and the seam's dataclasses; a result event crosses as its own JSON
+(``ResultEvent.to_json``). This module is the only one that knows them.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from .base import Link, LinkOutcome, LinkRequest, StationHandler
+from .result import ResultEvent
 
 log = logging.getLogger(__name__)
 
@@ -273,16 +275,16 @@ class ProcessLink(Link):
 
         call.add_done_callback(done)
 
-    def _on_result(self, result: dict[str, Any]) -> None:
+    def _on_result(self, event: ResultEvent) -> None:
         """The station's listener: hand the result to the child (from any thread)."""
         if threading.get_ident() == self._thread:
-            self._forward(result)
+            self._forward(event)
         elif self._loop is not None and not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._forward, result)
+            self._loop.call_soon_threadsafe(self._forward, event)
 
-    def _forward(self, result: dict[str, Any]) -> None:
-        if self._wire is not None:
-            self._send(self._wire, "result", result)
+    def _forward(self, event: ResultEvent) -> None:
+        if self._wire is not None:  # the event's one serialised shape, not a pickle of it
+            self._send(self._wire, "result", event.to_json())
 
     def _send(self, wire: _Wire, *message: Any) -> None:
         """Send to the child; a child that has stopped reading (frozen, SIGSTOP) would make the
@@ -365,7 +367,7 @@ class RemoteHandler:
         self._wire = wire
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future[Any]] = {}
-        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._listeners: list[Callable[[ResultEvent], None]] = []
         self._recipe, self._convention = snapshot
         self._gone = False
 
@@ -400,10 +402,10 @@ class RemoteHandler:
             if not future.done():
                 future.set_exception(ConnectionError("the station has gone"))
 
-    def tell(self, result: dict[str, Any]) -> None:
+    def tell(self, event: ResultEvent) -> None:
         for listen in list(self._listeners):
             try:
-                listen(result)
+                listen(event)
             except Exception:
                 log.exception("a result listener failed")
 
@@ -452,7 +454,7 @@ class RemoteHandler:
     async def activate_calibration(self, version: int, by: str) -> Any:
         return await self._ask("activate_calibration", version, by)
 
-    def add_listener(self, listen: Callable[[dict[str, Any]], None]) -> None:
+    def add_listener(self, listen: Callable[[ResultEvent], None]) -> None:
         if not self._listeners:
             self._wire.send("listen")
         self._listeners.append(listen)
@@ -487,7 +489,7 @@ async def _child(sock: socket.socket) -> int:
             if kind == "reply":
                 handler.answered(*message[1:])
             elif kind == "result":
-                handler.tell(message[1])
+                handler.tell(ResultEvent.from_json(message[1]))
             elif kind == "recipe_changed":
                 handler.snapshot(message[1])
                 link.recipe_changed()

@@ -292,6 +292,9 @@ def render(
         # About two texture pixels per sub-sample, capped to keep the texture small.
         cap = 4000.0 / max(x1e - x0e, y1e - y0e)
         ppm = float(np.clip(2.0 * supersample * max(camera.fx, camera.fy) / depth, 2.0, cap))
+        # Whole texture pixels per square: OpenCV draws the squares in whole pixels, so any
+        # other scale prints a board slightly off its declared size (1.6e-4 seen at 235.3).
+        ppm = max(round(ppm * board.square_mm), 1) / board.square_mm
         tex, tx0, ty0 = board.texture(ppm)
     background = 0.6 * 0.5 * (_BLACK + _WHITE)
     S = int(supersample)

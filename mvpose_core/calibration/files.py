@@ -260,24 +260,37 @@ def report_rig_sigmas(calib: CalibrationFile) -> dict[str, dict[str, float]]:
     station's uncertainty model (:class:`mvpose_core.uncertainty_settings.UncertaintyConfig`).
 
     The report's figures are of the reference camera's pose (``T_gf_from_cf`` or
-    ``T_rf_from_cf``), RSS over the axes; of the covariance's and the jackknife's figure the
-    larger is taken (the jackknife also sees robot pose errors during calibration).
+    ``T_rf_from_cf``), RSS over the axes: the weighted adjustment's 1σ, which counts the robot
+    pose errors. The jackknife beside it is a cross-check; it is taken instead only where it
+    exceeds the adjustment's by more than its sampling spread allows (``JACKKNIFE_EXCESS``),
+    i.e. where the data scatter more than the model says.
     """
-    mounted = [rid for rid, r in calib.rigs.items()
-               if r.T_gf_from_rig is not None or r.T_rf_from_rig is not None]
-    mm: list[float] = []
-    deg: list[float] = []
+    from mvpose_core.calibration.report import JACKKNIFE_EXCESS
+
+    mounted = [
+        rid
+        for rid, r in calib.rigs.items()
+        if r.T_gf_from_rig is not None or r.T_rf_from_rig is not None
+    ]
+    figures: dict[str, list[float]] = {"mm": [], "deg": []}
     for rep in calib.report.values():
         sigma = rep.get("sigma", {}) if isinstance(rep, dict) else {}
         for key, value in sigma.items():
             if not key.startswith(("T_gf_from_cf ", "T_rf_from_cf ")) or value is None:
                 continue
-            (mm if " translation mm" in key else deg if " rotation deg" in key else []).append(
-                float(value)
-            )
-    if len(mounted) != 1 or not (mm or deg):
+            if "(jackknife)" in key:
+                continue
+            unit = "mm" if key.endswith(" translation mm") else "deg"
+            v = float(value)
+            jack = sigma.get(f"{key} (jackknife)")
+            if jack is not None and float(jack) > JACKKNIFE_EXCESS * v:
+                v = float(jack)
+            figures[unit].append(v)
+    if len(mounted) != 1 or not (figures["mm"] or figures["deg"]):
         return {}
-    return {mounted[0]: {"mm": max(mm, default=0.0), "deg": max(deg, default=0.0)}}
+    return {
+        mounted[0]: {"mm": max(figures["mm"], default=0.0), "deg": max(figures["deg"], default=0.0)}
+    }
 
 
 def calibrated_station(

@@ -12,9 +12,16 @@ import numpy as np
 from mvpose_core.calibration.handeye import HandEyeResult
 from mvpose_core.calibration.intrinsics import IntrinsicsResult
 from mvpose_core.calibration.joint import HandEyeProblem, refine
+from mvpose_core.calibration.outliers import find_outliers
 from mvpose_core.calibration.station import StationResult
 from mvpose_core.calibration.stereo import StereoResult
-from mvpose_core.transforms import Array, matrix_to_rotvec, transform_error
+from mvpose_core.transforms import (
+    Array,
+    invert,
+    matrix_to_rotvec,
+    matrix_to_xyzwpr,
+    transform_error,
+)
 
 
 @dataclass(frozen=True)
@@ -44,6 +51,7 @@ class CalibrationReport:
     result: dict[str, Any] = field(default_factory=dict)  # headline numbers (f, baseline, ...)
     methods: dict[str, str] = field(default_factory=dict)  # hand-eye solver cross-check
     repeatability: Repeatability | None = None
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -56,11 +64,11 @@ class CalibrationReport:
             f"  reprojection RMS {self.rms_px:.3f} px = {self.error_mm_at_working_distance:.3f} mm "
             f"at the working distance {self.working_distance_mm:.0f} mm",
         ]
+        lines += [f"  1σ {k}: {v:.2g}" for k, v in self.sigma.items()]
         lines += [f"  {k}: {_fmt(v)}" for k, v in self.result.items()]
-        lines += [f"  1σ {k}: {_fmt(v)}" for k, v in self.sigma.items()]
         if self.repeatability:
             r = self.repeatability
-            spread = ", ".join(f"{k} {_fmt(v)}" for k, v in r.max_dev.items())
+            spread = ", ".join(f"{k} {v:.2g}" for k, v in r.max_dev.items())
             lines.append(
                 f"  {r.method} ({r.n} runs): largest change {spread} (sample {r.most_influential})"
             )
@@ -72,26 +80,13 @@ class CalibrationReport:
             # A sample some cameras missed is still used with the others (see build_problem).
             used = sid in self.per_sample_rms_px
             lines.append(f"  {'partly used' if used else 'left out'} sample {sid}: {why}")
+        lines += [f"  WARNING {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
 def _fmt(v: Any) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-
-def find_outliers(
-    per_sample: Mapping[str, float], factor: float = 4.0, min_excess_px: float = 0.1
-) -> list[str]:
-    """Samples whose RMS is far above the others: above median + ``factor``·(robust σ), above
-    1.5× the median and at least ``min_excess_px`` above it (so differences at the level of
-    detector noise are not flagged)."""
-    if len(per_sample) < 4:
-        return []
-    v = np.array(list(per_sample.values()))
-    med = float(np.median(v))
-    mad = 1.4826 * float(np.median(np.abs(v - med)))
-    limit = max(med + factor * mad, 1.5 * med, med + min_excess_px)
-    return [sid for sid, x in per_sample.items() if x > limit]
+    # Values arrive rounded to their 1σ (see :func:`rounded`); print them as they are held.
+    return repr(v) if isinstance(v, float) else str(v)
 
 
 def leave_one_out(
@@ -117,36 +112,81 @@ def leave_one_out(
 
 
 def handeye_report(
-    problem: HandEyeProblem, result: HandEyeResult, loo: bool = True, intrinsics: bool = True
+    problem: HandEyeProblem, result: HandEyeResult, loo: bool = True
 ) -> CalibrationReport:
-    """Report of a hand-eye calibration; leave-one-out re-runs the joint refinement (with the
-    intrinsics refined or held, as in the calibration itself)."""
-    f = problem.cameras[result.reference].fx
+    """Report of a hand-eye calibration: the values the calibration file holds, each with as
+    many digits as its 1σ needs; the 1σ of the weighted adjustment first, the leave-one-out
+    jackknife (the adjustment re-run without each sample, weights held) beside it."""
     name = "T_gf_from_cf" if result.mount == "robot" else "T_rf_from_cf"
+    ref = result.reference
+    f = result.cameras[ref].fx
     rep = None
-    sigma = {
-        f"{name} translation mm": result.sigma_mm,
-        f"{name} rotation deg": result.sigma_deg,
-        "detector noise px (from residuals)": result.sigma_px,
+    warnings = list(result.warnings)
+    sd = np.sqrt(np.diag(result.cov))
+    sigma: dict[str, float] = {
+        f"{name} translation mm": _sig(result.sigma_mm),
+        f"{name} rotation deg": _sig(result.sigma_deg),
     }
-    if loo and len(result.per_sample_rms_px) >= 4:
-        ids = sorted(result.per_sample_rms_px)
+    ids = sorted(result.per_sample_rms_px)
+    if loo and len(ids) >= 4:
 
         def solve(subset: list[str]) -> dict[str, float]:
-            r = refine(problem, result.X, result.Y, subset, intrinsics=intrinsics)
+            r = refine(
+                problem, result.X, result.Y, subset, result.weights, estimate=False,
+                intrinsics=result.intrinsics_refined,
+            )  # fmt: skip
             deg, mm = transform_error(r.X, result.X)
             dt = r.X[:3, 3] - result.X[:3, 3]
             dr = np.degrees(matrix_to_rotvec(r.X[:3, :3] @ result.X[:3, :3].T))
             return {"hand_eye_mm": mm, "hand_eye_deg": deg, **_components(dt, dr)}
 
         rep = leave_one_out(ids, solve, {"hand_eye_mm": 0.0, "hand_eye_deg": 0.0})
-        # Jackknife standard error: unlike the covariance it also sees errors that differ from
-        # sample to sample, such as robot pose errors.
         n = len(ids)
         for part, p in (("translation mm", "t"), ("rotation deg", "r")):
             v = np.array([[rep.runs[s][f"{p}{a}"] for a in "xyz"] for s in ids])
             ss = float(np.sum((v - v.mean(axis=0)) ** 2))
-            sigma[f"{name} {part} (jackknife)"] = float(np.sqrt((n - 1) / n * ss))
+            sigma[f"{name} {part} (jackknife)"] = _sig(float(np.sqrt((n - 1) / n * ss)))
+        warnings += _jackknife_warning(sigma, name, n)
+    w = result.weights
+    sigma["detector noise px (from residuals)"] = _sig(w.px)
+    sigma["robot pose per axis mm (from the fit)"] = _sig(w.robot_mm)
+    sigma["robot pose per axis deg (from the fit)"] = _sig(w.robot_deg)
+    wpr = matrix_to_xyzwpr(result.X)[3:]
+    values: dict[str, Any] = {
+        f"{name} xyz mm": [
+            rounded(float(v), s) for v, s in zip(result.X[:3, 3], sd[3:6], strict=True)
+        ],
+        f"{name} wpr deg": [rounded(float(v), float(np.degrees(sd[:3].max()))) for v in wpr],
+        "board scale from the robot motion": f"{rounded(result.scale, result.scale_sigma)} ± "
+        f"{_sig(result.scale_sigma)}",
+        "robot pose σ stated per axis": f"{result.stated.robot_mm:g} mm / "
+        f"{result.stated.robot_deg:g}°",
+    }
+    for cid, cam in result.cameras.items():
+        cs = result.camera_sigma.get(cid)
+        held = "" if cs is not None else " (held)"
+        keys = ("fx", "fy", "cx", "cy")
+        for k, key in enumerate(keys):
+            x = float(getattr(cam, key))
+            values[f"{cid} {key} px{held}"] = rounded(x, float(cs[k])) if cs is not None else x
+        values[f"{cid} distortion{held}"] = [
+            rounded(float(d), float(cs[4 + k])) if cs is not None else float(d)
+            for k, d in enumerate(cam.dist)
+        ]
+        if cid != ref:
+            values[f"{cid} baseline to {ref} mm"] = round(
+                float(np.linalg.norm(invert(result.T_cfc_from_cf0[cid])[:3, 3])), 4
+            )
+    if result.robot_corrections:
+        worst = max(
+            result.robot_corrections, key=lambda s: np.linalg.norm(result.robot_corrections[s][3:])
+        )
+        c = result.robot_corrections[worst]
+        values["largest flange correction"] = (
+            f"sample {worst}: {np.linalg.norm(c[3:]):.3f} mm / {np.linalg.norm(c[:3]):.4f}°"
+        )
+    rejected = dict(result.rejected)
+    rejected.update({sid: f"outlier: {why}" for sid, why in result.left_out.items()})
     return CalibrationReport(
         kind=f"handeye ({result.mount})",
         per_sample_rms_px=result.per_sample_rms_px,
@@ -154,12 +194,49 @@ def handeye_report(
         working_distance_mm=result.depth_mm,
         error_mm_at_working_distance=result.rms_px * result.depth_mm / f,
         outliers=find_outliers(result.per_sample_rms_px),
-        rejected=dict(result.rejected),
+        rejected=rejected,
         sigma=sigma,
-        result={f"{name} xyz mm": [round(float(x), 4) for x in result.X[:3, 3]]},
+        result=values,
         methods={k: v.status for k, v in result.methods.items()},
         repeatability=rep,
+        warnings=warnings,
     )
+
+
+#: A jackknife 1σ this many times the adjustment's is beyond its sampling spread (≈ 35 % at
+#: 18 samples): the samples scatter more than the model's errors explain.
+JACKKNIFE_EXCESS = 2.0
+
+
+def _jackknife_warning(sigma: dict[str, float], name: str, n: int) -> list[str]:
+    ratios = [
+        sigma[f"{name} {part} (jackknife)"] / sigma[f"{name} {part}"]
+        for part in ("translation mm", "rotation deg")
+        if sigma[f"{name} {part}"] > 0
+    ]
+    worst = max(ratios, default=0.0)
+    if worst <= JACKKNIFE_EXCESS:
+        return []
+    return [
+        f"the leave-one-out 1σ is {worst:.1f}× the adjustment's over {n} samples: the samples "
+        "scatter more than the pixel noise and the robot σ explain (a robot less accurate than "
+        "stated: give --robot-sigma; or image errors repeated within an image: blur, a bent "
+        "board); the station takes the jackknife figure for this calibration"
+    ]
+
+
+def rounded(value: float, sigma: float) -> float:
+    """``value`` with as many decimals as its 1σ needs (two significant digits of the σ)."""
+    if not (np.isfinite(sigma) and sigma > 0):
+        return value
+    return round(value, int(np.clip(1 - np.floor(np.log10(sigma)), 0, 12)))
+
+
+def _sig(sigma: float) -> float:
+    """A 1σ to two significant digits."""
+    if not (np.isfinite(sigma) and sigma > 0):
+        return sigma
+    return float(f"{sigma:.2g}")
 
 
 def _components(dt: Array, dr: Array) -> dict[str, float]:
@@ -188,10 +265,10 @@ def intrinsics_report(
         rejected=dict(res.rejected),
         sigma={f"{k} (OpenCV)": v for k, v in res.std.items() if k in ("fx", "fy", "cx", "cy")},
         result={
-            "fx px": cam.fx,
-            "fy px": cam.fy,
-            "cx px": cam.cx,
-            "cy px": cam.cy,
+            **{
+                f"{k} px": rounded(float(getattr(cam, k)), res.std.get(k, float("nan")))
+                for k in ("fx", "fy", "cx", "cy")
+            },
             "distortion": [round(float(x), 6) for x in cam.dist],
         },
         repeatability=rep,
@@ -220,7 +297,7 @@ def stereo_report(
         outliers=find_outliers(res.per_sample_rms_px),
         rejected=dict(res.rejected),
         result={
-            "baseline mm": res.baseline_mm,
+            "baseline mm": round(res.baseline_mm, 4),
             "T_cf2_from_cf1 xyz mm": [round(float(x), 4) for x in res.T_cf2_from_cf1[:3, 3]],
         },
         repeatability=rep,

@@ -34,7 +34,9 @@ def parse_robot_poses(
 
     CSV: a header ``id,<labels of the convention>`` (e.g. ``id,X,Y,Z,W,P,R``), one row per pose.
     JSON: ``{"convention": "kuka", "poses": {"007": [X, Y, Z, A, B, C], ...}}`` or a list of
-    ``{"id": ..., "pose": [...]}``. A convention given in the file must agree with ``convention``.
+    ``{"id": ..., "pose": [...]}``; a pose may also be a 4×4 matrix (rows, mm). A convention
+    given in the file must agree with ``convention``. Every error is one line naming the file,
+    the row and the problem.
     """
     stripped = text.lstrip()
     if stripped.startswith(("{", "[")):
@@ -42,22 +44,47 @@ def parse_robot_poses(
     else:
         if convention is None:
             raise CalibrationError(f"{source}: a CSV robot-pose file needs a robot convention")
-        rows, conv = (
-            _parse_csv(text, RobotConvention(convention), source),
-            RobotConvention(convention),
-        )
+        conv = _convention(convention, source)
+        rows = _parse_csv(text, conv, source)
     poses: dict[str, Array] = {}
-    for sid, values in rows:
+    for where, sid, values in rows:
         if sid in poses:
-            raise CalibrationError(f"{source}: sample id {sid!r} appears twice")
+            raise CalibrationError(f"{source}: {where}: sample id {sid!r} appears twice")
         try:
-            poses[sid] = from_robot(values, conv)
+            poses[sid] = _pose(values, conv)
         except ValueError as err:
-            raise CalibrationError(f"{source}: sample {sid!r}: {err}") from None
+            raise CalibrationError(f"{source}: {where} (sample {sid!r}): {err}") from None
     if not poses:
         raise CalibrationError(f"{source}: no robot poses")
     check_units(poses, conv, source)
     return poses
+
+
+def _convention(value: RobotConvention | str, source: str) -> RobotConvention:
+    try:
+        return RobotConvention(str(value).lower())
+    except ValueError:
+        known = ", ".join(c.value for c in RobotConvention)
+        raise CalibrationError(
+            f"{source}: unknown robot convention {value!r}; known: {known}"
+        ) from None
+
+
+def _pose(values: object, conv: RobotConvention) -> Array:
+    """A pose vector of ``conv``, or a 4×4 matrix whose rotation must be a rotation."""
+    arr = np.asarray(values, dtype=float)
+    if arr.shape == (4, 4):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError("the matrix holds NaN or infinite values")
+        R = arr[:3, :3]
+        dev = float(np.abs(R.T @ R - np.eye(3)).max())
+        if dev > 1e-4 or np.linalg.det(R) < 0 or not np.allclose(arr[3], [0, 0, 0, 1]):
+            raise ValueError(
+                f"not a rigid transform: |RᵀR − I| = {dev:.2g}, det R = "
+                f"{np.linalg.det(R):.4g}, last row {arr[3].tolist()}"
+            )
+        return arr
+    return from_robot(arr.reshape(-1), conv)
 
 
 def load_robot_poses(
@@ -69,32 +96,51 @@ def load_robot_poses(
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise CalibrationError(f"{path}: cannot read robot-pose file: {err.strerror}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file (CSV or JSON expected)") from None
     return parse_robot_poses(text, convention, str(path))
 
 
-def _parse_csv(text: str, conv: RobotConvention, source: str) -> list[tuple[str, list[float]]]:
+def _parse_csv(text: str, conv: RobotConvention, source: str) -> list[tuple[str, str, object]]:
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     expected = ["id", *conv.labels]
     if [h.lower() for h in header] != [h.lower() for h in expected]:
+        others = [
+            c.value
+            for c in RobotConvention
+            if [h.lower() for h in header] == [h.lower() for h in ["id", *c.labels]]
+        ]
+        hint = f" (that is the header of {' / '.join(others)})" if others else ""
         raise CalibrationError(
-            f"{source}: CSV header {header} does not match the {conv.value} convention; "
-            f"expected {expected}"
+            f"{source}: row 1: CSV header {','.join(header)}{hint} does not match the "
+            f"{conv.value} convention; expected {','.join(expected)}"
         )
-    rows = []
+    rows: list[tuple[str, str, object]] = []
     for lineno, row in enumerate(reader, start=2):
         if not row or all(not c.strip() for c in row):
             continue
-        try:
-            rows.append((row[0].strip(), [float(c) for c in row[1:]]))
-        except ValueError:
-            raise CalibrationError(f"{source}: line {lineno}: not a number in {row}") from None
+        where = f"row {lineno}"
+        if len(row) != len(expected):
+            raise CalibrationError(
+                f"{source}: {where}: {len(row)} columns, the header has {len(expected)} "
+                f"({','.join(expected)})"
+            )
+        values = []
+        for label, cell in zip(expected[1:], row[1:], strict=True):
+            try:
+                values.append(float(cell))
+            except ValueError:
+                raise CalibrationError(
+                    f"{source}: {where}: column {label} is not a number: {cell.strip()!r}"
+                ) from None
+        rows.append((where, row[0].strip(), values))
     return rows
 
 
 def _parse_json(
     text: str, convention: RobotConvention | str | None, source: str
-) -> tuple[list[tuple[str, list[float]]], RobotConvention]:
+) -> tuple[list[tuple[str, str, object]], RobotConvention]:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as err:
@@ -103,25 +149,38 @@ def _parse_json(
     if (
         file_conv is not None
         and convention is not None
-        and RobotConvention(file_conv) != RobotConvention(convention)
+        and _convention(file_conv, source) != _convention(convention, source)
     ):
         raise CalibrationError(
             f"{source}: file says convention {file_conv!r} but "
-            f"{RobotConvention(convention).value!r} was given"
+            f"{_convention(convention, source).value!r} was given"
         )
     conv_value = file_conv or convention
     if conv_value is None:
         raise CalibrationError(f"{source}: no robot convention in the file or on the command line")
-    conv = RobotConvention(conv_value)
+    conv = _convention(conv_value, source)
     body = data.get("poses") if isinstance(data, dict) else data
+    rows: list[tuple[str, str, object]] = []
     if isinstance(body, dict):
-        return [(str(k), list(v)) for k, v in body.items()], conv
-    if isinstance(body, list):
+        items = list(body.items())
+    elif isinstance(body, list):
+        items = []
+        for k, e in enumerate(body):
+            if not isinstance(e, dict) or "id" not in e or "pose" not in e:
+                raise CalibrationError(f"{source}: pose {k + 1}: needs 'id' and 'pose'")
+            items.append((e["id"], e["pose"]))
+    else:
+        raise CalibrationError(f"{source}: expected 'poses' as a mapping or a list")
+    for k, (sid, v) in enumerate(items):
+        where = f"pose {k + 1}"
         try:
-            return [(str(e["id"]), list(e["pose"])) for e in body], conv
-        except (KeyError, TypeError):
-            raise CalibrationError(f"{source}: each pose needs 'id' and 'pose'") from None
-    raise CalibrationError(f"{source}: expected 'poses' as a mapping or a list")
+            values = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise CalibrationError(
+                f"{source}: {where} (sample {str(sid)!r}): not a list of numbers: {v!r}"
+            ) from None
+        rows.append((where, str(sid), values))
+    return rows, conv
 
 
 def check_units(poses: Mapping[str, Array], conv: RobotConvention, source: str) -> None:

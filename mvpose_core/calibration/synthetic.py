@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mvpose_core.calibration.boards import BoardSpec, Detection
 from mvpose_core.camera import CameraModel
@@ -188,24 +189,40 @@ def make_scene(
         # camera's axis at 1 m.
         toe = -np.degrees(np.arctan2(baseline_mm, converge_mm))
         rel["right"] = invert(make_transform(zyx_to_matrix(0, toe, 0), [baseline_mm, 0, 0]))
-    centre = board.object_points.mean(axis=0)
     if mount == "robot":
         X = make_transform(zyx_to_matrix(90.0, 0.5, -1.0), [12.0, 118.0, 176.0])  # T_gf_from_cf0
-        # Board flat on a table in front of the robot, printed face up (BF z points down).
-        Y = make_transform(zyx_to_matrix(30.0, 180.0, 0.0), [1300.0, 150.0, -50.0])
+        Y = board_in_front()  # flat on a table, printed face up (BF z points down)
     else:
         X = make_transform(
             zyx_to_matrix(180.0, 20.0, 180.0), [2200.0, 300.0, 900.0]
         )  # T_rf_from_cf0
         Y = make_transform(zyx_to_matrix(0.0, 0.0, 180.0), [-100.0, -80.0, 120.0])  # T_gf_from_bf
+    poses = view_poses(rng, mount, board, cameras, rel, X, Y, n_poses, distance_mm, max_tilt_deg)
+    return CalibScene(mount, board, cameras, rel, X, Y, poses)
+
+
+def view_poses(
+    rng: np.random.Generator,
+    mount: str,
+    board: BoardSpec,
+    cameras: dict[str, CameraModel],
+    rel: dict[str, Array],
+    X: Array,
+    Y: Array,
+    n_poses: int,
+    distance_mm: tuple[float, float],
+    max_tilt_deg: float,
+) -> dict[str, Array]:
+    """Flange poses ``T_rf_from_gf`` from which every camera sees the board: the reference camera
+    looks at the board centre (with a little scatter) from a cone of directions (tilt up to
+    ``max_tilt_deg``, random roll) at distances in ``distance_mm``."""
+    centre = board.object_points.mean(axis=0)
     poses: dict[str, Array] = {}
     k = 0
     while len(poses) < n_poses:
         k += 1
         if k > 200 * n_poses:
-            raise ValueError(
-                f"make_scene: could not place {n_poses} views with the board in every camera"
-            )
+            raise ValueError(f"could not place {n_poses} views with the board in every camera")
         tilt = np.radians(rng.uniform(0.0, max_tilt_deg))
         az = rng.uniform(0.0, 2 * np.pi)
         d = rng.uniform(*distance_mm)
@@ -231,4 +248,24 @@ def make_scene(
         seen = [exact_detection(board, cameras[c], scene.T_cf_from_bf(c, sid)) for c in cameras]
         if all(d is not None for d in seen):
             poses[sid] = A
-    return CalibScene(mount, board, cameras, rel, X, Y, poses)
+    return poses
+
+
+def with_robot_error(
+    rng: np.random.Generator, poses: dict[str, Array], mm: float, deg: float
+) -> dict[str, Array]:
+    """The flange poses as a robot reports them: each off by a random rotation (``deg`` 1σ per
+    axis, about the flange axes) and translation (``mm`` 1σ per axis)."""
+    return {
+        sid: A
+        @ make_transform(
+            Rotation.from_rotvec(rng.normal(0.0, np.radians(deg), 3)).as_matrix(),
+            rng.normal(0.0, mm, 3),
+        )
+        for sid, A in poses.items()
+    }
+
+
+def board_in_front(reach_mm: float = 1300.0) -> Array:
+    """``T_rf_from_bf`` of a board flat on a table in front of the robot, printed face up."""
+    return make_transform(zyx_to_matrix(30.0, 180.0, 0.0), [reach_mm, 150.0, -50.0])

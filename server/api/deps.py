@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from collections.abc import Awaitable, Callable
 from datetime import datetime
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 from fastapi import Depends, Request, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -13,10 +13,14 @@ from pydantic import BaseModel, BeforeValidator, Field
 from starlette.concurrency import run_in_threadpool
 
 from server.auth import Principal, Role, authenticate, authenticate_recent, authorize
+from server.errors import NotReadyError
 from server.state import Services
 from server.store import Store
 from server.store.schemas import MAX_ID
 from server.web.session import cookie_authorization
+
+if TYPE_CHECKING:  # server.app imports this module
+    from server.app import StationHandle
 
 _bearer = HTTPBearer(auto_error=False, description="API token: Authorization: Bearer mvp_…")
 
@@ -38,6 +42,21 @@ async def get_store(services: ServicesDep) -> Store:
 
 
 StoreDep = Annotated[Store, Depends(get_store)]
+
+
+def station_of(app: Any) -> StationHandle | None:
+    """The app's station handle (``app.state.station``: server.app.create_app's ``station``),
+    None when the API runs without a station process."""
+    station: StationHandle | None = getattr(app.state, "station", None)
+    return station
+
+
+def need_station(app: Any) -> StationHandle:
+    """The app's station handle; NotReadyError (503) when the API runs without one."""
+    station = station_of(app)
+    if station is None:
+        raise NotReadyError("this API runs without a station process")
+    return station
 
 
 async def current_principal(

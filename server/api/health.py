@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 from sqlalchemy.exc import SQLAlchemyError
 
-from server.api.deps import ServicesDep
+from server.api.deps import ServicesDep, station_of
 from server.api.openapi import problem_responses
 from server.errors import NotReadyError, StoreUnavailableError
 from server.store.db import head_revision
@@ -35,7 +35,7 @@ def ready(request: Request, services: ServicesDep) -> dict[str, Any]:
             f"schema at revision {revision!r}, expected {head_revision()!r}"
         )
     checks["schema"] = revision
-    station = getattr(request.app.state, "station", None)
+    station = station_of(request.app)
     if station is not None:
         parts = dict(station.readiness())
         checks.update(parts)

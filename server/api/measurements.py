@@ -11,9 +11,11 @@ from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel
 
+from drivers.links.result import ResultEvent
 from server.api.deps import IsoDateTime, ReadUser, ServicesDep, StoreDep, json_response
 from server.errors import NotFoundError
 from server.store.chain import canonical_json
+from server.store.events import summary_event
 from server.store.schemas import (
     MAX_ID,
     ChainReport,
@@ -107,11 +109,14 @@ CSV_COLUMNS = [
     "calibration_hash",
     "timings_ms",
     "hash",
-    "result_id",  # = seq; last, so that existing columns keep their positions
+    "result_id",  # = seq; after the older columns, so that they keep their positions
+    # then the result event's SHOWN fields, in the event's order (drivers/links/result.py)
+    *(name for name, _ in ResultEvent.shown()),
 ]
 
 
 def _csv_row(m: MeasurementSummary) -> list[object]:
+    event = summary_event(m)
     values: list[object] = list(m.offset.values) if m.offset else []
     values += [""] * (7 - len(values))
     return [
@@ -138,6 +143,7 @@ def _csv_row(m: MeasurementSummary) -> list[object]:
         canonical_json(m.timings_ms),
         m.hash,
         m.seq,
+        *("" if (x := getattr(event, name)) is None else x for name, _ in ResultEvent.shown()),
     ]
 
 

@@ -7,12 +7,11 @@ station that does not answer leaves them out (``mvpose_station_up 0``), never th
 from __future__ import annotations
 
 import logging
-from typing import Any
 
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from server.api.deps import ServicesDep
+from server.api.deps import ServicesDep, station_of
 from server.errors import NotReadyError
 from server.metrics import scrape
 
@@ -26,7 +25,7 @@ router = APIRouter(tags=["metrics"])
 )
 def metrics(request: Request, services: ServicesDep) -> Response:
     """Prometheus text exposition (no token needed: no part data in it)."""
-    station: Any = getattr(request.app.state, "station", None)
+    station = station_of(request.app)
     text: str | None = None
     if station is not None:
         try:

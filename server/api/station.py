@@ -12,6 +12,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
+from drivers.links.result import ResultEvent
 from server.api.deps import (
     EngineerUser,
     IdInt,
@@ -20,18 +21,12 @@ from server.api.deps import (
     Uint32,
     VersionInt,
     ViewInt,
+    need_station,
 )
 from server.auth import Role, authorize
-from server.errors import NotReadyError
 from server.store.schemas import MeasurementRecord
 
 router = APIRouter(prefix="/station", tags=["station"])
-
-def _station(request: Request) -> Any:
-    station = getattr(request.app.state, "station", None)
-    if station is None:
-        raise NotReadyError("this API runs without a station process")
-    return station
 
 
 class TriggerBody(BaseModel):
@@ -55,6 +50,9 @@ class TriggerAnswer(BaseModel):
         "OK)")
     measurement_id: int | None
     record: MeasurementRecord | None
+    event: ResultEvent | None = Field(
+        None, description="the recorded answer as every outlet shows it (null: not recorded, "
+        "e.g. an intermediate view)")
 
 
 class TeachBody(BaseModel):
@@ -80,8 +78,7 @@ class RehearsalPart(BaseModel):
 @router.get("/status")
 def status(request: Request, _user: ReadUser) -> dict[str, Any]:
     """State, cameras, links, active recipe, counters and the last result."""
-    result: dict[str, Any] = _station(request).status()
-    return result
+    return need_station(request.app).status().model_dump(mode="json")
 
 
 @router.post("/trigger")
@@ -91,14 +88,13 @@ def trigger(request: Request, user: OperatorUser,
     from mvpose_core.reasons import reason_name
 
     body = body or TriggerBody(part_id=None, view=0, trigger_id=None)
-    out = _station(request).trigger(part_id=body.part_id, view_index=body.view,
-                                    trigger_id=body.trigger_id)
+    out = need_station(request.app).trigger(part_id=body.part_id, view_index=body.view,
+                                            trigger_id=body.trigger_id)
     return TriggerAnswer(
-        result_code=out["result_code"], reason=reason_name(out["result_code"]),
-        message=out["message"], final=out["final"], views_done=out["views_done"],
-        processing_ms=out["processing_ms"], result_id=out["result_id"], offset=out["offset"],
-        measurement_id=out["measurement_id"],
-        record=MeasurementRecord.model_validate(out["record"]) if out["record"] else None,
+        result_code=out.result_code, reason=reason_name(out.result_code),
+        message=out.message, final=out.final, views_done=out.views_done,
+        processing_ms=out.processing_ms, result_id=out.result_id, offset=out.offset,
+        measurement_id=out.measurement_id, record=out.record, event=out.event,
     )
 
 
@@ -106,13 +102,13 @@ def trigger(request: Request, user: OperatorUser,
 def teach(request: Request, user: OperatorUser,
           body: Annotated[TeachBody | None, Body()] = None) -> dict[str, Any]:
     """Teach the active recipe's reference (zero offset) from a measurement: a new version."""
-    station = _station(request)
+    station = need_station(request.app)
     body = body or TeachBody(measurement_id=None)
     if body.measurement_id is None:
-        armed: dict[str, Any] = station.arm_teach(user.name)
-        return {"armed": True, "recipe": armed["recipe"]}
+        armed = station.arm_teach(user.name)
+        return {"armed": True, "recipe": armed.recipe}
     rec = station.teach_from_measurement(body.measurement_id, user.name)
-    return {"armed": False, **rec}
+    return {"armed": False, **rec.model_dump(mode="json")}
 
 
 @router.post("/recipe")
@@ -122,13 +118,12 @@ def select_recipe(request: Request, user: OperatorUser,
     stored version first."""
     if body.version is not None:  # activating a version is a change, as under /recipes
         authorize(user, Role.ENGINEER)
-    rec: dict[str, Any] = _station(request).activate_recipe(body.name, body.version, user.name)
-    return {k: rec[k] for k in ("name", "version", "number", "sha256")}
+    rec = need_station(request.app).activate_recipe(body.name, body.version, user.name)
+    return rec.model_dump(include={"name", "version", "number", "sha256"})
 
 
 @router.post("/rehearsal/part")
 def rehearsal_part(request: Request, _user: EngineerUser,
                    body: Annotated[RehearsalPart, Body()]) -> dict[str, Any]:
     """Rehearsal on simulated cameras: move the simulated part (409 with real cameras)."""
-    result: dict[str, Any] = _station(request).move_part(body.offset)
-    return result
+    return need_station(request.app).move_part(body.offset).model_dump(mode="json")

@@ -1,2 +1,3 @@
-"""The station process: cameras, links, the trigger thread, the pipeline and the record of every
-answer (core), its control channel (control, client) and its main (process)."""
+"""The station process: the station (core, the façade over its rooms: measuring, triggers,
+recorder, links, queries; rehearsal), its control channel (messages, control, client) and its
+main (process)."""

@@ -3,21 +3,55 @@
 Every call opens a connection, sends one request and reads one answer (a Unix socket on the
 same machine: well under a millisecond), so a restarted station is reached again without any
 reconnect logic. A station that does not answer is :class:`StationDownError`, which the API maps
-to 503 and readiness reports as ``station: false``.
+to 503 and readiness reports as ``station: false``. Requests are built from, and answers parsed
+into, the models of server.station.messages; the framing is server.station.control's.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import socket
 import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from server.errors import ConflictError, InvalidInputError, NotFoundError, NotReadyError
+from pydantic import ValidationError
+
+from server.errors import (
+    ConflictError,
+    InvalidInputError,
+    NotFoundError,
+    NotReadyError,
+    StationFailedError,
+)
+from server.station.control import ChannelError, read_answer, request_line
+from server.station.messages import (
+    ActivateRecipeRequest,
+    ArmTeachAnswer,
+    ArmTeachRequest,
+    Message,
+    MetricsAnswer,
+    MetricsRequest,
+    MovePartAnswer,
+    MovePartRequest,
+    PingAnswer,
+    PingRequest,
+    Readiness,
+    ReadinessRequest,
+    RecipeAnswer,
+    ReloadAnswer,
+    ReloadRecipesRequest,
+    Request,
+    StationStatus,
+    StatusRequest,
+    TeachRequest,
+    TriggerAnswer,
+    TriggerRequest,
+)
+
+A = TypeVar("A", bound=Message)
 
 
 class StationDownError(NotReadyError):
@@ -40,16 +74,18 @@ class StationClient:
         # process a request on its loop, beside the trigger thread (bench station: 0.27 -> 0.34
         # cores at 200 REST requests/s). One answer serves every request for this long.
         self.status_max_age_s = status_max_age_s
-        self._status: tuple[float, dict[str, Any]] | None = None
+        self._status: tuple[float, StationStatus] | None = None
         self._status_lock = threading.Lock()
 
     def call(self, op: str, timeout_s: float | None = None, **args: Any) -> Any:
+        """Operation ``op`` with ``args`` as JSON values; its result as JSON values (tools;
+        the API uses the typed calls below)."""
         timeout = self.timeout_s if timeout_s is None else timeout_s
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
                 sock.settimeout(timeout)
                 sock.connect(str(self.path))
-                sock.sendall(json.dumps({"id": 1, "op": op, "args": args}).encode() + b"\n")
+                sock.sendall(request_line(op, args))
                 data = b""
                 while not data.endswith(b"\n"):
                     chunk = sock.recv(1 << 20)
@@ -66,64 +102,87 @@ class StationClient:
             raise StationDownError(f"the station process is not reachable: {err}") from None
         if not data:
             raise StationDownError("the station process closed the control channel")
-        answer = json.loads(data)
-        if answer.get("ok"):
-            return answer.get("result")
-        error = answer.get("error") or {}
-        kind, message = error.get("kind", "internal"), error.get("message", "")
-        exc = _KINDS.get(kind)
-        if exc is None:
-            raise RuntimeError(f"the station failed: {message}")
-        raise exc(message)
+        try:
+            return read_answer(data)
+        except ChannelError as err:
+            exc = _KINDS.get(err.kind)
+            if exc is None:  # "internal" and any kind this client does not know
+                raise StationFailedError(f"the station failed: {err.message}") from None
+            raise exc(err.message) from None
+
+    def ask(self, request: Request, answer: type[A], timeout_s: float | None = None) -> A:
+        """``request`` to the station; its answer as ``answer`` (the request's answer model)."""
+        if answer is not type(request).answer:
+            raise TypeError(f"{request.op!r} is answered with {type(request).answer.__name__}, "
+                            f"not {answer.__name__}")
+        result = self.call(request.op, timeout_s, **request.model_dump(mode="json"))
+        try:
+            return answer.model_validate(result)
+        except ValidationError as err:  # a station of another version: not this API's station
+            raise StationDownError(f"the station's answer to {request.op!r} does not fit this "
+                                   f"API ({err.error_count()} errors, first: "
+                                   f"{err.errors()[0]['loc']}: {err.errors()[0]['msg']})") \
+                from None
 
     # ------------------------------------------------------------------ what the API uses
-    def status(self) -> dict[str, Any]:
+    def ping(self, timeout_s: float | None = None) -> PingAnswer:
+        return self.ask(PingRequest(), PingAnswer, timeout_s)
+
+    def status(self) -> StationStatus:
         """The station's status, at most ``status_max_age_s`` old."""
         with self._status_lock:  # one caller asks the station; the others wait for its answer
             now = time.monotonic()
             if self._status is not None and now - self._status[0] < self.status_max_age_s:
                 return self._status[1]
-            result: dict[str, Any] = self.call("status")
+            result = self.ask(StatusRequest(), StationStatus)
             self._status = (time.monotonic(), result)
             return result
 
     def readiness(self) -> Mapping[str, bool]:
         try:
-            parts: dict[str, bool] = self.call("readiness", timeout_s=2.0)
+            parts = self.ask(ReadinessRequest(), Readiness, timeout_s=2.0)
         except StationDownError:
             return {"station": False}
-        return {"station": True, **parts}
+        return {"station": True, **parts.model_dump()}
 
     def trigger(self, part_id: str | None = None, view_index: int = 0,
-                trigger_id: int | None = None) -> dict[str, Any]:
-        result: dict[str, Any] = self.call("trigger", timeout_s=35.0, part_id=part_id,
-                                           view=view_index, trigger_id=trigger_id)
-        return result
+                trigger_id: int | None = None) -> TriggerAnswer:
+        return self.ask(_build(TriggerRequest, part_id=part_id, view=view_index,
+                               trigger_id=trigger_id),
+                        TriggerAnswer, timeout_s=35.0)
 
-    def arm_teach(self, by: str) -> dict[str, Any]:
-        result: dict[str, Any] = self.call("arm_teach", by=by)
-        return result
+    def arm_teach(self, by: str) -> ArmTeachAnswer:
+        return self.ask(_build(ArmTeachRequest, by=by), ArmTeachAnswer)
 
-    def teach_from_measurement(self, measurement_id: int, by: str) -> dict[str, Any]:
-        result: dict[str, Any] = self.call("teach", timeout_s=35.0,
-                                           measurement_id=measurement_id, by=by)
-        return result
+    def teach_from_measurement(self, measurement_id: int, by: str) -> RecipeAnswer:
+        return self.ask(_build(TeachRequest, measurement_id=measurement_id, by=by), RecipeAnswer,
+                        timeout_s=35.0)
 
-    def activate_recipe(self, name: str, version: int | None, by: str) -> dict[str, Any]:
-        result: dict[str, Any] = self.call("activate_recipe", timeout_s=35.0, name=name,
-                                           version=version, by=by)
-        return result
+    def activate_recipe(self, name: str, version: int | None, by: str) -> RecipeAnswer:
+        return self.ask(_build(ActivateRecipeRequest, name=name, version=version, by=by),
+                        RecipeAnswer, timeout_s=35.0)
 
     def metrics_text(self) -> str:
         """The station process's Prometheus text (its counters and histograms)."""
-        result: dict[str, Any] = self.call("metrics", timeout_s=2.0)
-        return str(result["text"])
+        return self.ask(MetricsRequest(), MetricsAnswer, timeout_s=2.0).text
 
-    def move_part(self, offset: list[float]) -> dict[str, Any]:
+    def move_part(self, offset: list[float]) -> MovePartAnswer:
         """Rehearsal on simulated cameras: the part at ``offset`` from the active reference."""
-        result: dict[str, Any] = self.call("move_part", timeout_s=35.0, offset=offset)
-        return result
+        return self.ask(_build(MovePartRequest, offset=offset), MovePartAnswer, timeout_s=35.0)
 
     def reload_recipes(self) -> None:
         with contextlib.suppress(StationDownError):
-            self.call("reload_recipes", timeout_s=35.0)
+            self.ask(ReloadRecipesRequest(), ReloadAnswer, timeout_s=35.0)
+
+
+R = TypeVar("R", bound=Request)
+
+
+def _build(model: type[R], **args: Any) -> R:
+    """A request from the caller's arguments; a bad one is the caller's error, named."""
+    try:
+        return model(**args)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(x) for x in first["loc"])
+        raise InvalidInputError(f"{model.op}: argument {where!r}: {first['msg']}") from None

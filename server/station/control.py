@@ -2,16 +2,23 @@
 
 The API process (and `mvpose` tools) reach the station through it for what must go through the
 station: a commissioning trigger, teaching, recipe selection and activation, live status and
-readiness, the station's metrics (for the API's scrape), moving the simulated part (a rehearsal
-on simulated cameras), and a stream of results for live pages. One request per line::
+readiness, the station's metrics (for the API's scrape) and moving the simulated part (a
+rehearsal on simulated cameras); the live page reads results from the store. One request per
+line::
 
     {"id": 7, "op": "status", "args": {}}
     → {"id": 7, "ok": true, "result": {...}}
     → {"id": 7, "ok": false, "error": {"kind": "not_found", "message": "..."}}
 
+``args`` and ``result`` are an operation's request and answer models
+(server.station.messages), which both ends share. A request whose arguments do not fit its
+model is answered ``invalid``, naming the argument and what is wrong with it.
+
 The socket lives in the data directory (mode 0600,
 so only the station's own user reaches it); a deployment with two containers shares it through
-the data volume. This module is the only one that knows the wire format.
+the data volume. This module is the only one that knows the wire format: the client
+(server.station.client) frames its requests and reads its answers with :func:`request_line`
+and :func:`read_answer`.
 """
 
 from __future__ import annotations
@@ -21,31 +28,108 @@ import contextlib
 import json
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from pydantic import ValidationError
 
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.metrics import exposition
-from server.recipes import ActiveRecipe
-from server.station.core import Station
-from server.station.rehearsal import move_part
+from server.station.messages import (
+    REQUESTS,
+    ActivateRecipeRequest,
+    ArmTeachAnswer,
+    ArmTeachRequest,
+    ErrorBody,
+    Message,
+    MetricsAnswer,
+    MetricsRequest,
+    MovePartAnswer,
+    MovePartRequest,
+    PingAnswer,
+    PingRequest,
+    Readiness,
+    ReadinessRequest,
+    RecipeAnswer,
+    ReloadAnswer,
+    ReloadRecipesRequest,
+    Request,
+    StationStatus,
+    StatusRequest,
+    TeachRequest,
+    TriggerAnswer,
+    TriggerRequest,
+)
+
+if TYPE_CHECKING:  # the API process imports this module for the framing, not the station
+    from server.recipes import ActiveRecipe
+    from server.station.core import Station
 
 log = logging.getLogger(__name__)
 
 MAX_LINE = 64 * 1024
 
 
-def recipe_info(rec: ActiveRecipe) -> dict[str, Any]:
-    return {"name": rec.config.name, "version": rec.version, "number": rec.number,
-            "sha256": rec.sha256, "T_rf_from_pf0": rec.config.T_rf_from_pf0.model_dump()}
+# ---------------------------------------------------------------------- the framing
 
 
-def station_metrics(st: Station) -> dict[str, str]:
+def request_line(op: str, args: Mapping[str, Any], rid: int = 1) -> bytes:
+    """One request as it goes over the socket."""
+    return json.dumps({"id": rid, "op": op, "args": dict(args)}).encode() + b"\n"
+
+
+class ChannelError(Exception):
+    """The station answered an operation with an error (``kind``: see ErrorBody)."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+
+
+def read_answer(data: bytes) -> Any:
+    """The result of one answer line, or ChannelError with the station's reason."""
+    try:
+        answer = json.loads(data)
+        ok = bool(answer.get("ok"))
+    except (ValueError, AttributeError):
+        raise ChannelError("internal", f"not a control answer: {data[:80]!r}") from None
+    if ok:
+        return answer.get("result")
+    error = answer.get("error") or {}
+    raise ChannelError(str(error.get("kind", "internal")), str(error.get("message", "")))
+
+
+def _line(message: dict[str, Any]) -> bytes:
+    return json.dumps(message, separators=(",", ":"), default=str).encode() + b"\n"
+
+
+def _error(rid: Any, kind: str, message: str) -> dict[str, Any]:
+    return {"id": rid, "ok": False, "error": ErrorBody(kind=kind, message=message).model_dump()}
+
+
+def _invalid_args(op: str, err: ValidationError) -> str:
+    first = err.errors()[0]
+    where = ".".join(str(x) for x in first["loc"])
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{op}: argument {where!r}: {first['msg']}{more}"
+
+
+# ---------------------------------------------------------------------- the station's side
+
+
+def station_metrics(st: Station) -> MetricsAnswer:
     """The station process's Prometheus text, for the API's scrape (server/metrics.py)."""
     if st.services is None:
         raise ConflictError("the station is not started")
-    return {"text": exposition(st.services.metrics)}
+    return MetricsAnswer(text=exposition(st.services.metrics))
+
+
+def recipe_answer(rec: ActiveRecipe) -> RecipeAnswer:
+    return RecipeAnswer(name=rec.config.name, version=rec.version, number=rec.number,
+                        sha256=rec.sha256,
+                        T_rf_from_pf0=rec.config.T_rf_from_pf0.model_dump(mode="json"))
 
 
 class ControlServer:
@@ -79,17 +163,18 @@ class ControlServer:
                 try:
                     line = await reader.readline()
                 except (ValueError, asyncio.LimitOverrunError):
-                    await _send(writer, {"id": None, "ok": False, "error": {
-                        "kind": "invalid", "message": f"request longer than {MAX_LINE} bytes"}})
+                    await _send(writer, _error(None, "invalid",
+                                               f"request longer than {MAX_LINE} bytes"))
                     return
                 if not line:
                     return
                 try:
                     req = json.loads(line)
-                    rid, op, args = req.get("id"), str(req["op"]), dict(req.get("args") or {})
+                    rid, op, args = req.get("id"), str(req["op"]), req.get("args") or {}
+                    if not isinstance(args, dict):
+                        raise TypeError("args is not an object")
                 except (ValueError, KeyError, TypeError, AttributeError):
-                    await _send(writer, {"id": None, "ok": False, "error": {
-                        "kind": "invalid", "message": "not a control request"}})
+                    await _send(writer, _error(None, "invalid", "not a control request"))
                     return
                 await _send(writer, await self._handle(rid, op, args))
         except (ConnectionError, asyncio.IncompleteReadError):
@@ -100,28 +185,18 @@ class ControlServer:
                 await writer.wait_closed()
 
     async def _handle(self, rid: Any, op: str, args: dict[str, Any]) -> dict[str, Any]:
-        st = self.station
-        ops: dict[str, Callable[[], Any]] = {
-            "ping": lambda: {"pid": os.getpid(), "station": st.station.name},
-            "status": st.status,
-            "readiness": st.readiness,
-            "arm_teach": lambda: {"armed": True,
-                                  "recipe": st.arm_teach(_text(args, "by")).config.name},
-            "teach": lambda: recipe_info(st.teach_from_measurement(
-                _int(args, "measurement_id"), _text(args, "by"))),
-            "activate_recipe": lambda: recipe_info(st.activate_recipe(
-                _text(args, "name"), _opt_int(args, "version"), _text(args, "by"))),
-            "reload_recipes": lambda: {"changed": st.reload_recipes()},
-            "metrics": lambda: station_metrics(st),
-            "move_part": lambda: move_part(st, _floats(args, "offset")),
-        }
+        model = REQUESTS.get(op)
+        if model is None:
+            return _error(rid, "invalid", f"unknown control operation {op!r}")
         try:
-            if op == "trigger":
-                result: Any = await self._trigger(args)
-            elif op in ops:
-                result = await asyncio.to_thread(ops[op])
-            else:
-                raise InvalidInputError(f"unknown control operation {op!r}")
+            request = model.model_validate(args)
+        except ValidationError as err:
+            return _error(rid, "invalid", _invalid_args(op, err))
+        try:
+            answer = await self._dispatch(request)
+        except ValidationError:  # an answer that does not fit its model: a bug of ours
+            log.exception("control operation %s: the answer does not fit its model", op)
+            return _error(rid, "internal", f"the station's answer to {op!r} is malformed")
         except KeyError as err:
             return _error(rid, "not_found", str(err.args[0]) if err.args else str(err))
         except NotFoundError as err:
@@ -135,14 +210,48 @@ class ControlServer:
         except Exception as err:  # noqa: BLE001 — the caller gets a reason, the log the trace
             log.exception("control operation %s failed", op)
             return _error(rid, "internal", f"{type(err).__name__}: {err}")
-        return {"id": rid, "ok": True, "result": result}
+        return {"id": rid, "ok": True, "result": answer.model_dump(mode="json")}
 
-    async def _trigger(self, args: dict[str, Any]) -> dict[str, Any]:
+    async def _dispatch(self, request: Request) -> Message:
+        """The operation ``request`` names, on the station; its answer model."""
+        if isinstance(request, TriggerRequest):
+            return await self._trigger(request)
+        work = self._work(request)
+        return await asyncio.to_thread(work)
+
+    def _work(self, request: Request) -> Callable[[], Message]:
+        """The blocking operations, run in a worker thread (never on the station loop)."""
+        st = self.station
+        match request:
+            case PingRequest():
+                return lambda: PingAnswer(pid=os.getpid(), station=st.station.name)
+            case StatusRequest():
+                return lambda: StationStatus.model_validate(st.status())
+            case ReadinessRequest():
+                return lambda: Readiness.model_validate(st.readiness())
+            case ArmTeachRequest(by=by):
+                return lambda: ArmTeachAnswer(armed=True, recipe=st.arm_teach(by).config.name)
+            case TeachRequest(measurement_id=mid, by=by):
+                return lambda: recipe_answer(st.teach_from_measurement(mid, by))
+            case ActivateRecipeRequest(name=name, version=version, by=by):
+                return lambda: recipe_answer(st.activate_recipe(name, version, by))
+            case ReloadRecipesRequest():
+                return lambda: ReloadAnswer(changed=st.reload_recipes())
+            case MetricsRequest():
+                return lambda: station_metrics(st)
+            case MovePartRequest(offset=offset):
+                # imported here: the API process imports this module for its framing only
+                from server.station.rehearsal import move_part
+
+                return lambda: MovePartAnswer.model_validate(move_part(st, offset))
+        raise InvalidInputError(f"control operation {request.op!r} has no handler")
+
+    async def _trigger(self, args: TriggerRequest) -> TriggerAnswer:
         from drivers.links import LinkRequest
 
-        req = LinkRequest(link="rest", trigger_id=_opt_int(args, "trigger_id") or 0,
-                          view_index=_opt_int(args, "view") or 0, robot_pose=None,
-                          part_id=str(args.get("part_id") or ""), recipe=0)
+        req = LinkRequest(link="rest", trigger_id=args.trigger_id or 0,
+                          view_index=args.view, robot_pose=None,
+                          part_id=args.part_id or "", recipe=0)
         if self.station.active is None:
             raise ConflictError("the station has no recipe selected")
         answer = await asyncio.wait_for(self.station.measure_answer(req), 30.0)
@@ -162,47 +271,16 @@ class ControlServer:
             answer.on_committed(lambda db_id: loop.call_soon_threadsafe(settle, db_id))
             with contextlib.suppress(TimeoutError):
                 db_id = await asyncio.wait_for(committed, 2.0)
-        return {
-            "result_code": out.result_code, "result_id": out.result_id,
-            "final": out.final, "views_done": out.views_done,
-            "processing_ms": out.processing_ms,
-            "offset": list(out.offset) if out.offset is not None else None,
-            "sigma_trans_mm": out.sigma_trans_mm, "sigma_rot_deg": out.sigma_rot_deg,
-            "message": answer.message, "measurement_id": db_id,
-            "record": answer.record.model_dump(mode="json") if answer.record else None,
-        }
+        return TriggerAnswer(
+            result_code=out.result_code, result_id=out.result_id,
+            final=out.final, views_done=out.views_done,
+            processing_ms=out.processing_ms,
+            offset=list(out.offset) if out.offset is not None else None,
+            sigma_trans_mm=out.sigma_trans_mm, sigma_rot_deg=out.sigma_rot_deg,
+            message=answer.message, measurement_id=db_id, record=answer.record,
+            event=answer.event)
 
 
 async def _send(writer: asyncio.StreamWriter, message: dict[str, Any]) -> None:
-    writer.write(json.dumps(message, separators=(",", ":"), default=str).encode() + b"\n")
+    writer.write(_line(message))
     await writer.drain()
-
-
-def _error(rid: Any, kind: str, message: str) -> dict[str, Any]:
-    return {"id": rid, "ok": False, "error": {"kind": kind, "message": message}}
-
-
-def _text(args: dict[str, Any], name: str) -> str:
-    value = args.get(name)
-    if not isinstance(value, str) or not value:
-        raise InvalidInputError(f"argument {name!r} must be a non-empty string")
-    return value
-
-
-def _int(args: dict[str, Any], name: str) -> int:
-    value = args.get(name)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InvalidInputError(f"argument {name!r} must be an integer, got {value!r}")
-    return value
-
-
-def _floats(args: dict[str, Any], name: str) -> list[float]:
-    value = args.get(name)
-    if not isinstance(value, list) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-        raise InvalidInputError(f"argument {name!r} must be a list of numbers, got {value!r}")
-    return [float(v) for v in value]
-
-
-def _opt_int(args: dict[str, Any], name: str) -> int | None:
-    return None if args.get(name) is None else _int(args, name)

@@ -1,7 +1,7 @@
 """What a link may ask the station besides triggers: stored results, recipes, calibration versions.
 
-The query half of :class:`drivers.links.base.StationHandler`, mixed into
-:class:`server.station.core.Station`. Reads of the store run in a worker thread
+The query half of :class:`drivers.links.base.StationHandler`, to which
+:class:`server.station.core.Station` delegates. Reads of the store run in a worker thread
 (``asyncio.to_thread``) on a pooled connection of their own, never on the station's loop or its
 trigger thread, and decode only the page asked for (record summaries, no detections): the trigger
 path shares the process's GIL with them. Changes (deselecting the recipe) run on the trigger
@@ -13,56 +13,52 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import TYPE_CHECKING, cast
+from collections.abc import Awaitable, Callable
 
-from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, StoredResult
+from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery
+from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
-from server.errors import NotFoundError
-from server.store.schemas import MeasurementFilter, MeasurementSummary
-
-if TYPE_CHECKING:
-    from server.station.core import Station
-    from server.store import Store
+from server.errors import InvalidInputError, NotFoundError
+from server.station.measuring import Measuring
+from server.store import Store
+from server.store.events import summary_event
+from server.store.schemas import MeasurementFilter
+from server.version_checks import check_calibration
 
 MAX_PAGE = 1000  # the most records one query returns (a bigger ask gets this many)
 DECODE_CHUNK = 5  # records decoded between two offers of the GIL to the trigger thread
 
 
-def stored_result(s: MeasurementSummary) -> StoredResult:
-    ok = s.result == "OK"
-    offset = s.offset if ok else None
-    unc = s.uncertainty
-    return StoredResult(
-        result_id=s.seq, trigger_id=s.trigger_id, part_id=s.part_id or "", recipe=s.recipe,
-        recipe_version=s.recipe_version, ok=ok, reason_code=s.reason_code,
-        message=s.message or "", triggered_at=s.triggered_at, total_ms=s.total_ms,
-        calibration_id=s.calibration_id, calibration_sha256=s.calibration_hash,
-        convention=offset.convention.value if offset is not None else None,
-        offset=tuple(offset.values) if offset is not None else None,
-        sigma_mm=unc.sigma_mm if unc else 0.0, sigma_deg=unc.sigma_deg if unc else 0.0)
-
-
 class StationQueries:
-    """The StationHandler's queries, for :class:`server.station.core.Station`."""
+    """The StationHandler's queries over ``store``, for the station measuring with
+    ``measuring``. Changes go through the callables the station gives: ``between`` runs a
+    function on the trigger thread between triggers, ``changed`` tells the links the selected
+    recipe changed, ``reload`` makes the station measure with the store's active versions."""
 
-    def _me(self) -> Station:
-        return cast("Station", self)
+    def __init__(self, store: Store, measuring: Measuring,
+                 between: Callable[[Callable[[], None]], Awaitable[None]],
+                 changed: Callable[[], None], reload: Callable[[], bool]) -> None:
+        self.store = store
+        self.measuring = measuring
+        self._between = between
+        self._changed = changed
+        self._reload = reload
 
     # ------------------------------------------------------------------ results
-    async def get_result(self, result_id: int) -> StoredResult | None:
+    async def get_result(self, result_id: int) -> ResultEvent | None:
         return await asyncio.to_thread(self._get_result, result_id)
 
-    async def find_results(self, query: ResultQuery) -> tuple[list[StoredResult], int]:
+    async def find_results(self, query: ResultQuery) -> tuple[list[ResultEvent], int]:
         return await asyncio.to_thread(self._find_results, query)
 
-    def _get_result(self, result_id: int) -> StoredResult | None:
-        repo = self._store().measurements
+    def _get_result(self, result_id: int) -> ResultEvent | None:
+        repo = self.store.measurements
         rows, _ = repo.summary_page(MeasurementFilter(result_id=result_id), None, 1)
-        return stored_result(rows[0]) if rows else None
+        return summary_event(rows[0]) if rows else None
 
-    def _find_results(self, q: ResultQuery) -> tuple[list[StoredResult], int]:
+    def _find_results(self, q: ResultQuery) -> tuple[list[ResultEvent], int]:
         result = None if q.ok is None else ("OK" if q.ok else "NOK")
-        total, summaries = self._store().measurements.summaries_from(
+        total, summaries = self.store.measurements.summaries_from(
             MeasurementFilter(result=result, reason_code=q.reason_code, recipe=q.recipe,
                               part_id=q.part_id, trigger_id=q.trigger_id),
             q.start, min(max(q.limit, 0), MAX_PAGE))
@@ -70,12 +66,12 @@ class StationQueries:
         for i, summary in enumerate(summaries):
             if i and i % DECODE_CHUNK == 0:
                 time.sleep(0)  # hand the GIL to the trigger thread if it waits for it
-            out.append(stored_result(summary))
+            out.append(summary_event(summary))
         return out, total
 
     # ------------------------------------------------------------------ recipes
     async def recipes(self) -> list[RecipeInfo]:
-        book = self._me().book
+        book = self.measuring.book
         if book is None:
             return []
         selected = book.selected
@@ -84,15 +80,8 @@ class StationQueries:
                        for r in book.recipes.values()), key=lambda r: r.number)
 
     async def unselect_recipe(self) -> int:
-        st = self._me()
-
-        def unselect() -> None:
-            assert st.book is not None and st.sequence is not None
-            st.sequence.clear()
-            st.book.selected = None
-
-        await asyncio.get_running_loop().run_in_executor(st._trigger_exec, unselect)
-        st._recipe_changed()
+        await self._between(self.measuring.unselect)
+        self._changed()
         return 0
 
     # ------------------------------------------------------------------ calibration
@@ -103,9 +92,8 @@ class StationQueries:
         return await asyncio.to_thread(self._activate_calibration, version, by)
 
     def _calibrations(self) -> list[CalibrationInfo]:
-        st = self._me()
-        versions = self._store().versions
-        name = st.file_station.name
+        versions = self.store.versions
+        name = self.measuring.file_station.name
         try:
             infos = versions.versions("calibration", name)
         except NotFoundError:
@@ -117,28 +105,19 @@ class StationQueries:
                 version=info.version, calibration_id=str(content.get("id", "")),
                 sha256=str(content.get("sha256", "")), created_at=info.created_at,
                 created_by=info.created_by, comment=info.comment, active=info.active,
-                in_use=info.version == st.calibration_version))
+                in_use=info.version == self.measuring.calibration_version))
         return out
 
     def _activate_calibration(self, version: int, by: str) -> tuple[int, str]:
-        # the REST upload's own check (content hash, fits the station), loaded only when used
-        from server.api.versions import check_calibration
-        from server.errors import InvalidInputError
-
-        st = self._me()
-        versions = self._store().versions
-        name = st.file_station.name
+        versions = self.store.versions
+        station = self.measuring.file_station
+        name = station.name
         try:
             _, content = versions.content("calibration", name, version)
-            check_calibration(name, content, st.file_station)
+            # the REST upload's own check (content hash, fits the station)
+            check_calibration(name, content, station)
         except (NotFoundError, InvalidInputError) as err:
             return int(Reason.BAD_ARGUMENT), str(err)
         versions.activate("calibration", name, version, by)
-        st.reload_recipes()  # on the trigger thread, between triggers
+        self._reload()  # on the trigger thread, between triggers
         return 0, ""
-
-    def _store(self) -> Store:
-        services = self._me().services
-        if services is None:
-            raise RuntimeError("the station is not started")
-        return services.store

@@ -8,6 +8,7 @@ from sqlalchemy import Engine
 from server.store.archive import ImageRepository
 from server.store.db import create_store_engine, current_revision, migrate, ping
 from server.store.measurements import MeasurementRepository
+from server.store.shifts import ShiftRepository
 from server.store.tokens import TokenRepository
 from server.store.versions import VersionRepository
 from server.store.writer import DurableWriter, Sealed, StoreFailedError, WriterStatus
@@ -16,7 +17,8 @@ __all__ = ["DurableWriter", "Sealed", "Store", "StoreFailedError", "WriterStatus
 
 
 class Store:
-    """The station's database: ``measurements``, ``images``, ``versions``, ``tokens``.
+    """The station's database: ``measurements``, ``images``, ``versions``, ``tokens`` (and
+    ``shifts``: the line view's figures over ``measurements``).
 
     Every method is blocking (SQLAlchemy Core on a pooled connection): call it from a worker
     thread, never on the event loop (FastAPI runs ``def`` endpoints in its threadpool).
@@ -28,6 +30,7 @@ class Store:
         self.measurements = MeasurementRepository(engine, station)
         self.images = ImageRepository(engine, station)
         self.versions = VersionRepository(engine, station)
+        self.shifts = ShiftRepository(engine, station)
         self.tokens = TokenRepository(engine)
 
     @property

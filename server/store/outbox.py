@@ -20,6 +20,7 @@ from typing import Any, cast
 
 from sqlalchemy import Engine, Table, delete, func, select, update
 
+from server.store.events import record_event
 from server.store.measurements import Link, OutboxRows
 from server.store.models import OutboxRow
 
@@ -29,33 +30,24 @@ SCHEMA = "mvpose.result/1"
 
 
 def result_payload(link: Link, measurement_id: int) -> dict[str, Any]:
-    """The result message of one record: its summary, its ids and its place in the chain."""
+    """The result message of one record: every field of its result event, its ids and its
+    place in the chain. Keys older than the event keep their shape: ``offset`` and
+    ``calibration`` are objects, ``message`` is null when the record has none
+    (docs/integration.md)."""
     rec = link.record
-    unc = rec.uncertainty
+    event = record_event(rec, link.seq, stored_at=link.stored_at, hash=link.hash)
     return {
         "schema": SCHEMA,
+        **event.to_dict(),
         "id": measurement_id,
         "station": link.station,
-        "result_id": link.seq,
         "seq": link.seq,
-        "hash": link.hash,
         "prev_hash": link.prev_hash,
-        "stored_at": link.stored_at.isoformat(),
-        "triggered_at": rec.triggered_at.isoformat(),
-        "trigger_id": rec.trigger_id,
-        "part_id": rec.part_id,
-        "recipe": rec.recipe,
-        "recipe_version": rec.recipe_version,
-        "calibration": None if rec.calibration_id is None else {
-            "id": rec.calibration_id, "sha256": rec.calibration_hash},
-        "result": rec.result,
-        "reason_code": rec.reason_code,
-        "reason": rec.reason,
+        "calibration": None if event.calibration_id is None else {
+            "id": event.calibration_id, "sha256": event.calibration_sha256},
         "message": rec.message,
-        "offset": None if rec.offset is None else {
-            "convention": rec.offset.convention.value, "values": list(rec.offset.values)},
-        "sigma_mm": None if unc is None else unc.sigma_mm,
-        "sigma_deg": None if unc is None else unc.sigma_deg,
+        "offset": None if event.offset is None else {
+            "convention": event.convention, "values": list(event.offset)},
     }
 
 

@@ -7,7 +7,7 @@ recorded in the store, which the station reads at its next start (as the REST AP
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Body, Query, Request
@@ -21,6 +21,9 @@ from server.errors import ForbiddenError, NotReadyError
 from server.web import html
 from server.web.context import in_thread, need, page_user, runtime_of, services_of
 from server.web.session import COOKIE, MAX_AGE_S, Sessions, same_origin, sessions_of
+
+if TYPE_CHECKING:  # server.app imports this package
+    from server.app import StationHandle
 
 router = APIRouter(include_in_schema=False)
 
@@ -94,7 +97,7 @@ async def logout(request: Request) -> Response:
     return resp
 
 
-def _station(request: Request) -> Any:
+def _station(request: Request) -> StationHandle:
     runtime = runtime_of(request.app)
     if runtime is None:
         raise NotReadyError("station down: no station process is connected")
@@ -108,10 +111,10 @@ async def trigger(request: Request,
     runtime = _station(request)
     out = await in_thread(lambda: runtime.trigger((body.part_id if body else None) or None, 0))
     # The control channel answers the result code and the station's message; the name is ours.
-    reason, message = reason_name(out["result_code"]), out.get("message") or ""
+    reason, message = reason_name(out.result_code), out.message
     return {"message": f"{reason}: {message}" if message and message != reason else reason,
-            "reason": reason, "result_code": out["result_code"],
-            "measurement_id": out.get("measurement_id")}
+            "reason": reason, "result_code": out.result_code,
+            "measurement_id": out.measurement_id}
 
 
 @router.post("/web/actions/arm-teach")
@@ -127,7 +130,7 @@ async def teach(request: Request, body: Annotated[TeachBody, Body()]) -> dict[st
     user = await need(request, Role.OPERATOR)
     runtime = _station(request)
     rec = await in_thread(runtime.teach_from_measurement, body.measurement_id, user.name)
-    version = rec.get("version")
+    version = rec.version
     return {"message": f"taught from measurement {body.measurement_id}: new version "
                        f"{version}", "version": version}
 
@@ -142,7 +145,7 @@ async def activate(request: Request, body: Annotated[ActivateBody, Body()]) -> d
         except NotReadyError:
             pass  # the station is down: the store takes it, as the REST API's activate does
         else:
-            return {"message": f"{body.name} v{rec.get('version', body.version)} active",
+            return {"message": f"{body.name} v{rec.version} active",
                     "via": "station"}
     services = services_of(request)
     info = await in_thread(services.store.versions.activate, "recipe", body.name, body.version,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import anyio.to_thread
 from fastapi import Request
@@ -15,8 +15,11 @@ from server.errors import ForbiddenError, UnauthenticatedError
 from server.state import Services
 from server.web import html
 from server.web.live import LiveFeed
-from server.web.reader import Reader, age_words
+from server.web.reader import Reader, RecordView, age_words
 from server.web.session import cookie_authorization
+
+if TYPE_CHECKING:  # server.app imports this package
+    from server.app import StationHandle
 
 #: where the drift engineer's detector answers (server/api/drift.py); the page shows it if mounted
 DRIFT_ENDPOINT = "/api/v1/drift"
@@ -71,9 +74,10 @@ def live_feed(request: Request) -> LiveFeed:
     return feed
 
 
-def runtime_of(app: Any) -> Any:
+def runtime_of(app: Any) -> StationHandle | None:
     """The station handle (server.station.client.StationClient on ``app.state.station``)."""
-    return getattr(app.state, "station", None)
+    runtime: StationHandle | None = getattr(app.state, "station", None)
+    return runtime
 
 
 def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
@@ -82,7 +86,7 @@ def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
     if runtime is None:
         return None, None
     try:
-        return dict(runtime.status()), None
+        return runtime.status().model_dump(mode="json"), None
     except Exception as err:  # a station handle that cannot answer is a station that is down
         return None, f"the station does not answer: {type(err).__name__}: {err}"
 
@@ -117,7 +121,14 @@ def calibration_words(reader: Reader) -> str:
 
 def render_status(app: Any, reader: Reader) -> str:
     status, error = station_status(app)
-    return html.status_panel(status, error, calibration_words(reader))
+    window, counts = reader.shift()
+    return html.status_panel(status, error, calibration_words(reader),
+                             html.shift_words(window, counts, zone_of(reader)))
+
+
+def zone_of(reader: Reader) -> str:
+    station = reader.services.station
+    return station.time_zone if station is not None else "UTC"
 
 
 def deadline_ms(reader: Reader) -> float | None:
@@ -126,21 +137,26 @@ def deadline_ms(reader: Reader) -> float | None:
 
 
 def render_live_result(reader: Reader, newest: int | None,
-                       frames_id: int | None) -> tuple[str, str, int | None]:
-    """The Live page's result and frames panels; the frames are the newest record's when it
-    kept them, else the record that last did (the archive keeps NOK always, OK 1 in N)."""
+                       frames_id: int | None) -> tuple[str, str, int | None, bool]:
+    """The Live page's result and frames panels, both of the newest record: its frames where
+    the archive has them (NOK always, OK 1 in N), its overlays always. A record that kept no
+    frames links to the newest one that did (``frames_id``: the last one known), never shows
+    that older record's images next to its own result. Returns the panels, the newest record
+    with frames, and whether the newest record's planned frames are all on disk yet."""
     if newest is None:
         empty = '<section id="result" class="panel"><h2>Last result</h2><p>none yet</p></section>'
-        return empty, html.frames_panel(None, None), None
+        return empty, html.frames_panel(None, None), None, True
     view = reader.get(newest)
-    framed = view if view.has_frames else None
+    planned = {(i.view, i.camera_id) for i in view.stored.record.images}
+    complete = planned <= set(view.frames)
+    framed: RecordView | None = view if view.has_frames else None
     if framed is None and frames_id is not None:
-        framed = reader.get(frames_id)
-        framed = framed if framed.has_frames else None
+        hint = reader.get(frames_id)
+        framed = hint if hint.has_frames else None
     if framed is None:
         framed = reader.latest_with_frames()
     return (html.result_panel(newest, view.stored.record, deadline_ms(reader)),
-            html.frames_panel(framed, newest), framed.stored.id if framed else None)
+            html.frames_panel(view, framed), framed.stored.id if framed else None, complete)
 
 
 async def in_thread(fn: Any, *args: Any) -> Any:

@@ -16,10 +16,12 @@ from typing import Any
 from urllib.parse import urlencode
 
 from mvpose_core.reasons import describe
+from mvpose_core.shifts import ShiftWindow, time_zone
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import RobotConvention
 from server.auth import Principal, Role
 from server.store.schemas import MeasurementRecord, MeasurementSummary
+from server.store.shifts import ShiftCounts
 from server.web.geometry import CameraOverlay
 from server.web.reader import RecordView
 
@@ -37,7 +39,7 @@ _UNITS = {
     RobotConvention.UR: ("m",) * 3 + ("rad",) * 3,
 }
 
-TABS = [("/", "Live"), ("/history", "History"), ("/trends", "Trends"),
+TABS = [("/", "Live"), ("/line", "Line"), ("/history", "History"), ("/trends", "Trends"),
         ("/calibration", "Calibration"), ("/recipes", "Recipes")]
 
 
@@ -62,10 +64,11 @@ def num(x: float | None, digits: int = 3) -> str:
 
 
 def layout(title: str, user: Principal | None, body: str, active: str = "",
-           scripts: Iterable[str] = ()) -> str:
-    tabs = "".join(
-        f'<a href="{href}" class="{"on" if href == active else ""}">{esc(name)}</a>'
-        for href, name in TABS) if user else ""
+           scripts: Iterable[str] = (), body_class: str = "") -> str:
+    """A whole page; its one ``<h1>`` is ``title`` (shown in the header bar)."""
+    on = ' class="on" aria-current="page"'
+    tabs = "".join(f'<a href="{href}"{on if href == active else ""}>{esc(name)}</a>'
+                   for href, name in TABS) if user else ""
     who = (f'<span class="who">{esc(user.name)} · <b data-role="{esc(user.role.value)}">'
            f'{esc(user.role.value)}</b></span>'
            f'<button class="link" id="logout" type="button">log out</button>') if user else ""
@@ -79,8 +82,8 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
 <script src="/static/vendor/htmx.min.js" defer></script>
 <script src="/static/vendor/uPlot.iife.min.js" defer></script>
 <script src="/static/app.js" defer></script>{extra}
-</head><body>
-<header><span class="brand">mvpose</span><nav>{tabs}</nav>{who}</header>
+</head><body{f' class="{esc(body_class)}"' if body_class else ""}>
+<header><span class="brand">mvpose</span><h1>{esc(title)}</h1><nav>{tabs}</nav>{who}</header>
 <main>{body}</main>
 <footer>mvpose operator page · <a href="/docs">API docs</a></footer>
 </body></html>"""
@@ -88,24 +91,24 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
 
 # ---------------------------------------------------------------------------- station status
 def status_panel(status: Mapping[str, Any] | None, error: str | None,
-                 calibration: str) -> str:
-    """Station state, link state, active recipe and calibration (runtime.status())."""
+                 calibration: str, counts: str) -> str:
+    """Station state, link state, active recipe and calibration (runtime.status()); the
+    shift's counts (``counts``, from the store: they survive a restart of either process)."""
     if status is None:
         why = esc(error or "no station process is connected to this API process")
         return (f'<section id="status" class="panel down"><h2>Station</h2>'
                 f'<p class="state bad" data-state="DOWN">station down</p><p class="why">{why}'
                 f'</p><p>History, trends and recipes below are read from the store.</p>'
-                f'<p>Calibration: {calibration}</p></section>')
+                f'<dl><dt>Calibration</dt><dd>{calibration}</dd>'
+                f'<dt>This shift</dt><dd class="counts">{counts}</dd></dl></section>')
     recipe = status.get("recipe") or {}
     links = status.get("links") or ({"plc": status["plc"]} if status.get("plc") else {})
-    link_words = "; ".join(f"{name}: {_link(v)}" for name, v in links.items()) or "none"
+    linked = "; ".join(f"{name}: {link_words(v)}" for name, v in links.items()) or "none"
     cal = status.get("calibration")
     if isinstance(cal, Mapping) and cal.get("id"):
         calibration = f"{esc(cal['id'])} ({esc(str(cal.get('sha256', ''))[:12])})"
     cams = status.get("cameras") or {}
     cam_rows = "".join(f"<li>{esc(k)}: {esc(_short(v))}</li>" for k, v in cams.items())
-    counts = status.get("counts") or {}
-    count_words = ", ".join(f"{esc(k)} {esc(v)}" for k, v in counts.items()) or "—"
     state = str(status.get("state", "?"))
     armed = ('<p class="armed">teach armed: the next OK result becomes the reference</p>'
              if status.get("teach_armed") else "")
@@ -113,13 +116,14 @@ def status_panel(status: Mapping[str, Any] | None, error: str | None,
     return f"""<section id="status" class="panel">
 <h2>Station {esc(status.get("station", ""))}</h2>
 <p class="state" data-state="{esc(state)}">{esc(state)}</p>
-<dl><dt>Link</dt><dd>{esc(link_words)}</dd>
+<dl><dt>Link</dt><dd>{esc(linked)}</dd>
 <dt>Recipe</dt><dd>{rec}</dd><dt>Calibration</dt><dd>{calibration}</dd>
-<dt>Counts</dt><dd>{count_words}</dd></dl>
+<dt>This shift</dt><dd class="counts">{counts}</dd></dl>
 {f"<ul class='cams'>{cam_rows}</ul>" if cam_rows else ""}{armed}</section>"""
 
 
-def _link(v: object) -> str:
+def link_words(v: object) -> str:
+    """A link's status in words: its state, and whether its PLC is online."""
     if not isinstance(v, Mapping):
         return str(v)
     state = v.get("state") or ("running" if v.get("running") else "not running")
@@ -134,6 +138,20 @@ def _short(v: object) -> str:
     return str(v)
 
 
+def shift_span(window: ShiftWindow, zone: str) -> str:
+    """``early 06:00–14:00 UTC``: the shift's name and hours in plant time."""
+    tz = time_zone(zone)
+    return (f"{esc(window.name)} {window.start.astimezone(tz):%H:%M}–"
+            f"{window.end.astimezone(tz):%H:%M} {esc(zone)}")
+
+
+def shift_words(window: ShiftWindow, counts: ShiftCounts, zone: str) -> str:
+    """``early 06:00–14:00 UTC: OK 41 · NOK 2 · yield 95.3 %``."""
+    y = counts.yield_pct
+    return (f'{shift_span(window, zone)}: OK <b data-count="ok">{counts.ok}</b> · NOK '
+            f'<b data-count="nok">{counts.nok}</b> · yield {"—" if y is None else f"{y:.1f} %"}')
+
+
 # ---------------------------------------------------------------------------- one result
 def result_words(rec: MeasurementRecord | MeasurementSummary) -> str:
     words = describe(rec.reason_code)
@@ -141,14 +159,20 @@ def result_words(rec: MeasurementRecord | MeasurementSummary) -> str:
 
 
 def offset_table(rec: MeasurementRecord | MeasurementSummary) -> str:
+    """The offset the robot got; a NOK's measured offset (kept for diagnosis) is shown struck
+    through under the words that it was not sent."""
     if rec.offset is None:
         return '<p class="muted">no offset (NOK results send none)</p>'
     conv = rec.offset.convention
+    sent = rec.result == "OK"
+    cls, caption = (("offset", f"offset, {esc(conv.value)} convention") if sent else
+                    ("offset not-sent", f"<b>NOT SENT to the robot</b> ({esc(rec.result)}): "
+                     f"the measured offset, {esc(conv.value)} convention, for diagnosis only"))
     heads = "".join(f"<th>{esc(lab)}</th>" for lab in conv.labels)
     cells = "".join(
         f'<td data-axis="{esc(lab)}">{num(v, 3 if u in ("mm", "°", "") else 5)} {esc(u)}</td>'
         for lab, v, u in zip(conv.labels, rec.offset.values, units(conv), strict=True))
-    return (f'<table class="offset"><caption>offset, {esc(conv.value)} convention</caption>'
+    return (f'<table class="{cls}" data-sent="{str(sent).lower()}"><caption>{caption}</caption>'
             f"<tr>{heads}</tr><tr>{cells}</tr></table>")
 
 
@@ -174,17 +198,24 @@ def result_panel(rec_id: int, rec: MeasurementRecord, deadline_ms: float | None)
 
 
 # ---------------------------------------------------------------------------- frames
-def frames_panel(view: RecordView | None, newest_id: int | None) -> str:
+def frames_panel(view: RecordView | None, framed: RecordView | None) -> str:
+    """The newest record's cameras (``view``); when it kept no frames, a link to the newest
+    record that did (``framed``), whose images belong to another result and are not shown."""
     if view is None:
-        return ('<section id="frames" class="panel"><h2>Images</h2><p class="muted">No archived '
-                "frames yet (NOK frames are always kept, OK frames 1 in N).</p></section>")
+        return ('<section id="frames" class="panel"><h2>Images</h2><p class="muted">No result '
+                "yet.</p></section>")
     s = view.stored
-    which = ("the last result" if s.id == newest_id else
-             f"record #{s.id} ({esc(s.record.result)}, {when(s.record.triggered_at)}): the "
-             "newest one with archived frames")
-    return (f'<section id="frames" class="panel" data-id="{s.id}"><h2>Images of '
-            f'<a href="/history/{s.id}">#{s.id}</a></h2><p class="which">showing {which}</p>'
-            f"{legend()}<div class='cams'>{camera_figures(view)}</div></section>")
+    note = ""
+    if not view.has_frames and not s.record.images:
+        older = (f' The newest images are of <a href="/history/{framed.stored.id}">record '
+                 f"#{framed.stored.id}</a> ({esc(framed.stored.record.result)}, "
+                 f"{when(framed.stored.record.triggered_at)})." if framed is not None and
+                 framed.stored.id != s.id else "")
+        note = (f'<p class="which">This result kept no frames (NOK frames are always kept, OK '
+                f"frames 1 in N): its marks are drawn on grey.{older}</p>")
+    return (f'<section id="frames" class="panel" data-id="{s.id}" data-frames="{len(view.frames)}">'
+            f'<h2>Images of <a href="/history/{s.id}">#{s.id}</a> ({esc(s.record.result)})</h2>'
+            f"{note}{legend()}<div class='cams'>{camera_figures(view)}</div></section>")
 
 
 def legend() -> str:
@@ -195,17 +226,22 @@ def legend() -> str:
 
 
 def camera_figures(view: RecordView) -> str:
-    return "".join(camera_figure(view.stored.id, ov, view.frames.get((ov.view, ov.camera_id))
-                                 is not None) for ov in view.overlays)
+    planned = {(i.view, i.camera_id) for i in view.stored.record.images}
+    return "".join(
+        camera_figure(view.stored.id, ov, view.frames.get((ov.view, ov.camera_id)) is not None,
+                      "frame not in the archive (being written, or evicted)"
+                      if (ov.view, ov.camera_id) in planned else "no frame kept for this result")
+        for ov in view.overlays)
 
 
-def camera_figure(rec_id: int, ov: CameraOverlay, has_frame: bool) -> str:
+def camera_figure(rec_id: int, ov: CameraOverlay, has_frame: bool,
+                  why: str = "frame not archived") -> str:
     W, H = ov.width, ov.height
     found = sum(m.found for m in ov.marks)
     img = (f'<img src="/web/frames/{rec_id}/{ov.view}/{esc(ov.camera_id)}?w={FRAME_WIDTH}" '
            f'alt="camera {esc(ov.camera_id)} view {ov.view}" width="{FRAME_WIDTH}" '
            f'height="{round(FRAME_WIDTH * H / W)}">' if has_frame else
-           '<div class="noframe">frame not archived</div>')
+           f'<div class="noframe">{esc(why)}</div>')
     k = magnification(ov)
     return f"""<figure class="cam" data-view="{ov.view}" data-camera="{esc(ov.camera_id)}"
  data-width="{W}" data-height="{H}" data-magnify="{k}"><div class="frame"
@@ -276,7 +312,7 @@ def history_rows(items: list[MeasurementSummary], next_url: str | None, filters:
             f"<td>{num(m.residuals.rms_px) if m.residuals else '—'}</td>"
             f"<td>{num(m.total_ms, 1)}</td></tr>")
     more = (f'<a class="more" href="{esc(next_url)}" hx-get="{esc(next_url)}&fragment=1" '
-            f'hx-target="#rows" hx-push-url="{esc(next_url)}">next page →</a>'
+            f'hx-target="#rows" hx-swap="outerHTML" hx-push-url="{esc(next_url)}">next page →</a>'
             if next_url else '<span class="muted">last page</span>')
     empty = '<tr><td colspan="11" class="muted">no measurements match</td></tr>'
     export = "/api/v1/measurements/export?format={}" + (f"&{filters}" if filters else "")

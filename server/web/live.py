@@ -22,7 +22,7 @@ from server.web.reader import Reader
 
 POLL_S = 0.25
 #: how long the newest record's frames are waited for (the archive writes them after the record)
-FRAMES_WAIT_S = 5.0
+FRAMES_WAIT_S = 15.0
 STATUS_EVERY_S = 1.0
 KEEPALIVE_S = 15.0
 STREAM_S = 30.0
@@ -49,7 +49,8 @@ class LiveFeed:
     (they read the store and the station) and run in worker threads."""
 
     reader: Reader
-    render_result: Callable[[Reader, int | None, int | None], tuple[str, str, int | None]]
+    render_result: Callable[[Reader, int | None, int | None],
+                            tuple[str, str, int | None, bool]]
     render_status: Callable[[], str]
     snapshot: Snapshot = field(default_factory=Snapshot)
     _queues: set[asyncio.Queue[str]] = field(default_factory=set)
@@ -105,15 +106,16 @@ class LiveFeed:
         while True:
             self.polls += 1
             newest = await anyio.to_thread.run_sync(self.reader.newest_id)
-            # A record's frames are written after the record (after the PLC has its answer):
-            # a newest record that plans frames not on disk yet is looked at again a while.
+            # A record's frames are written after the record (after the PLC has its answer),
+            # one camera after another: a newest record whose planned frames are not all on
+            # disk yet is looked at again a while.
             waiting = newest is not None and newest == self._awaited and loop.time() < self._until
             if newest != self.snapshot.newest_id or waiting:
-                result, frames, frames_id = await anyio.to_thread.run_sync(
+                result, frames, frames_id, complete = await anyio.to_thread.run_sync(
                     self.render_result, self.reader, newest, self._frames_id)
                 if newest != self.snapshot.newest_id:
                     self._until = loop.time() + FRAMES_WAIT_S
-                self._awaited = newest if frames_id != newest else None
+                self._awaited = None if complete else newest
                 self._frames_id = frames_id
                 self.snapshot.newest_id = newest
                 if result != self.snapshot.result_html:

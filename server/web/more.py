@@ -54,7 +54,7 @@ def _charts_page(title: str, active: str, intro: str, kind: str, user: Any,
                  extra: str = "") -> HTMLResponse:
     body = f"""<section class="panel"><h2>{html.esc(title)}</h2>{intro}
 <form id="trend-filters" class="filters"><label>points <input name="limit" type="number"
- min="10" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
+ min="1" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
 <button type="submit">Show</button></form>
 <div id="charts" data-kind="{kind}" data-src="/web/trends.json"></div></section>{extra}"""
     return HTMLResponse(html.layout(title, user, body, active))
@@ -113,7 +113,7 @@ def calibration_ages(reader: Any) -> str:
                     f"<code>{html.esc(station)}</code>, changed {html.when(mtime)} "
                     f"(<b class='age'>{age_words(mtime, now)}</b> ago).</p>")
     table = ("<table><tr><th>calibration</th><th>version</th><th>uploaded</th><th>age</th>"
-             f"<th></th><th>by</th></tr>{''.join(rows)}</table>" if rows else
+             f"<th>state</th><th>by</th></tr>{''.join(rows)}</table>" if rows else
              "<p class='muted'>No calibration uploaded to the store.</p>")
     return file_age + table
 
@@ -177,13 +177,14 @@ async def recipe_page(
     arm = ""
     if html.can(user, Role.OPERATOR):
         down = "" if up else " disabled title='station down'"
-        arm = (f'<p><button type="button" class="post" data-action="/web/actions/arm-teach" '
+        arm = (f'<p><button type="button" class="post" data-needs-station '
+               f'data-action="/web/actions/arm-teach" '
                f'data-confirm="The next OK result becomes the reference of the active recipe. '
                f'Arm?"{down}>Arm teach (next OK result)</button> or teach from a stored OK '
                f'measurement: open it in <a href="/history?result=OK">History</a>.</p>')
     body = f"""<section class="panel"><h2>Recipe {html.esc(name)}</h2>
 <table class="versions"><tr><th>version</th><th>created</th><th>by</th><th>comment</th>
-<th>sha256</th><th></th><th></th></tr>{''.join(rows)}</table>{arm}
+<th>sha256</th><th>state</th><th>action</th></tr>{''.join(rows)}</table>{arm}
 <p class="msg" role="status"></p></section>
 <section class="panel"><h2>Side by side</h2><form class="filters" method="get">
 <label>left <select name="a">{options['a']}</select></label>

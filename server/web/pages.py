@@ -48,7 +48,7 @@ async def live_page(request: Request) -> Html:
         return to_login(request)
     reader = reader_of(request)
     newest = await in_thread(reader.newest_id)
-    result, frames, _ = await in_thread(render_live_result, reader, newest, None)
+    result, frames, _, _ = await in_thread(render_live_result, reader, newest, None)
     status = await in_thread(render_status, request.app, reader)
     actions = ""
     if html.can(user, Role.OPERATOR):
@@ -56,8 +56,9 @@ async def live_page(request: Request) -> Html:
         down = "" if up else " disabled title='station down'"
         actions = f"""<section class="panel actions"><h2>Commissioning</h2>
 <form id="trigger-form" data-action="/web/actions/trigger"><label>part id
-<input name="part_id" maxlength="40"></label><button type="submit"{down}>Trigger now</button>
-</form><button type="button" class="post" data-action="/web/actions/arm-teach"
+<input name="part_id" maxlength="40"></label><button type="submit" data-needs-station{down}>
+Trigger now</button></form><button type="button" class="post" data-needs-station
+ data-action="/web/actions/arm-teach"
  data-confirm="The next OK result becomes the active recipe's reference (zero offset). Arm?"
  {down}>Arm teach</button><p class="msg" role="status"></p></section>"""
     body = f"""<div id="live" data-events="/web/live/events" class="grid">
@@ -83,6 +84,11 @@ async def frame(
 ) -> Response:
     """An archived frame downscaled to ``w`` px wide, as JPEG (frames never change)."""
     await need(request, Role.READ)
+    return await frame_response(request, measurement_id, view, camera_id, w)
+
+
+async def frame_response(request: Request, measurement_id: int, view: int, camera_id: str,
+                         w: int) -> Response:
     services = request.state.services
 
     def load() -> bytes:
@@ -127,20 +133,28 @@ async def history_page(
     if user is None:
         return to_login(request)
     reader = reader_of(request)
-    # A form sends its empty fields too: empty means "any", as an absent REST parameter.
-    filters = MeasurementFilter(since=_time(since, "since"), until=_time(until, "until"),
-                                result=result or None,
-                                reason_code=int(reason_code) if reason_code else None,
-                                recipe=recipe or None, part_id=part_id or None)
     params = {"since": since, "until": until, "result": result,
               "reason_code": reason_code, "recipe": recipe, "part_id": part_id}
-    items, next_cursor = await in_thread(reader.store.measurements.summary_page, filters,
-                                         cursor, limit)
-    next_url = (f"/history?{html.query(params | {'cursor': next_cursor, 'limit': limit})}"
-                if next_cursor else None)
-    rows = html.history_rows(items, next_url, html.query(params))
+    status = 200
+    try:
+        # A form sends its empty fields too: empty means "any", as an absent REST parameter.
+        filters = MeasurementFilter(since=_time(since, "since"), until=_time(until, "until"),
+                                    result=result or None,
+                                    reason_code=int(reason_code) if reason_code else None,
+                                    recipe=recipe or None, part_id=part_id or None)
+        items, next_cursor = await in_thread(reader.store.measurements.summary_page, filters,
+                                             cursor, limit)
+    except InvalidInputError as err:
+        # The page says what is wrong where the list would be (htmx swaps a 400 in: app.js).
+        status = 400
+        rows = (f'<div id="rows"><p class="msg error" role="alert">Not filtered: '
+                f"{html.esc(err.detail)}</p></div>")
+    else:
+        next_url = (f"/history?{html.query(params | {'cursor': next_cursor, 'limit': limit})}"
+                    if next_cursor else None)
+        rows = html.history_rows(items, next_url, html.query(params))
     if fragment:
-        return HTMLResponse(rows)
+        return HTMLResponse(rows, status_code=status)
     e = html.esc
     sel = {v: " selected" if result == v else "" for v in ("", "OK", "NOK")}
     body = f"""<section class="panel"><h2>History</h2>
@@ -157,7 +171,7 @@ async def history_page(
 <label>part id <input name="part_id" value="{e(part_id)}"></label>
 <label>per page <input name="limit" type="number" min="1" max="1000" value="{limit}"></label>
 <button type="submit">Filter</button></form>{rows}</section>"""
-    return HTMLResponse(html.layout("History", user, body, "/history"))
+    return HTMLResponse(html.layout("History", user, body, "/history"), status_code=status)
 
 
 def _time(text: str, name: str) -> datetime | None:
@@ -242,7 +256,8 @@ def teach_block(rec_id: int, p: TeachPreview | None, station_up: bool) -> str:
     down = "" if station_up else " disabled title='station down'"
     note = "" if station_up else "<p class='muted'>station down: teaching needs the station</p>"
     return f"""<section class="panel"><h2>Teach</h2>
-<button type="button" id="teach-open"{down}>Teach this as the reference…</button>{note}
+<button type="button" id="teach-open" data-needs-station{down}>Teach this as the reference…
+</button>{note}
 <dialog id="teach-dialog"><h3>Make measurement #{rec_id} the reference of
  {html.esc(p.recipe.name)}?</h3>
 <p>Against the active reference (v{p.recipe.version}) this part sits at the offset below. After

@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
+from mvpose_core.shifts import DEFAULT_SHIFTS, ShiftWindow, shift_at, time_zone
 from mvpose_core.station import RecipeConfig
 from server.errors import DomainError
 from server.state import Services
 from server.store.archive import ImageInfo
 from server.store.schemas import MeasurementFilter, MeasurementSummary, StoredMeasurement
+from server.store.shifts import ShiftCounts
 from server.web.geometry import CameraOverlay, Geometry, recipe_from_content
 
 #: how far back the Live page looks for a record with archived frames (OK frames are kept 1 in N)
@@ -77,6 +79,15 @@ class Reader:
     def newest_id(self) -> int | None:
         items, _ = self.store.measurements.summary_page(MeasurementFilter(), None, 1)
         return items[0].id if items else None
+
+    def shift(self, now: datetime | None = None) -> tuple[ShiftWindow, ShiftCounts]:
+        """The shift ``now`` is in (the station file's shifts; three from 06:00 UTC without a
+        station file) and its counts from the store."""
+        station = self.services.station
+        shifts = station.shifts if station is not None else DEFAULT_SHIFTS
+        zone = time_zone(station.time_zone if station is not None else "UTC")
+        window = shift_at(shifts, zone, now or datetime.now(UTC))
+        return window, self.store.shifts.counts(window.start, window.end)
 
     def latest_with_frames(self, lookback: int = FRAMES_LOOKBACK) -> RecordView | None:
         """The newest record whose frames are still in the archive, within ``lookback``."""

@@ -4,8 +4,10 @@ helpers: the app on a real socket, Debian's Chromium through Playwright).
     python -m server.web.screenshots --out docs/figures
 
 starts the API app on a temporary SQLite store, fills it with records the pose engine measured
-on simulated station 1 (server.web.sample), logs in and saves ``operator-<page>.jpg`` for each
-page. Needs the ``test`` extra (playwright) and /usr/bin/chromium (Debian's ``chromium``).
+on simulated station 1 (server.web.sample), ending now, starts a station process on it (simulated
+cameras, no PLC), logs in and saves ``operator-<page>.jpg`` for each page, and the line view at
+the panel PC's 1366 x 768 and at 1920 x 1080 (``operator-line-<w>x<h>.jpg``). Needs the ``test``
+extra (playwright) and /usr/bin/chromium (Debian's ``chromium``).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import tempfile
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +34,8 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backg
                  "--disable-component-update", "--no-first-run"]
 STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
 VIEWPORT = {"width": 1440, "height": 900}
+#: the line view's screens: the panel PC's (15.6", 1366 x 768) and a full-HD monitor
+LINE_VIEWPORTS = ({"width": 1366, "height": 768}, {"width": 1920, "height": 1080})
 
 
 @contextmanager
@@ -67,11 +72,15 @@ def login(page: Any, base: str, token: str) -> None:
     page.wait_for_url(f"{base}/")
 
 
-def populate(services: Services, plain: int = 560, moved: int = 120) -> SampleLine:
+def populate(services: Services, plain: int = 560, moved: int = 120,
+             end: datetime | None = None) -> SampleLine:
     """A morning of production: ``plain`` results (some NOK; enough for the drift watch to learn
     the noise), then ``moved`` results after camera back_right moved by (0.4, -0.2) px, two
-    results with frames kept, and a taught recipe version that is not active yet."""
+    results with frames kept, and a taught recipe version that is not active yet; the last
+    result at ``end`` when given."""
     line = SampleLine(services, period_s=20.0)
+    if end is not None:
+        line.start = end - timedelta(seconds=line.period_s * (plain + moved + 9))
     line.run(plain, missing_every=37)
     line.run(moved, shift_px=(0.4, -0.2), shift_camera="back_right")
     line.store(*line.record(missing="B2", frames=True))
@@ -85,7 +94,10 @@ def populate(services: Services, plain: int = 560, moved: int = 120) -> SampleLi
 def main(argv: list[str] | None = None) -> int:
     from playwright.sync_api import sync_playwright
 
+    from mvpose_core.station import load_station
     from server.app import create_app
+    from server.station.client import StationClient
+    from server.station.process import StationProcess
 
     parser = argparse.ArgumentParser(prog="python -m server.web.screenshots",
                                      description=__doc__.splitlines()[0])
@@ -97,10 +109,17 @@ def main(argv: list[str] | None = None) -> int:
         settings = Settings(data_dir=Path(tmp), station=STATION1, bootstrap_token=token,
                             sqlite_synchronous="NORMAL")
         writer = open_services(settings)  # the station process's side: it writes the records
+        station = load_station(STATION1)
+        modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
+        proc = StationProcess(settings, station.model_copy(update={
+            "links": station.links.model_copy(update={"modbus": modbus})}))
         try:
-            populate(writer)
+            line = populate(writer, end=datetime.now(UTC) - timedelta(seconds=20))
             newest = writer.store.measurements.summary_page(MeasurementFilter(), None, 1)[0]
-            with serve(create_app(settings)) as base, sync_playwright() as pw:
+            line.store(*line.record(missing="B2", frames=True))  # Live and Line show a NOK
+            proc.start()
+            app = create_app(settings, StationClient(settings.resolved_control_socket))
+            with serve(app) as base, sync_playwright() as pw:
                 browser = launch(pw)
                 page = browser.new_page(viewport=VIEWPORT)
                 page.on("pageerror", lambda err: print(f"page error: {err}"))
@@ -124,8 +143,17 @@ def main(argv: list[str] | None = None) -> int:
                     page.screenshot(path=str(target), full_page=name != "docs", type="jpeg",
                                     quality=80)
                     print(target)
+                for size in LINE_VIEWPORTS:
+                    page.set_viewport_size(size)
+                    page.goto(base + "/line")
+                    page.wait_for_function("[...document.querySelectorAll('ul.noks img')]"
+                                           ".every((i) => i.complete && i.naturalWidth > 0)")
+                    target = args.out / f"operator-line-{size['width']}x{size['height']}.jpg"
+                    page.screenshot(path=str(target), type="jpeg", quality=80)
+                    print(target)
                 browser.close()
         finally:
+            proc.stop()
             writer.close()
     return 0
 

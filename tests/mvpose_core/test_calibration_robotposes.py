@@ -66,8 +66,72 @@ def test_errors_name_the_problem() -> None:
         parse_robot_poses(dup, "fanuc")
     with pytest.raises(CalibrationError, match="file says convention 'abb' but 'kuka'"):
         parse_robot_poses(json.dumps({"convention": "abb", "poses": {}}), "kuka")
-    with pytest.raises(CalibrationError, match="line 2: not a number"):
+    with pytest.raises(CalibrationError, match="row 2: column Z is not a number: 'x'"):
         parse_robot_poses("id,X,Y,Z,W,P,R\na,1,2,x,4,5,6\n", "fanuc")
+
+
+BAD_FILES = [
+    # Another convention's header: the message says whose header it is.
+    (
+        "id,X,Y,Z,A,B,C\n1,1000,0,900,0,0,0\n",
+        "fanuc",
+        r"poses.csv: row 1: CSV header id,X,Y,Z,A,B,C \(that is the header of kuka\) does not "
+        r"match the fanuc convention",
+    ),
+    (
+        "id,X,Y,Z,W,P,R\n1,1000,0,900,0,0\n",
+        "fanuc",
+        r"poses.csv: row 2: 6 columns, the header has 7",
+    ),
+    (
+        "id,X,Y,Z,W,P,R\n1,1000,0,900,0,0,0\n2,1000,0,900,0,0,nan\n",
+        "fanuc",
+        r"poses.csv: row 3 \(sample '2'\): fanuc pose contains NaN",
+    ),
+    (
+        "id,X,Y,Z,q1,q2,q3,q4\n1,1000,0,900,0,0,0,0\n",
+        "abb",
+        r"poses.csv: row 2 \(sample '1'\): quaternion .* has zero or non-finite norm",
+    ),
+    (
+        "id,X,Y,Z,W,P,R\n1,1000,0,900,0,0,0\n",
+        "stäubli",
+        r"poses.csv: unknown robot convention 'stäubli'; known: fanuc",
+    ),
+    (
+        json.dumps(
+            {
+                "convention": "fanuc",
+                "poses": {"1": [[1, 0, 0, 1000], [0, 1, 0, 0], [0, 0, -1, 900], [0, 0, 0, 1]]},
+            }
+        ),
+        None,
+        r"poses.csv: pose 1 \(sample '1'\): not a rigid transform: .* det R = -1",
+    ),
+    (
+        json.dumps({"convention": "fanuc", "poses": {"1": [1000, 0, "x", 0, 0, 0]}}),
+        None,
+        r"poses.csv: pose 1 \(sample '1'\): not a list of numbers",
+    ),
+    (
+        json.dumps({"convention": "fanuc", "poses": [{"id": "1"}]}),
+        None,
+        r"poses.csv: pose 1: needs 'id' and 'pose'",
+    ),
+]
+
+
+@pytest.mark.parametrize(("text", "conv", "message"), BAD_FILES)
+def test_malformed_files_answer_one_line_with_file_and_row(text, conv, message) -> None:
+    with pytest.raises(CalibrationError, match=message) as err:
+        parse_robot_poses(text, conv, "poses.csv")
+    assert "\n" not in str(err.value)
+
+
+def test_a_pose_may_be_a_matrix() -> None:
+    T = POSES["a01"]
+    poses = parse_robot_poses(json.dumps({"convention": "kuka", "poses": {"m": T.tolist()}}), None)
+    np.testing.assert_allclose(poses["m"], T)
 
 
 def test_the_example_in_the_calibration_guide_parses() -> None:

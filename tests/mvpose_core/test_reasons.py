@@ -19,3 +19,19 @@ def test_every_code_has_words_and_a_name() -> None:
     assert describe(4242) == "unknown result code 4242"
     assert reason_name(1001) == "TIMEOUT"
     assert reason_name(77) == "CODE_77"
+
+
+def test_the_operations_guide_has_the_table_of_the_code() -> None:
+    """docs/operations.md's reason table is the one in mvpose_core/reasons.py (words and what
+    to check), row for row: the line view shows the code's, the guide must not say otherwise."""
+    from pathlib import Path
+
+    from mvpose_core.reasons import CHECKS, reasons_table, what_to_check
+
+    assert set(CHECKS) == set(Reason)
+    assert what_to_check(1) == CHECKS[Reason.MARKS_MISSING]
+    assert what_to_check(4242) == "the record's message and the log"
+    guide = (Path(__file__).resolve().parents[2] / "docs" / "operations.md").read_text()
+    table = reasons_table()
+    assert table in guide, "docs/operations.md: paste mvpose_core.reasons.reasons_table() again"
+    assert len(table.splitlines()) == 2 + len(Reason)

@@ -84,6 +84,9 @@ async def test_csv_and_json_export(tmp_path: Path, db: dict[str, str]) -> None:
             else:
                 assert row["o1"] == "" and row["sigma_mm"] == ""
             assert json.loads(row["timings_ms"]) == m.record.timings_ms
+            # a SHOWN field of the result event has a column of its own
+            rms = m.record.residuals.rms_px if m.record.residuals is not None else None
+            assert (float(row["residual_rms_px"]) if row["residual_rms_px"] else None) == rms
 
         r = await client.get("/api/v1/measurements/export",
                              params={"format": "json", "result": "NOK"})

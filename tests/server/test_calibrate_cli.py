@@ -13,11 +13,12 @@ from mvpose_core.calibration.boards import BoardSpec, render
 from mvpose_core.calibration.files import load_calibration
 from mvpose_core.calibration.synthetic import make_scene
 from mvpose_core.camera import CameraModel
-from mvpose_core.transforms import to_robot, transform_error
+from mvpose_core.transforms import invert, to_robot, transform_error
 from server.cli import main
 
 CAM = CameraModel(900.0, 900.0, 402.0, 297.0, 800, 600, (-0.12, 0.08, 0.0003, -0.0002, 0.0))
 BOARD = "chessboard:9x6:25"
+LAB = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "lab.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -37,12 +38,14 @@ def data(tmp_path_factory: pytest.TempPathFactory):
     return root, scene
 
 
-def _poses_csv(path: Path, scene, scale: float = 1.0, drop: str | None = None) -> Path:
+def _poses_csv(
+    path: Path, scene, scale: float = 1.0, drop: str | None = None, inverted: bool = False
+) -> Path:
     lines = ["id,X,Y,Z,A,B,C"]
     for sid, A in scene.robot_poses.items():
         if sid == drop:
             continue
-        v = to_robot(A, "kuka")
+        v = to_robot(invert(A) if inverted else A, "kuka")
         v[:3] *= scale
         lines.append(sid + "," + ",".join(f"{x:.5f}" for x in v))
     path.write_text("\n".join(lines) + "\n")
@@ -169,6 +172,11 @@ def test_missing_board_image_is_reported_and_left_out(data, tmp_path: Path) -> N
     [
         ({"scale": 0.001}, "wrong unit"),
         ({"drop": "005"}, r"images without a pose: \['005'\]"),
+        # Exported as T_gf_from_rf: refused in one line naming the file, never a traceback.
+        (
+            {"inverted": True},
+            r"poses.csv: hand-eye .*(do not fit the images|no solver gave a plau)",
+        ),
     ],
 )
 def test_bad_pose_files_name_the_problem(data, tmp_path: Path, capsys, kwargs, message) -> None:
@@ -189,7 +197,8 @@ def test_bad_pose_files_name_the_problem(data, tmp_path: Path, capsys, kwargs, m
         "--no-progress",
     )
     assert code == 2
-    assert re.search(message, capsys.readouterr().err)
+    err = capsys.readouterr().err
+    assert re.search(message, err) and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x.json").exists()
 
 
@@ -368,3 +377,42 @@ def test_station_from_images_applies_to_the_station_file(tmp_path: Path) -> None
         deg, mm = transform_error(vc.T_rf_from_cf, scene.T_rf_from_cf[vc.camera_id])
         assert mm < 0.5 and deg < 0.05, (vc.camera_id, deg, mm)
         assert abs(vc.model.fx / CAM.fx - 1) < 3e-3
+
+
+def test_synthetic_set_rehearses_the_handeye_step(tmp_path: Path, capsys) -> None:
+    """`calibrate synthetic` renders the lab station's stereo rig (at a quarter of its size) with
+    robot poses carrying a good robot's error; `calibrate handeye` on it finds the true hand-eye
+    within the reported 1σ's reach, and its report shows the values the file holds."""
+    import json
+
+    root = tmp_path / "syn"
+    board = "charuco:10x8:40:30"
+    code = _run(
+        "synthetic", "--station", LAB, "--out", root, "--board", board, "--samples", "10",
+        "--distance", "1000", "--robot-error", "0.05", "0.01", "--image-scale", "0.25",
+        "--seed", "1", "--no-progress",
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    truth = json.loads((root / "truth.json").read_text())
+    assert truth["robot_error_per_axis"] == {"mm": 0.05, "deg": 0.01}
+    assert sorted(p.name for p in (root / "images").iterdir()) == ["left", "right"]
+    assert len(list((root / "images" / "right").glob("*.png"))) == 10
+    assert (root / "poses.csv").read_text().startswith("id,X,Y,Z,W,P,R\n")  # lab: fanuc
+    out = tmp_path / "he.json"
+    code = _run(
+        "handeye", "--images", root / "images", "--board", board, "--poses", root / "poses.csv",
+        "--convention", "fanuc", "--out", out, "--no-progress",
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    cal = load_calibration(out)
+    X = cal.rigs["rig"].T_gf_from_rig.matrix  # no station: the rig frame is the left camera's
+    deg, mm = transform_error(X, np.array(truth["T_gf_from_cf"]["left"]))
+    sigma = cal.report["handeye (robot)"]["sigma"]
+    reach = 3 * max(
+        sigma["T_gf_from_cf translation mm"], sigma["T_gf_from_cf translation mm (jackknife)"]
+    )
+    assert mm < reach, (mm, sigma)
+    text = out.with_suffix(".report.txt").read_text()
+    fx = cal.cameras["left"].intrinsics.fx
+    held = cal.report["handeye (robot)"]["result"]["left fx px"]
+    assert abs(held - fx) < 0.01 and f"left fx px: {held!r}" in text

@@ -243,11 +243,10 @@ async def test_lab_two_views_each_trigger_shows_the_view_it_names(tmp_path: Path
             T = recipe.T_rf_from_pf0.matrix @ random_displacement(rng, 20.0, 2.0)
             await move_part(rt, None, T)  # type: ignore[arg-type]
             first = await asyncio.to_thread(client.trigger, f"P{part}", 1)
-            assert not first["final"] and first["views_done"] == 1, first
+            assert not first.final and first.views_done == 1, first
             last = await asyncio.to_thread(client.trigger, f"P{part}", 2)
-            assert last["final"] and last["result_code"] == 0, (last["result_code"],
-                                                                 last["message"])
-            deg, mm = offset_error(recipe, true_offset(recipe, T), np.array(last["offset"]))
+            assert last.final and last.result_code == 0, (last.result_code, last.message)
+            deg, mm = offset_error(recipe, true_offset(recipe, T), np.array(last.offset))
             assert deg <= recipe.tolerances.rotation_deg
             assert mm <= recipe.tolerances.translation_mm
 

@@ -25,7 +25,9 @@ from mqtt_broker import Mosquitto, Subscriber, wait_until
 from sqlalchemy import create_engine, text
 from stations import ENGINEER, relaxed_deadline, station_file
 
+from drivers.links.result import ResultEvent
 from server.station.client import StationClient, StationDownError
+from server.station.messages import TriggerAnswer
 
 START_S = 120.0  # migrations, four simulated 4 MP cameras and their warm-up on a loaded machine
 PLANT = {"enterprise": "acme", "site": "wob", "area": "body", "line": "l3"}
@@ -75,13 +77,13 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
     log = tmp_path / "station.log"
     client = StationClient(data / "station.sock")
     proc = _station(path, data, log)
-    answers: list[dict[str, Any]] = []
+    answers: list[TriggerAnswer] = []
 
     def trigger(n: int) -> None:
         for _ in range(n):
             k = len(answers) + 1
             got = client.trigger(part_id=f"P{k}", trigger_id=k)
-            assert got["result_code"] == 0, got
+            assert got.result_code == 0, got
             answers.append(got)
 
     try:
@@ -93,7 +95,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
 
         trigger(5)
         wait_until("5 results at the subscriber", lambda: len(sub.results()) == 5)
-        mqtt = client.status()["mqtt"]  # the station's status shows its publisher
+        mqtt = client.status().part("mqtt")  # the station's status shows its publisher
         assert mqtt["connected"] and mqtt["broker"].endswith(f":{broker.port}")
 
         # the broker is killed mid-run (once its state holds what it acknowledged: a crash
@@ -128,7 +130,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
             url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0)
 
         # SIGKILL: the broker publishes the last will, retained
-        pid = client.status()["pid"]
+        pid = client.status().pid
         os.kill(pid, signal.SIGKILL)
         proc.wait(timeout=10)
         will = wait_until("the last will", lambda: [
@@ -164,7 +166,10 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
             row.id, row.hash, row.trigger_id, row.part_id, row.result, row.reason_code, "OK")
         assert p["offset"]["convention"] and len(p["offset"]["values"]) >= 6
         assert p["sigma_mm"] > 0 and p["recipe_version"] >= 1
-    assert [a["result_id"] for a in answers] == sorted(p["result_id"] for p in got.values())
+        # every field of the result event, the fit's residual among them
+        assert p["residual_rms_px"] > 0 and set(ResultEvent.__dataclass_fields__) <= set(p)
+        assert p["convention"] == p["offset"]["convention"] and p["processing_ms"] > 0
+    assert [a.result_id for a in answers] == sorted(p["result_id"] for p in got.values())
     assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
     body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])
     assert body == got[("station1", 1)]
@@ -187,7 +192,7 @@ def test_a_record_is_published_once_committed_not_at_the_next_poll(tmp_path: Pat
                    lambda: [s for s in sub.on("/mvpose/state") if s["online"]], 30)
         for k in (1, 2, 3):
             got = client.trigger(part_id=f"P{k}", trigger_id=k)
-            assert got["result_code"] == 0, got
+            assert got.result_code == 0, got
             wait_until(f"result {k} at the subscriber", lambda k=k: len(sub.results()) == k, 2.0)
     finally:
         proc.send_signal(signal.SIGTERM)

@@ -96,6 +96,15 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
                 assert ev.Offset == offset and ev.Convention == rec.offset.convention.value
             assert (ev2.ResultId.Id, ev2.TriggerId, ev2.PartId.Id) == (
                 str(other.outcome.result_id), 32, "VIN-REST")
+            # the result event's SHOWN fields are event properties and LastResult variables:
+            # the fit's residual, as recorded
+            rms2 = recs[other.outcome.result_id].residuals
+            assert ev.ResidualRmsPx == (rec.residuals.rms_px if rec.residuals else 0.0)
+            assert ev2.ResidualRmsPx == (rms2.rms_px if rms2 else 0.0)
+            last = await vs.get_child([f"{mv}:ResultManagement", f"{own}:LastResult",
+                                       f"{own}:ResidualRmsPx"])
+            # (written before the event is triggered)
+            assert await last.read_value() == ev2.ResidualRmsPx
             assert events.queue.empty()
         finally:
             await client.disconnect()

@@ -65,7 +65,7 @@ class Proc:
             return False
 
     def modbus_port(self) -> int:
-        return int(self.client.status()["links"]["modbus"]["port"])
+        return int(self.client.status().links["modbus"]["port"])
 
     async def run(self, n: int) -> None:
         twin, beat = await attach_twin(await asyncio.to_thread(self.modbus_port), poll_s=0.005)

@@ -71,7 +71,7 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
     try:
         station = await _until("the station process answers", lambda: _ping(client))
         api = await _until("the API process answers", lambda: _api(data))
-        port = (await asyncio.to_thread(client.status))["links"]["modbus"]["port"]
+        port = (await asyncio.to_thread(client.status)).links["modbus"]["port"]
         twin, beat = await attach_twin(port, poll_s=0.002)
         answers: list[tuple[int, int, int]] = []
         try:
@@ -113,7 +113,7 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
                 "a new station process",
                 lambda: (p := _ping(client)) and p["pid"] != station["pid"] and p)
             assert restarted["pid"] != station["pid"]
-            port = (await asyncio.to_thread(client.status))["links"]["modbus"]["port"]
+            port = (await asyncio.to_thread(client.status)).links["modbus"]["port"]
             twin, beat = await attach_twin(port, poll_s=0.002)
             try:
                 for k in range(31, 34):

@@ -64,9 +64,9 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
 def test_the_trigger_path_runs_under_the_fifo_policy(tmp_path: Path) -> None:
     proc, client = _start(tmp_path, "--trigger-priority", "12")
     try:
-        assert client.status()["cpu"] == {"policy": "fifo", "priority": 12}
+        assert client.status().part("cpu") == {"policy": "fifo", "priority": 12}
         for k in range(8):
-            assert client.trigger(trigger_id=k + 1)["result_code"] == 0
+            assert client.trigger(trigger_id=k + 1).result_code == 0
         busiest = max(_threads(proc.pid), key=lambda t: t["ticks"])
         assert busiest["ticks"] > 0
         assert (busiest["policy"], busiest["priority"]) == (os.SCHED_FIFO, 12), busiest
@@ -78,7 +78,7 @@ def test_priority_zero_keeps_the_normal_scheduler_and_says_so(tmp_path: Path) ->
     # the environment variable, as a container sets it
     proc, client = _start(tmp_path, env={"MVPOSE_TRIGGER_PRIORITY": "0"})
     try:
-        cpu = client.status()["cpu"]
+        cpu = client.status().part("cpu")
         assert cpu["policy"] == "normal" and "off" in cpu["why"]
         assert {t["policy"] for t in _threads(proc.pid)} == {os.SCHED_OTHER}
     finally:
@@ -96,14 +96,14 @@ def test_the_opcua_link_process_runs_normal_and_ends_with_the_station(tmp_path: 
     proc, client = _start(tmp_path, "--trigger-priority", "12", edit=opcua)
     try:
         deadline = time.monotonic() + START_S
-        while not (link := client.status()["links"]["opcua"]).get("running"):
+        while not (link := client.status().links["opcua"]).get("running"):
             assert time.monotonic() < deadline, link
             time.sleep(0.1)
         child = link["pid"]
         assert int((Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split())[1]) \
             == proc.pid
         assert {t["policy"] for t in _threads(child)} == {os.SCHED_OTHER}
-        assert client.status()["cpu"] == {"policy": "fifo", "priority": 12}
+        assert client.status().part("cpu") == {"policy": "fifo", "priority": 12}
     finally:
         t = time.monotonic()
         _stop(proc)

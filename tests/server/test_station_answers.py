@@ -44,7 +44,7 @@ async def test_a_stuck_trigger_is_answered_with_a_recorded_timeout(tmp_path: Pat
         recipe = lb.runtime.active.config
         # A camera that hangs, a detector stuck in a loop: the trigger thread does not come back.
         release = threading.Event()
-        lb.runtime._trigger_exec.submit(release.wait, 30)
+        lb.runtime.triggers.executor.submit(release.wait, 30)
         t = time.monotonic()
         status, _ = await trigger(lb.twin, recipe, 41, None, timeout=5.0)
         waited = time.monotonic() - t
@@ -189,4 +189,4 @@ async def test_the_apis_status_calls_reach_the_station_at_most_every_quarter_sec
         assert again is first  # served from the last answer: the station was not asked
         await asyncio.sleep(0.3)
         fresh = await asyncio.to_thread(client.status)
-        assert fresh is not first and fresh["station"] == "station1"
+        assert fresh is not first and fresh.station == "station1"

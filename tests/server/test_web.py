@@ -249,13 +249,16 @@ def test_status_panel_reads_the_station_status() -> None:
               "links": {"modbus": {"running": True, "state": "READY", "plc_online": False,
                                    "server_heartbeat": 12}},
               "counts": {"triggers": 5, "ok": 4, "nok": 1}}
-    panel = status_panel(status, None, "station file")
+    shift = "early 06:00–14:00 UTC: OK 40 · NOK 2"
+    panel = status_panel(status, None, "station file", shift)
     for words in ("READY", "modbus: READY · PLC offline", "floor_panel v3", "cal-7 (cdcdcdcdcdcd)",
-                  "top_right: down: timeout", "triggers 5, ok 4, nok 1", "teach armed"):
+                  "top_right: down: timeout", shift, "teach armed"):
         assert words in panel, words
+    # the counts are the store's (the shift's), not the station process's memory
+    assert "triggers 5" not in panel
     assert "12" not in panel.replace("cdcdcdcdcdcd", "")  # the heartbeat is not shown
-    down = status_panel(None, "the station process is not running", "station file")
-    assert "station down" in down and "not running" in down
+    down = status_panel(None, "the station process is not running", "station file", shift)
+    assert "station down" in down and "not running" in down and shift in down
 
 
 async def test_a_station_that_does_not_answer_is_shown_down(tmp_path: Path) -> None:
@@ -267,7 +270,8 @@ async def test_a_station_that_does_not_answer_is_shown_down(tmp_path: Path) -> N
         page = (await client.get("/")).text
         assert "station down" in page and "the station process is not running" in page
         # the engineer's actions stay on the page, disabled while the station is down
-        assert re.search(r"<button type=\"submit\" disabled[^>]*>Trigger now", page)
+        assert re.search(r"<button type=\"submit\" data-needs-station disabled[^>]*>\s*"
+                         r"Trigger now", page)
         r = await client.post("/web/actions/trigger", json={"part_id": "VIN1"}, headers=ORIGIN)
         assert r.status_code == 503 and "not running" in r.json()["detail"]
 

@@ -8,10 +8,11 @@ into, as the station process does; the records are the pose engine's own on simu
 from __future__ import annotations
 
 import math
+import re
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +20,16 @@ import cv2
 import numpy as np
 import pytest
 from apps import ENGINEER, settings
+from axe import assert_accessible
 from system_packages import ensure_commands
 
 from mvpose_core.offset import frame_offsets
+from mvpose_core.reasons import Reason
+from mvpose_core.shifts import DEFAULT_SHIFTS, shift_at, time_zone
 from server.app import create_app
 from server.auth import Role, create_token
 from server.state import Services, open_services
-from server.store.schemas import Offset, StoredMeasurement
+from server.store.schemas import MeasurementRecord, Offset, StoredMeasurement
 from server.web.geometry import recipe_from_content
 from server.web.sample import SampleLine
 from server.web.screenshots import VIEWPORT, launch, login, serve
@@ -132,23 +136,15 @@ def _overlay_points(page: Any, figure: Any) -> list[dict[str, float]]:
     }""")
 
 
-def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: Site) -> None:
-    page = site.page("engineer")
-    page.wait_for_function("[...document.querySelectorAll('#frames img')].every("
-                           "(i) => i.complete && i.naturalWidth > 0)")
-    frames = page.locator("#frames")
-    assert frames.get_attribute("data-id") == str(site.framed.id)
-    assert "newest one with archived frames" in frames.inner_text()
-    assert page.locator("#status .state").inner_text() == "station down"
-    assert page.locator("#result").get_attribute("data-id") == str(site.framed.id + 2)
-
-    detected = {(cd.camera_id, d.mark_id): d.uv for cd in site.framed.record.detections
+def _check_overlays(site: Site, page: Any, stored: StoredMeasurement) -> None:
+    """Each found-mark circle sits on the record's detection, on a dark disc of its image."""
+    detected = {(cd.camera_id, d.mark_id): d.uv for cd in stored.record.detections
                 for d in cd.detections if d.found}
     checked = 0
     for figure in page.locator("figure.cam").element_handles():
         cam = figure.get_attribute("data-camera")
         image = None
-        for ref in site.framed.record.images:
+        for ref in stored.record.images:
             if ref.camera_id == cam:
                 image = cv2.imread(str(site.writer.images.resolve(ref.path)), 0)
         assert image is not None
@@ -163,8 +159,24 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
             checked += 1
         assert figure.query_selector_all("rect.window")
     assert checked == 7
-    assert page.locator('#frames g.missing[data-mark="B2"]').count() == 1
-    site.shot(page, "live")
+
+
+def _all_frames_loaded(page: Any, n: int) -> None:
+    page.wait_for_function(
+        f"(() => {{ const i = [...document.querySelectorAll('#frames img')]; return i.length "
+        f"=== {n} && i.every((x) => x.complete && x.naturalWidth > 0); }})()", timeout=20000)
+
+
+def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: Site) -> None:
+    page = site.page("engineer")
+    newest = site.framed.id + 2  # two results after the framed NOK kept no frames
+    frames = page.locator("#frames")
+    assert page.locator("#result").get_attribute("data-id") == str(newest)
+    # the images panel is the newest result's (its marks on grey), with a link to the NOK
+    assert frames.get_attribute("data-id") == str(newest)
+    assert page.locator("#frames img").count() == 0
+    assert frames.locator(f'a[href="/history/{site.framed.id}"]').count() == 1
+    assert page.locator("#status .state").inner_text() == "station down"
 
     # A new result is pushed (server-sent events): the page shows it without reloading. A
     # second browser gets it from the same single watcher of the store.
@@ -180,13 +192,99 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
     assert page.evaluate("window.__same_page") == 42
     assert feed.listeners == 2 and feed._task is not None  # one watcher task for both
     other.context.close()
-    assert page.locator("#frames").get_attribute("data-id") == str(site.framed.id)
     framed = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
     page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{framed.id}'",
                            timeout=15000)
-    assert "showing the last result" in page.locator("#frames").inner_text()
+    _all_frames_loaded(page, 4)
+    _check_overlays(site, page, framed)
+    assert page.locator('#frames g.missing[data-mark="B2"]').count() == 1
     assert "marks the recipe needs were not found" in page.locator("#result").inner_text()
     assert page.evaluate("window.__same_page") == 42
+    site.shot(page, "live")
+    page.context.close()
+
+
+def test_live_shows_every_frame_of_a_nok_once_the_archive_has_written_it(site: Site) -> None:
+    """The archive writes a record's frames one camera after another, after the record: the
+    Live page waits for the last one (it showed 'frame not archived' for the rest)."""
+    page = site.page("read")
+    page.wait_for_function("document.getElementById('live').dataset.connected === '1'")
+    record, images = site.line.record(missing="B2", frames=True)
+    archive = site.writer.images
+    refs = archive.plan(record.station, record.trigger_id, record.triggered_at, False,
+                        sorted(images))
+    stored = _in_thread(lambda: site.writer.record_measurement(
+        record.model_copy(update={"images": refs})))
+    _in_thread(lambda: archive.write(stored.id, refs[:2], False, images))
+    page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{stored.id}'",
+                           timeout=15000)
+    _in_thread(lambda: archive.write(stored.id, refs[2:], False, images))
+    _all_frames_loaded(page, 4)
+    assert page.locator("#frames .noframe").count() == 0
+    page.context.close()
+
+
+def test_live_never_puts_an_older_records_images_beside_a_newer_result(site: Site) -> None:
+    page = site.page("read")
+    page.wait_for_function("document.getElementById('live').dataset.connected === '1'")
+    nok = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
+    page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{nok.id}'",
+                           timeout=15000)
+    _all_frames_loaded(page, 4)
+    ok = _in_thread(lambda: site.line.store(*site.line.record()))
+    page.wait_for_function(f"document.querySelector('#result').dataset.id === '{ok.id}'",
+                           timeout=15000)
+    page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{ok.id}'",
+                           timeout=15000)
+    frames = page.locator("#frames")
+    assert page.locator("#frames img").count() == 0  # the NOK's images are gone
+    assert f"({ok.record.result})" in frames.locator("h2").inner_text()
+    assert frames.locator(f'a[href="/history/{nok.id}"]').count() == 1  # linked, in words
+    assert "kept no frames" in frames.inner_text()
+    page.context.close()
+
+
+def test_a_noks_measured_offset_says_it_was_not_sent(site: Site) -> None:
+    template, _ = site.line.record()
+    assert template.offset is not None
+    nok = template.model_copy(update={
+        **MeasurementRecord.reason_fields(Reason.OFFSET_TRANSLATION_OUT_OF_RANGE),
+        "message": "offset 140 mm > 100 mm"})
+    stored = _in_thread(lambda: site.line.store(nok, {}))
+    page = site.page("read")
+    page.wait_for_function(f"document.querySelector('#result').dataset.id === '{stored.id}'",
+                           timeout=15000)
+    for where in (f"{site.base}/", f"{site.base}/history/{stored.id}"):
+        page.goto(where)
+        table = page.locator("#result table.offset")
+        assert table.get_attribute("data-sent") == "false"
+        assert "NOT SENT to the robot" in table.locator("caption").inner_text()
+        assert page.locator("#result table.offset td").first.evaluate(
+            "(td) => getComputedStyle(td).textDecorationLine") == "line-through"
+    # an OK's offset looks like what it is: sent
+    ok = _in_thread(lambda: site.line.store(*site.line.record()))
+    page.goto(f"{site.base}/history/{ok.id}")
+    assert page.locator("#result table.offset").get_attribute("data-sent") == "true"
+    assert "NOT SENT" not in page.locator("#result").inner_text()
+    page.context.close()
+
+
+def test_live_counts_the_shift_from_the_store(site: Site) -> None:
+    """The Live page's counts are the store's, for the current shift: a restarted station
+    process (or API process) does not start them at 0."""
+    page = site.page("read")
+    page.wait_for_function("document.getElementById('live').dataset.connected === '1'")
+    window = shift_at(DEFAULT_SHIFTS, time_zone("UTC"), datetime.now(UTC))
+    counts = site.writer.store.shifts.counts(window.start, window.end)
+    assert page.locator('#status [data-count="ok"]').inner_text() == str(counts.ok)
+    assert page.locator('#status [data-count="nok"]').inner_text() == str(counts.nok)
+    assert window.name in page.locator("#status .counts").inner_text()
+    record, _ = site.line.record(missing="B2")
+    now = datetime.now(UTC)
+    _in_thread(lambda: site.line.store(record.model_copy(update={"triggered_at": now}), {}))
+    page.wait_for_function("document.querySelector('#status [data-count=\"nok\"]')"
+                           f".textContent === '{counts.nok + 1}'", timeout=15000)
+    assert page.locator('#status [data-count="ok"]').inner_text() == str(counts.ok)
     page.context.close()
 
 
@@ -200,10 +298,14 @@ def test_history_filters_paging_drill_down_and_export(site: Site) -> None:
     rows = page.locator("#rows tbody tr")
     assert rows.count() == 3 and all(c == "nok" for c in
                                      rows.evaluate_all("(rs) => rs.map((r) => r.className)"))
-    first = page.locator("#rows tbody tr").first.get_attribute("data-id")
-    page.click("#rows a.more")
-    page.wait_for_function(f"!document.querySelector('#rows tr[data-id=\"{first}\"]')")
-    assert page.locator("#rows tbody tr.nok").count() >= 1
+    for _ in range(2):  # each next page replaces the list: one #rows, never one inside another
+        if page.locator("#rows a.more").count() == 0:
+            break
+        first = page.locator("#rows tbody tr").first.get_attribute("data-id")
+        page.click("#rows a.more")
+        page.wait_for_function(f"!document.querySelector('#rows tr[data-id=\"{first}\"]')")
+        assert page.evaluate("document.querySelectorAll('[id=rows]').length") == 1
+        assert page.locator("#rows tbody tr.nok").count() >= 1
     site.shot(page, "history")
     href = page.locator("p.export a", has_text="CSV").get_attribute("href")
     csv = page.request.get(site.base + href)
@@ -221,6 +323,88 @@ def test_history_filters_paging_drill_down_and_export(site: Site) -> None:
     assert page.locator("line.residual").count() == 7
     assert page.locator("text=Teach this").count() == 0  # a read token does not teach
     site.shot(page, "record")
+    page.context.close()
+
+
+def test_history_says_why_a_mistyped_time_is_refused(site: Site) -> None:
+    page = site.page("read")
+    page.goto(f"{site.base}/history")
+    page.fill("#filters input[name=since]", "yesterday 6 am")
+    page.click("#filters button[type=submit]")
+    alert = page.locator("#rows [role=alert]")
+    alert.wait_for(timeout=10000)
+    assert "since = 'yesterday 6 am' is not an ISO 8601 time" in alert.inner_text()
+    page.fill("#filters input[name=since]", "2026-11-02T06:00")
+    page.click("#filters button[type=submit]")
+    page.wait_for_function("document.querySelector('#rows [role=alert]') && document"
+                           ".querySelector('#rows [role=alert]').textContent.includes('no time "
+                           "zone')")
+    # a correct time filters again
+    page.fill("#filters input[name=since]", "2026-11-02T06:00Z")
+    page.click("#filters button[type=submit]")
+    page.wait_for_selector("#rows table.history")
+    assert page.locator("#rows [role=alert]").count() == 0
+    # without htmx (a typed URL) the whole page says it too, with the 400
+    answer = page.goto(f"{site.base}/history?until=later")
+    assert answer is not None and answer.status == 400
+    assert "until = 'later' is not an ISO 8601 time" in page.locator("[role=alert]").inner_text()
+    page.context.close()
+
+
+_TICKS = """() => [...document.querySelectorAll('#charts .chart')].map((c) => ({
+    title: c.querySelector('h3').textContent,
+    span: c.plot.scales.x.max - c.plot.scales.x.min,
+    x: c.plot.axes[0]._values, y: c.plot.axes[1]._values,
+    log: c.plot.scales.y.distr === 3}))"""
+
+
+def _assert_readable_ticks(charts: list[dict[str, Any]], points: int, data_span: float) -> None:
+    """Every chart: a time axis about as long as the data, tick labels that differ, no "−0",
+    no time label cut to ":53.900"."""
+    assert charts
+    for c in charts:
+        what = f"{c['title']} ({points} points)"
+        assert c["span"] <= max(1.2 * data_span, 3600), (what, c["span"])  # not 1000 days
+        for axis in ("x", "y"):
+            ticks = [v for v in c[axis] if v]
+            assert len(ticks) >= 2, (what, axis, c[axis])
+            assert len(set(ticks)) == len(ticks), (what, axis, ticks)  # no label twice
+            for v in ticks:
+                assert not re.fullmatch(r"[-−]0(\.0*)?", v), (what, axis, ticks)
+                assert not v.startswith(":"), (what, axis, ticks)
+
+
+def test_chart_axes_are_readable_at_few_and_many_points(site: Site) -> None:
+    page = site.page("read")
+    page.goto(f"{site.base}/trends")
+    for limit in (3, 60, 20000):
+        page.fill("#trend-filters input[name=limit]", str(limit))
+        page.click("#trend-filters button[type=submit]")
+        page.wait_for_function(f"(() => {{ const c = document.querySelector('#charts'); "
+                               f"return c.dataset.points && c.dataset.limit === '{limit}'; }})()",
+                               timeout=60000)
+        points = int(page.locator("#charts").get_attribute("data-points"))
+        cols = page.request.get(f"{site.base}/web/trends.json?limit={limit}").json()["columns"]
+        span = cols["t"][-1] - cols["t"][0]
+        _assert_readable_ticks(page.evaluate(_TICKS), points, span)
+    # the page's own chart() on made-up series up to 100,000 points (more than the store above
+    # holds): a walk, a flat line near zero and a flat 100 %, 30 s apart
+    for n in (3, 1000, 100_000):
+        page.evaluate("""(n) => {
+            const host = document.getElementById('charts');
+            host.textContent = '';
+            const x = [], walk = [], zero = [], full = [];
+            let v = 0;
+            for (let i = 0; i < n; i++) {
+                x.push(1793772000 + 30 * i);
+                v += Math.sin(i * 12.9898) * 0.01;
+                walk.push(v); zero.push(-1e-17); full.push(100);
+            }
+            chart(host, 'walk', x, [{label: 'W', values: walk}], {unit: '°'});
+            chart(host, 'zero', x, [{label: 'P', values: zero}], {unit: '°'});
+            chart(host, 'full', x, [{label: 'NOK %', values: full}], {unit: '%'});
+        }""", n)
+        _assert_readable_ticks(page.evaluate(_TICKS), n, 30.0 * (n - 1))
     page.context.close()
 
 
@@ -324,6 +508,7 @@ def test_the_trigger_form_says_the_stations_reason_and_message(
         update={"modbus": modbus})})
     proc = StationProcess(cfg, station, stations.runtime_options())
     proc.start()
+    stopped = False
     try:
         app = create_app(cfg, StationClient(cfg.resolved_control_socket))
         with serve(app) as base:
@@ -347,7 +532,45 @@ def test_the_trigger_form_says_the_stations_reason_and_message(
                     "() => document.querySelector('section.actions .msg').textContent"
                     ".startsWith('OK')")
                 assert "done" in (msg.get_attribute("class") or "")
+                # The station goes down under an open Live page: its actions grey out, with
+                # the status pushed to the page (no reload)
+                actions = page.locator("section.actions button")
+                assert actions.all_inner_texts() == ["Trigger now", "Arm teach"]
+                assert all(not b.is_disabled() for b in actions.all())
+                page.evaluate("window.__same_page = 7")
+                proc.stop()
+                stopped = True
+                page.wait_for_function(
+                    "[...document.querySelectorAll('section.actions button')].every("
+                    "(b) => b.disabled)", timeout=15000)
+                assert page.locator("#status .state").inner_text() == "station down"
+                assert page.evaluate("window.__same_page") == 7
             finally:
                 context.close()
     finally:
-        proc.stop()
+        if not stopped:
+            proc.stop()
+
+
+#: every page, and what shows it has drawn
+PAGES = {"/": "#status", "/line": "#verdict", "/history": "table.history",
+         "/trends": "#charts[data-points]", "/calibration": "#charts[data-points]",
+         "/recipes": "table", "/recipes/floor_panel": "table.diff"}
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("role", ["read", "operator", "engineer"])
+def test_axe_finds_nothing_serious_on_any_page(site: Site, role: str) -> None:
+    page = site.page(role)
+    for path, ready in {**PAGES, f"/history/{site.framed.id}": "figure.cam img"}.items():
+        page.goto(site.base + path)
+        page.wait_for_selector(ready, timeout=30000)
+        assert_accessible(page, f"{path} as {role}")
+        assert page.locator("h1").count() == 1, path
+    page.context.close()
+    # and the login page, before anyone logs in
+    context = site.browser.new_context(viewport=VIEWPORT)
+    login_page = context.new_page()
+    login_page.goto(f"{site.base}/login")
+    assert_accessible(login_page, "/login")
+    context.close()

@@ -54,6 +54,7 @@ from mvpose_core.linkconfig import OpcUaLinkConfig
 from mvpose_core.reasons import Reason, reason_name
 
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
+from ..result import ResultEvent
 from . import values as v
 from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
 from .arguments import check_arguments
@@ -342,6 +343,7 @@ class OpcUaLink(Link):
             ("SigmaRotationDeg", 0.0, ua.VariantType.Double),
             ("ProcessingMs", 0.0, ua.VariantType.Double),
             ("CreationTime", datetime.now(UTC), ua.VariantType.DateTime),
+            *((node, default, vt) for node, _, default, vt in v.shown_fields()),
         ]
 
     # ------------------------------------------------------------------ states
@@ -540,16 +542,16 @@ class OpcUaLink(Link):
                 await self._show_states()
 
     # ------------------------------------------------------------------ results
-    def _on_result(self, result: dict[str, Any]) -> None:
+    def _on_result(self, event: ResultEvent) -> None:
         """The station's listener (on the station loop): publish on our loop."""
         loop = self._loop
         if self._listening and loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(lambda: self._spawn(self._publish(result)))
+            loop.call_soon_threadsafe(lambda: self._spawn(self._publish(event)))
 
-    async def _publish(self, r: dict[str, Any]) -> None:
+    async def _publish(self, r: ResultEvent) -> None:
         if self.server is None or self._evgen is None:
             return
-        own, standard = v.result_fields(r, self.management.in_use)
+        own, standard = v.result_fields(r, self.management.versions)
         async with self._lock:
             server = self.server
             for name, value in own.items():  # the server's own write: no session

@@ -20,7 +20,8 @@ from asyncua import Node, Server, ua
 
 from mvpose_core.reasons import Reason
 
-from ..base import CalibrationInfo, ResultQuery, StationHandler, StoredResult
+from ..base import CalibrationInfo, ResultQuery, StationHandler
+from ..result import ResultEvent
 from . import values as v
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,9 @@ class Management:
         self.on_recipe_change = on_recipe_change
         self.error = error
         self.active_configuration: Node | None = None
-        self.in_use: CalibrationInfo | None = None  # as ActiveConfiguration last showed it
+        # the stored calibrations' versions by sha256, as show_configuration last read them
+        # (the result events' InternalConfigurationId.Version)
+        self.versions: dict[str, int] = {}
         self.engineer_methods: set[ua.NodeId] = set()
         # one management call at a time, whichever client, spacing_s apart (the station file's
         # query_spacing_s): clients queue instead of adding their load to the trigger path's
@@ -144,7 +147,7 @@ class Management:
         return out, code
 
     # ------------------------------------------------------------------ results
-    async def _one_result(self, method: str, rid: ua.Variant) -> StoredResult | None:
+    async def _one_result(self, method: str, rid: ua.Variant) -> ResultEvent | None:
         wanted = v.struct_id(rid.Value)
         found = None
         if wanted.isdigit() and 0 < int(wanted) < 2**63:
@@ -273,8 +276,9 @@ class Management:
         """ActiveConfiguration: the calibration version the station measures with."""
         if self.active_configuration is None:
             return
-        using = next((c for c in await self.handler.calibrations() if c.in_use), None)
-        self.in_use = using
+        calibrations = await self.handler.calibrations()
+        using = next((c for c in calibrations if c.in_use), None)
+        self.versions = {c.sha256: c.version for c in calibrations}
         value = v.configuration(using) if using is not None else _UA.ConfigurationDataType()
         await self.active_configuration.write_value(ua.Variant(value))
 
@@ -294,7 +298,7 @@ def _structs(items: list[Any]) -> ua.Variant:
     return ua.Variant(items, ua.VariantType.ExtensionObject)
 
 
-def _components(r: StoredResult | None, versions: dict[str, int]) -> Outputs:
+def _components(r: ResultEvent | None, versions: dict[str, int]) -> Outputs:
     """GetResultComponentsById's outputs but Error, from ResultDataType's fields."""
     d = v.result_data(r, versions) if r is not None else _UA.ResultDataType()
     return [

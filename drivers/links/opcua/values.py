@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import timedelta
 from typing import Any
 
 from asyncua import ua
 
 from mvpose_core.reasons import reason_name
 
-from ..base import CalibrationInfo, StoredResult
+from ..base import CalibrationInfo
+from ..result import ResultEvent
 
 _UA: Any = ua  # the NodeSet's structures are made at import time; asyncua's stubs are strict
 RESULT_STATE_COMPLETED = 1  # ResultStateDataType (OPC 40100-1 §12.19): processing completed
@@ -99,20 +100,20 @@ def result_content(offset: Any, sigma_mm: float, sigma_deg: float) -> list[ua.Va
             for v in (*offset, sigma_mm, sigma_deg)]
 
 
-def result_data(r: StoredResult, config_versions: dict[str, int]) -> Any:
-    """A stored record as the standard's ResultDataType."""
+def result_data(r: ResultEvent, config_versions: dict[str, int]) -> Any:
+    """A stored record's event as the standard's ResultDataType."""
     processing = None
-    if r.total_ms is not None:
+    if r.processing_ms is not None:
         processing = _UA.ProcessingTimesDataType(
             StartTime=r.triggered_at,
-            EndTime=r.triggered_at + timedelta(milliseconds=r.total_ms),
-            ProcessingDuration=float(r.total_ms))
+            EndTime=r.triggered_at + timedelta(milliseconds=r.processing_ms),
+            ProcessingDuration=float(r.processing_ms))
     return _UA.ResultDataType(
         ResultId=_UA.ResultIdDataType(Id=str(r.result_id)),
         IsPartial=False,
         ResultState=result_state(r.ok, r.reason_code),
         MeasId=_UA.MeasIdDataType(Id=str(r.trigger_id)),
-        PartId=_UA.PartIdDataType(Id=r.part_id),
+        PartId=_UA.PartIdDataType(Id=r.part_id or ""),
         InternalRecipeId=recipe_id("RecipeIdInternalDataType", r.recipe, r.recipe_version),
         InternalConfigurationId=configuration_id(
             r.calibration_id, r.calibration_sha256,
@@ -120,74 +121,64 @@ def result_data(r: StoredResult, config_versions: dict[str, int]) -> Any:
         JobId=_UA.JobIdDataType(Id=str(r.trigger_id)),
         CreationTime=r.triggered_at,
         ProcessingTimes=processing,
-        ResultContent=result_content(r.offset, r.sigma_mm, r.sigma_deg) or None)
+        ResultContent=result_content(r.robot_offset, r.sigma_mm or 0.0, r.sigma_deg or 0.0)
+        or None)
 
 
-def when(value: Any) -> datetime:
-    if isinstance(value, datetime):
-        return value
-    if isinstance(value, str):
-        try:
-            return datetime.fromisoformat(value)
-        except ValueError:
-            pass
-    return datetime.now(UTC)
+_VARIANTS: dict[type, tuple[Any, ua.VariantType]] = {
+    bool: (False, ua.VariantType.Boolean), int: (0, ua.VariantType.Int64),
+    float: (0.0, ua.VariantType.Double), str: ("", ua.VariantType.String),
+}
 
 
-def result_fields(r: dict[str, Any], configuration: CalibrationInfo | None
+def shown_fields() -> list[tuple[str, str, Any, ua.VariantType]]:
+    """The result event's SHOWN fields as LastResult variables and event properties: (node
+    name in CamelCase, field name, value when the event has none, variant type)."""
+    out = []
+    for name, tp in ResultEvent.shown():
+        if tp not in _VARIANTS:
+            raise TypeError(f"result event field {name!r}: no OPC UA type for {tp!r}")
+        default, vt = _VARIANTS[tp]
+        out.append(("".join(p.title() for p in name.split("_")), name, default, vt))
+    return out
+
+
+def result_fields(r: ResultEvent, config_versions: dict[str, int]
                   ) -> tuple[dict[str, ua.Variant], dict[str, ua.Variant]]:
-    """One recorded answer (the station's listener dict ``r``) as the result event's fields:
-    (mvpose's own, ``ResultManagement/LastResult`` and the event subtype's; ResultReadyEventType's,
-    OPC 40100-1 §8.3.8.4, every Mandatory one filled as GetResultById fills it). The record's
-    calibration when ``r`` names it, else ``configuration``, the one the station measures with."""
-    code = int(r.get("reason_code", 0))
-    ok = code == 0 and r.get("result") == "OK"
-    at = when(r.get("at"))
-    ms = float(r.get("processing_ms") or 0.0)
-    offset = [float(x) for x in (r.get("offset") or [])]
-    sigma_mm, sigma_deg = float(r.get("sigma_mm") or 0.0), float(r.get("sigma_deg") or 0.0)
-    rid, trigger = int(r["result_id"]), int(r.get("trigger_id") or 0)
+    """One recorded answer as the result event's fields: (mvpose's own, which are also
+    ``ResultManagement/LastResult``; ResultReadyEventType's, OPC 40100-1 §8.3.8.4, every
+    Mandatory one as GetResultById has it: taken from :func:`result_data`)."""
     own = {
-        "ResultNumber": uint32(rid), "TriggerId": uint32(trigger),
-        "PartId": ua.Variant(str(r.get("part_id") or ""), ua.VariantType.String),
-        "Recipe": ua.Variant(str(r.get("recipe") or ""), ua.VariantType.String),
-        "ResultCode": int32(code),
-        "Reason": ua.Variant(str(r.get("reason") or reason_name(code)), ua.VariantType.String),
-        "ResultMessage": ua.Variant(str(r.get("message") or ""), ua.VariantType.String),
-        "Offset": ua.Variant(offset, ua.VariantType.Double),
-        "Convention": ua.Variant(str(r.get("convention") or ""), ua.VariantType.String),
-        "SigmaTranslationMm": ua.Variant(sigma_mm, ua.VariantType.Double),
-        "SigmaRotationDeg": ua.Variant(sigma_deg, ua.VariantType.Double),
-        "ProcessingMs": ua.Variant(ms, ua.VariantType.Double),
-        "CreationTime": ua.Variant(at, ua.VariantType.DateTime),
+        "ResultNumber": uint32(r.result_id), "TriggerId": uint32(r.trigger_id),
+        "PartId": ua.Variant(r.part_id or "", ua.VariantType.String),
+        "Recipe": ua.Variant(r.recipe, ua.VariantType.String),
+        "ResultCode": int32(r.reason_code),
+        "Reason": ua.Variant(r.reason or reason_name(r.reason_code), ua.VariantType.String),
+        "ResultMessage": ua.Variant(r.message, ua.VariantType.String),
+        "Offset": ua.Variant([float(x) for x in (r.robot_offset or ())], ua.VariantType.Double),
+        "Convention": ua.Variant(r.convention or "", ua.VariantType.String),
+        "SigmaTranslationMm": ua.Variant(r.sigma_mm or 0.0, ua.VariantType.Double),
+        "SigmaRotationDeg": ua.Variant(r.sigma_deg or 0.0, ua.VariantType.Double),
+        "ProcessingMs": ua.Variant(r.processing_ms or 0.0, ua.VariantType.Double),
+        "CreationTime": ua.Variant(r.triggered_at, ua.VariantType.DateTime),
+        **{node: ua.Variant(getattr(r, name) if getattr(r, name) is not None else default, vt)
+           for node, name, default, vt in shown_fields()},
     }
-    if "calibration_sha256" in r:
-        config = configuration_id(r.get("calibration_id"), r.get("calibration_sha256"),
-                                  r.get("calibration_version"))
-    elif configuration is not None:
-        config = configuration_id(configuration.calibration_id, configuration.sha256,
-                                  configuration.version)
-    else:
-        config = configuration_id(None, None, None)
+    d = result_data(r, config_versions)
 
     def struct(value: Any) -> ua.Variant:
         return ua.Variant(value, ua.VariantType.ExtensionObject)
 
     standard = {
-        "ResultId": struct(_UA.ResultIdDataType(Id=str(rid))),
-        "IsPartial": boolean(False),
-        "ResultState": int32(result_state(ok, code)),
-        "MeasId": struct(_UA.MeasIdDataType(Id=str(trigger))),
-        "JobId": struct(_UA.JobIdDataType(Id=str(trigger))),
-        "PartId": struct(_UA.PartIdDataType(Id=str(r.get("part_id") or ""))),
-        "InternalRecipeId": struct(recipe_id("RecipeIdInternalDataType", str(r.get("recipe") or ""),
-                                             int(r.get("recipe_version") or 0))),
-        "InternalConfigurationId": struct(config),
-        "CreationTime": ua.Variant(at, ua.VariantType.DateTime),
-        "ProcessingTimes": struct(_UA.ProcessingTimesDataType(
-            StartTime=at, EndTime=at + timedelta(milliseconds=ms), ProcessingDuration=ms)),
-        "ResultContent": ua.Variant(result_content(offset if ok else None, sigma_mm, sigma_deg),
-                                    ua.VariantType.Variant),
+        "ResultId": struct(d.ResultId), "IsPartial": boolean(d.IsPartial),
+        "ResultState": int32(d.ResultState), "MeasId": struct(d.MeasId),
+        "JobId": struct(d.JobId), "PartId": struct(d.PartId),
+        "InternalRecipeId": struct(d.InternalRecipeId),
+        "InternalConfigurationId": struct(d.InternalConfigurationId),
+        "CreationTime": ua.Variant(d.CreationTime, ua.VariantType.DateTime),
+        "ProcessingTimes": struct(d.ProcessingTimes or _UA.ProcessingTimesDataType(
+            StartTime=d.CreationTime, EndTime=d.CreationTime)),
+        "ResultContent": ua.Variant(d.ResultContent or [], ua.VariantType.Variant),
     }
     return own, standard
 

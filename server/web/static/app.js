@@ -61,6 +61,30 @@ function setupActions() {
   if (open && dialog) open.addEventListener("click", () => dialog.showModal());
 }
 
+// The station's actions follow the station: a Live page left open greys them out when the
+// status panel (pushed every second) says the station is down, and offers them again when it
+// is back.
+function stationActions() {
+  const state = document.querySelector("#status .state");
+  if (!state) return;
+  const down = state.dataset.state === "DOWN";
+  document.querySelectorAll("[data-needs-station]").forEach((b) => {
+    b.disabled = down;
+    if (down) b.title = "station down"; else b.removeAttribute("title");
+  });
+}
+
+// A filter the server refuses (400) comes with the page's words for it: show them (htmx swaps
+// only 2xx answers unless told).
+function setupHtmxErrors() {
+  document.body.addEventListener("htmx:beforeSwap", (ev) => {
+    if (ev.detail.xhr && ev.detail.xhr.status === 400) {
+      ev.detail.shouldSwap = true;
+      ev.detail.isError = false;
+    }
+  });
+}
+
 function setupLive() {
   const live = document.getElementById("live");
   if (!live || !window.EventSource) return;
@@ -71,6 +95,7 @@ function setupLive() {
     const fresh = tpl.content.firstElementChild;
     const old = fresh && document.getElementById(fresh.id);
     if (old) old.replaceWith(fresh);
+    if (ev.type === "status") stationActions();
     live.dataset.updates = String(Number(live.dataset.updates || 0) + 1);
   };
   ["result", "frames", "status"].forEach((name) => events.addEventListener(name, swap));
@@ -115,13 +140,54 @@ function chart(host, title, x, series, opts) {
     const r = uPlot.rangeLog(lo, hi, 10, true);  // whole decades: uPlot's log axis needs them
     range = () => r;
   } else {
-    const pad = 0.08 * Math.max(hi - lo, 1e-6);
+    // A flat series (one point, or every value equal) still gets a span its ticks can tell
+    // apart: a tenth of its size, at least 1 unit.
+    const mag = Math.max(Math.abs(lo), Math.abs(hi));
+    const pad = hi - lo > 1e-6 * Math.max(mag, 1) ? 0.08 * (hi - lo) : Math.max(0.1 * mag, 1);
     range = () => [lo - pad, hi + pad];
   }
   const width = Math.max(Math.min(host.clientWidth - 10, 1400), 320);
-  return new uPlot({width: width, height: opts.height || 220, series: spec,
-    scales: {x: {time: true}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
-    axes: [{}, {label: opts.unit || ""}], cursor: {drag: {x: true, y: false}}}, data, box);
+  const plot = new uPlot({width: width, height: opts.height || 220, series: spec,
+    scales: {x: {time: true, range: timeRange(x)}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
+    axes: [{values: timeTicks, label: "UTC"},
+           {label: opts.unit || "", values: opts.log ? undefined : numberTicks}],
+    cursor: {drag: {x: true, y: false}}}, data, box);
+  box.plot = plot;  // the browser tests read the drawn tick labels (plot.axes[i]._values)
+  return plot;
+}
+
+// The time axis spans the points; one point (or several at one instant) gets a minute
+// (uPlot would give a lone point 86,400 of its units: 1000 days when they are seconds).
+function timeRange(x) {
+  const lo = x.length ? x[0] : null, hi = x.length ? x[x.length - 1] : null;
+  return (u, min, max) => {
+    if (min === null || max === null) return [0, 60];
+    if (lo !== null && hi - lo < 1 && min === lo) return [lo - 30, hi + 30];
+    return max - min < 1 ? [min - 30, max + 30] : [min, max];
+  };
+}
+
+// Time ticks in UTC, as precise as the tick step needs and with the date once the span
+// passes most of a day (uPlot's own labels read ":53.900" on short spans).
+function timeTicks(u, splits, axisIdx, space, incr) {
+  const span = u.scales.x.max - u.scales.x.min;
+  const d = incr < 1 ? Math.min(3, Math.ceil(-Math.log10(incr) - 1e-9)) : 0;
+  return splits.map((t) => {
+    const s = new Date(t * 1000).toISOString();  // 2026-11-02T06:00:00.000Z
+    if (incr >= 86400) return s.slice(0, 10);
+    if (span > 20 * 3600) return s.slice(5, 10) + " " + s.slice(11, 16);
+    if (incr >= 60) return s.slice(11, 16);
+    return s.slice(11, 19) + (d ? s.slice(19, 20 + d) : "");
+  });
+}
+
+// Number ticks with the decimals the tick step needs: no two equal labels, never "−0".
+function numberTicks(u, splits, axisIdx, space, incr) {
+  const d = Math.max(0, Math.min(9, Math.ceil(-Math.log10(incr) - 1e-9)));
+  return splits.map((v) => {
+    const s = v.toFixed(d);
+    return /^-0(\.0*)?$/.test(s) ? s.slice(1) : s.replace("-", "\u2212");
+  });
 }
 
 function band(n, value) { return new Array(n).fill(value === undefined ? null : value); }
@@ -184,6 +250,7 @@ function setupCharts() {
     const q = new URLSearchParams();
     new FormData(form).forEach((v, k) => { if (v) q.set(k, v); });
     host.textContent = "loading…";
+    delete host.dataset.points;
     const t0 = performance.now();
     fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
       .then((r) => r.json()).then((d) => {
@@ -193,6 +260,7 @@ function setupCharts() {
         host.dataset.renderMs = String(Math.round(performance.now() - t1));
         host.dataset.loadMs = String(Math.round(t1 - t0));
         host.dataset.points = String(d.columns.t.length);
+        host.dataset.limit = q.get("limit") || "";
       }).catch((err) => { host.textContent = "could not load: " + err.message; });
   };
   form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });
@@ -252,5 +320,6 @@ function setupDrift() {
 }
 
 document.addEventListener("DOMContentLoaded", () => {
-  setupLogin(); setupLogout(); setupActions(); setupLive(); setupCharts(); setupDrift();
+  setupLogin(); setupLogout(); setupActions(); setupHtmxErrors(); setupLive(); setupCharts();
+  setupDrift();
 });

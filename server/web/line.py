@@ -1,0 +1,211 @@
+"""The line view (/line): what a panel PC beside the line shows all shift, read from 2 m.
+
+A verdict tile (OK green, NOK red, station down grey, each with the word), the station's and
+the link's state in words, the shift's counts, yield and cycle times from the store (they
+survive restarts and reset at each shift start of the station file), the last NOKs with a
+thumbnail, the reason in words and what to check, and a warning after the recipe's
+``nok_streak_warning`` NOKs in a row. The page polls one fragment (htmx, every
+:data:`POLL_S`); everything it reads comes from the store and the station's status, so it never
+delays a trigger. With ``Settings.line_view_public`` it is readable without a login (a kiosk).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Request
+from fastapi.responses import HTMLResponse, Response
+
+from mvpose_core.reasons import describe, what_to_check
+from mvpose_core.shifts import ShiftWindow
+from server.auth import Principal, Role
+from server.errors import NotFoundError, UnauthenticatedError
+from server.store.schemas import MAX_ID, MeasurementFilter, MeasurementSummary
+from server.store.shifts import ShiftCounts
+from server.web import html
+from server.web.context import in_thread, need, page_user, reader_of, station_status, zone_of
+from server.web.pages import Html, frame_response, to_login
+from server.web.reader import Reader
+
+router = APIRouter(include_in_schema=False)
+#: seconds between the page's refreshes
+POLL_S = 2
+#: NOKs in the strip
+LAST_NOKS = 6
+#: thumbnail width, px
+THUMB_W = 320
+
+
+#: the station's states (OPC 40100's, as the PLC reads them) in words
+STATES = {"READY": "ready", "SINGLE_EXECUTION": "measuring",
+          "PREOPERATIONAL": "waiting for the PLC", "HALTED": "halted (trigger disabled)",
+          "INITIALIZED": "no recipe selected",
+          "ERROR": "error, needs a reset", "STOPPED": "link stopped"}
+
+
+@dataclass(frozen=True)
+class LineFigures:
+    """Everything the line view shows, read once per refresh."""
+
+    newest: MeasurementSummary | None
+    status: dict[str, Any] | None
+    window: ShiftWindow
+    counts: ShiftCounts
+    streak: int
+    streak_limit: int
+    recipe: str | None
+    noks: list[tuple[MeasurementSummary, str | None]]  # and a thumbnail's URL
+
+
+def read_figures(reader: Reader, app: Any) -> LineFigures:
+    """Blocking: the store's figures and the station's status."""
+    store = reader.store
+    page, _ = store.measurements.summary_page(MeasurementFilter(), None, 1)
+    status, _ = station_status(app)
+    window, counts = reader.shift()
+    active = reader.active_recipe()
+    limit = active[2].nok_streak_warning if active and active[2] is not None else 3
+    noks, _ = store.measurements.summary_page(MeasurementFilter(result="NOK"), None, LAST_NOKS)
+    strip = []
+    for m in noks:
+        on_disk = [i for i in store.images.for_measurement(m.id) if i.evicted_at is None]
+        thumb = (f"/web/line/thumb/{m.id}/{on_disk[0].view}/{on_disk[0].camera_id}"
+                 if on_disk else None)
+        strip.append((m, thumb))
+    return LineFigures(page[0] if page else None, status, window, counts,
+                       store.shifts.nok_streak(), limit, active[0] if active else None, strip)
+
+
+async def line_user(request: Request) -> Principal | None:
+    """The logged-in user, or None on a public (kiosk) line view; 401 otherwise."""
+    user = await page_user(request)
+    if user is None and not request.state.services.settings.line_view_public:
+        raise UnauthenticatedError("log in on the operator page first (session expired?)")
+    return user
+
+
+@router.get("/line")
+async def line_page(request: Request) -> Html:
+    """The line view: a whole screen for a panel PC."""
+    user = await page_user(request)
+    if user is None and not request.state.services.settings.line_view_public:
+        return to_login(request)
+    reader = reader_of(request)
+    figures = await in_thread(read_figures, reader, request.app)
+    body = render(figures, zone_of(reader))
+    return HTMLResponse(html.layout("Line", user, body, "/line", body_class="line"))
+
+
+@router.get("/web/line/fragment")
+async def line_fragment(request: Request) -> HTMLResponse:
+    await line_user(request)
+    reader = reader_of(request)
+    figures = await in_thread(read_figures, reader, request.app)
+    return HTMLResponse(render(figures, zone_of(reader)), headers={"Cache-Control": "no-store"})
+
+
+@router.get("/web/line/thumb/{measurement_id}/{view}/{camera_id}")
+async def line_thumb(
+    request: Request,
+    measurement_id: Annotated[int, Path(ge=1, le=MAX_ID)],
+    view: Annotated[int, Path(ge=1, le=255)],
+    camera_id: Annotated[str, Path(max_length=64)],
+) -> Response:
+    """A NOK's frame as a thumbnail (the only frames a public line view shows)."""
+    user = await line_user(request)
+    if user is None:
+        stored = await in_thread(reader_of(request).store.measurements.get, measurement_id)
+        if stored.record.result == "OK":
+            raise NotFoundError(f"measurement {measurement_id} is not a NOK of the line view")
+    else:
+        await need(request, Role.READ)
+    return await frame_response(request, measurement_id, view, camera_id, THUMB_W)
+
+
+# ---------------------------------------------------------------------------- HTML
+def render(f: LineFigures, zone: str) -> str:
+    return f"""<div id="line-view" hx-get="/web/line/fragment" hx-trigger="every {POLL_S}s"
+ hx-swap="outerHTML" data-newest="{f.newest.id if f.newest else ''}">
+<div class="line-grid"><section aria-label="last result">{tile(f)}{states(f)}{streak(f)}</section>
+<section class="panel shift" aria-label="this shift"><h2>This shift</h2>
+{shift_table(f, zone)}</section></div>
+<section class="panel line-noks" aria-label="last NOKs"><h2>Last NOKs</h2>
+{nok_strip(f)}</section>
+</div>"""
+
+
+def tile(f: LineFigures) -> str:
+    m = f.newest
+    if f.status is None:
+        kind, word = "down", "STATION DOWN"
+        words = ("the station process does not answer"
+                 + (f" · last result #{m.id} {m.result}" if m else ""))
+    elif m is None:
+        kind, word, words = "none", "—", "no result yet"
+    else:
+        kind, word = ("ok", "OK") if m.result == "OK" else ("nok", "NOK")
+        words = (f'<a href="/history/{m.id}">#{m.id}</a> · {html.esc(m.reason)}: '
+                 f"{html.esc(describe(m.reason_code))} · {html.esc(m.part_id or '')} · "
+                 f"{html.when(m.triggered_at)}")
+    return (f'<div id="verdict" class="tile {kind}" data-verdict="{kind.upper()}">'
+            f'<p class="verdict-word">{html.esc(word)}</p>'
+            f'<p class="tile-words">{words}</p></div>')
+
+
+def states(f: LineFigures) -> str:
+    if f.status is None:
+        station, link, good_s, good_l = "station down", "link: unknown", False, False
+    else:
+        state = str(f.status.get("state", "?"))
+        station = f"station: {STATES.get(state, state)}"
+        good_s = state in ("READY", "SINGLE_EXECUTION")
+        links = f.status.get("links") or ({"plc": f.status["plc"]} if f.status.get("plc")
+                                          else {})
+        words = [f"{name}: {html.link_words(v)}" for name, v in links.items()]
+        link = "; ".join(words) if words else "no link configured"
+        good_l = bool(words) and all("offline" not in w and "not running" not in w
+                                     for w in words)
+    return (f'<div class="line-state"><p id="station-state" class="{"good" if good_s else "bad"}">'
+            f'{html.esc(station)}</p><p id="link-state" class="{"good" if good_l else "bad"}">'
+            f"{html.esc(link)}</p></div>")
+
+
+def streak(f: LineFigures) -> str:
+    if f.streak < f.streak_limit:
+        return ""
+    hint = f" Check: {html.esc(what_to_check(f.noks[0][0].reason_code))}." if f.noks else ""
+    return (f'<p class="streak" role="alert" data-streak="{f.streak}">⚠ {f.streak} NOKs in a row '
+            f"(warning from {f.streak_limit}, recipe {html.esc(f.recipe or '—')}).{hint}</p>")
+
+
+def shift_table(f: LineFigures, zone: str) -> str:
+    c = f.counts
+    y = c.yield_pct
+    span = html.shift_span(f.window, zone)
+
+    def ms(v: float | None) -> str:
+        return f"{html.num(v, 1)} ms" if v is not None else "—"
+
+    return (f'<p class="muted">{span}</p><dl>'
+            f'<dt>OK</dt><dd data-count="ok">{c.ok}</dd>'
+            f'<dt>NOK</dt><dd data-count="nok">{c.nok}</dd>'
+            f'<dt>yield</dt><dd data-count="yield">{"—" if y is None else f"{y:.1f} %"}</dd>'
+            f'<dt>cycle min</dt><dd data-count="min">{ms(c.min_ms)}</dd>'
+            f'<dt>cycle mean</dt><dd data-count="mean">{ms(c.mean_ms)}</dd>'
+            f'<dt>cycle max</dt><dd data-count="max">{ms(c.max_ms)}</dd></dl>')
+
+
+def nok_strip(f: LineFigures) -> str:
+    if not f.noks:
+        return '<p class="muted">No NOK results.</p>'
+    items = []
+    for m, thumb in f.noks:
+        img = (f'<img src="{html.esc(thumb)}" alt="frame of NOK #{m.id}" loading="lazy">'
+               if thumb else '<span class="noimg">no frame kept</span>')
+        items.append(
+            f'<li data-id="{m.id}" data-reason="{m.reason_code}">{img}'
+            f'<span class="when">#{m.id} · {html.when(m.triggered_at)}</span><br>'
+            f'<span class="reason">{html.esc(m.reason)}</span>: {html.esc(describe(m.reason_code))}'
+            f'<br><span class="check">Check: {html.esc(what_to_check(m.reason_code))}</span></li>')
+    return f'<ul class="noks">{"".join(items)}</ul>'
