@@ -196,44 +196,64 @@ def _source_text(study: GaugeStudy) -> str:
     return f"{src}{'; ' if src and n else ''}{f'{n} stored records' if n else ''}"
 
 
-def to_pdf(study: GaugeStudy, header: ReportHeader) -> bytes:
-    """The report as a PDF: a first page with header, verdict, table and sign-off, then the
-    plots, three characteristics a page."""
+def first_page(study: GaugeStudy, header: ReportHeader) -> Figure:
+    """The PDF's first page (A4 landscape): header, verdict, limits, table, sources, sign-off."""
     results = study.results()
     head, rows = table(results)
+    page = Figure(figsize=(11.69, 8.27))
+    y = 0.95
+    page.text(0.04, y, TITLES[study.kind], fontsize=16, weight="bold")
+    y -= 0.04
+    if study.title:
+        page.text(0.04, y, study.title, fontsize=11)
+        y -= 0.03
+    meta = (f"station {header.station}   recipe {study.recipe}   study "
+            f"{header.study_id if header.study_id is not None else '–'}   created "
+            f"{header.created_at.isoformat(timespec='seconds') if header.created_at else '–'}"
+            f" by {header.created_by or '–'}")
+    page.text(0.04, y, meta, fontsize=9)
+    y -= 0.03
+    page.text(0.04, y, f"measurements: {_source_text(study)}", fontsize=9)
+    y -= 0.03
+    if header.hash:
+        page.text(0.04, y, f"record hash (sha256 chain): {header.hash}", fontsize=8,
+                  family="monospace")
+        y -= 0.04
+    ok = passed(results)
+    page.text(0.04, y, _verdict(study, results), fontsize=14, weight="bold",
+              color="#0a6b0a" if ok else "#b22222")
+    y -= 0.035
+    page.text(0.04, y, LIMITS[study.kind], fontsize=8, wrap=True)
+    y -= 0.03
+    ax = page.add_axes((0.04, 0.16, 0.92, max(0.1, y - 0.18)))
+    ax.axis("off")
+    first = 0.13
+    widths = [first] + [(1.0 - first) / (len(head) - 1)] * (len(head) - 1)
+    tab = ax.table(cellText=rows, colLabels=head, colWidths=widths, loc="upper left",
+                   cellLoc="right")
+    tab.auto_set_font_size(False)
+    tab.set_fontsize(7.5)
+    tab.scale(1.0, 1.25)
+    page.text(0.04, 0.10, "Sources: " + SOURCES, fontsize=7, wrap=True)
+    page.text(0.04, 0.04, "quality engineer: ______________________   date: ___________"
+              "   signature: ______________________", fontsize=10)
+    return page
+
+
+def first_page_png(study: GaugeStudy, header: ReportHeader, dpi: int = 110) -> bytes:
+    """The PDF's first page as a PNG (for docs and the page's preview)."""
+    buf = io.BytesIO()
+    first_page(study, header).savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def to_pdf(study: GaugeStudy, header: ReportHeader) -> bytes:
+    """The report as a PDF: the first page (:func:`first_page`), then the plots, three
+    characteristics a page."""
+    results = study.results()
     buf = io.BytesIO()
     with PdfPages(buf, metadata={"Title": TITLES[study.kind], "Creator": "mvpose gauge"}) as pdf:
-        page = Figure(figsize=(11.69, 8.27))  # A4 landscape
-        y = 0.95
-        page.text(0.04, y, TITLES[study.kind], fontsize=16, weight="bold")
-        y -= 0.04
-        meta = (f"station {header.station}   recipe {study.recipe}   study "
-                f"{header.study_id if header.study_id is not None else '–'}   created "
-                f"{header.created_at.isoformat() if header.created_at else '–'} by "
-                f"{header.created_by or '–'}")
-        page.text(0.04, y, meta, fontsize=9)
-        y -= 0.03
-        page.text(0.04, y, f"measurements: {_source_text(study)}", fontsize=9)
-        y -= 0.03
-        if header.hash:
-            page.text(0.04, y, f"record hash (sha256 chain): {header.hash}", fontsize=8,
-                      family="monospace")
-            y -= 0.04
-        ok = passed(results)
-        page.text(0.04, y, _verdict(study, results), fontsize=14, weight="bold",
-                  color="#0a6b0a" if ok else "#b22222")
-        y -= 0.035
-        page.text(0.04, y, LIMITS[study.kind], fontsize=8, wrap=True)
-        y -= 0.03
-        ax = page.add_axes((0.04, 0.16, 0.92, max(0.1, y - 0.18)))
-        ax.axis("off")
-        tab = ax.table(cellText=rows, colLabels=head, loc="upper left", cellLoc="right")
-        tab.auto_set_font_size(False)
-        tab.set_fontsize(7.5)
-        tab.scale(1.0, 1.25)
-        page.text(0.04, 0.10, "Sources: " + SOURCES, fontsize=7, wrap=True)
-        page.text(0.04, 0.04, "quality engineer: ______________________   date: ___________"
-                  "   signature: ______________________", fontsize=10)
+        page = first_page(study, header)
         pdf.savefig(page)
         for start in range(0, len(results), 3):
             fig = Figure(figsize=(8.27, 11.69))
