@@ -153,41 +153,51 @@ def _verdict(study: GaugeStudy, results: Sequence[Result]) -> str:
             else "FAILED: a characteristic misses its limit (see the verdict column)")
 
 
-def to_html(study: GaugeStudy, header: ReportHeader) -> str:
-    """The report as one self-contained HTML page."""
+STYLE = ("table.gauge{border-collapse:collapse;font-size:.9em}table.gauge td,table.gauge th{"
+         "border:1px solid #999;padding:.2em .5em;text-align:right}table.gauge td:first-child,"
+         "table.gauge th:first-child{text-align:left}.pass{color:#0a6b0a}.fail{color:#b22222}"
+         ".verdict{font-size:1.3em;font-weight:bold}figure.gauge svg{max-width:100%;height:auto}")
+
+
+def fragment(study: GaugeStudy, header: ReportHeader) -> str:
+    """The report's body (meta, verdict, limits, figures, plots) as HTML, for the report and
+    the operator page's study view."""
     results = study.results()
     head, rows = table(results)
     esc = html.escape
     ok = passed(results)
     meta = [("station", header.station), ("recipe", study.recipe),
             ("study", "" if header.study_id is None else str(header.study_id)),
-            ("created", "" if header.created_at is None else header.created_at.isoformat()),
+            ("created", "" if header.created_at is None
+             else header.created_at.isoformat(timespec="seconds")),
             ("by", header.created_by), ("measurements", _source_text(study)),
             ("record hash", header.hash)]
-    parts = [
-        "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>{esc(TITLES[study.kind])}</title><style>"
-        "body{font-family:sans-serif;margin:2em;max-width:62em}"
-        "table{border-collapse:collapse;font-size:.9em}td,th{border:1px solid #999;"
-        "padding:.2em .5em;text-align:right}td:first-child,th:first-child{text-align:left}"
-        ".pass{color:#0a6b0a}.fail{color:#b22222}.verdict{font-size:1.3em;font-weight:bold}"
-        ".sign td{height:2.5em;min-width:14em;text-align:left}</style></head><body>",
-        f"<h1>{esc(TITLES[study.kind])}</h1>",
+    return "".join([
         f"<h2>{esc(study.title)}</h2>" if study.title else "",
-        "<table class='meta'>" + "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>"
-                                         for k, v in meta) + "</table>",
+        "<table class='gauge meta'>" + "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>"
+                                               for k, v in meta) + "</table>",
         f"<p class='verdict {'pass' if ok else 'fail'}'>{esc(_verdict(study, results))}</p>",
         f"<p>{esc(LIMITS[study.kind])}</p>",
-        "<table class='figures'><tr>" + "".join(f"<th>{esc(h)}</th>" for h in head) + "</tr>",
+        "<table class='gauge figures'><tr>" + "".join(f"<th>{esc(h)}</th>" for h in head)
+        + "</tr>",
         *("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in row) + "</tr>" for row in rows),
-        "</table><h2>Plots</h2>",
-        *(f"<figure>{_svg(figure(r))}</figure>" for r in results),
-        f"<h2>Sources</h2><p>{esc(SOURCES)}</p>",
-        "<h2>Sign-off</h2><table class='sign'><tr><th>quality engineer</th><td></td>"
-        "<th>date</th><td></td><th>signature</th><td></td></tr></table>",
-        "</body></html>",
-    ]
-    return "".join(parts)
+        "</table><h3>Plots</h3>",
+        *(f"<figure class='gauge'>{_svg(figure(r))}</figure>" for r in results),
+        f"<h3>Sources</h3><p>{esc(SOURCES)}</p>",
+    ])
+
+
+def to_html(study: GaugeStudy, header: ReportHeader) -> str:
+    """The report as one self-contained HTML page."""
+    title = html.escape(TITLES[study.kind])
+    return "".join([
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{title}</title>",
+        "<style>body{font-family:sans-serif;margin:2em;max-width:62em}",
+        STYLE, ".sign td{height:2.5em;min-width:14em;text-align:left}</style></head><body>",
+        f"<h1>{title}</h1>", fragment(study, header),
+        "<h3>Sign-off</h3><table class='gauge sign'><tr><th>quality engineer</th><td></td>"
+        "<th>date</th><td></td><th>signature</th><td></td></tr></table></body></html>",
+    ])
 
 
 def _source_text(study: GaugeStudy) -> str:
