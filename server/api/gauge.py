@@ -45,6 +45,8 @@ class StudyCreate(BaseModel):
     tolerance_deg: Finite | None = Field(None, gt=0, description="T of angles; default 2 × "
                                          "the recipe's rotation_deg")
     title: str = Field("", max_length=200)
+    same_part: bool = Field(False, description="type1: the selection is one part whatever its "
+                            "part ids say")
 
 
 class StudyOut(BaseModel):
@@ -110,7 +112,8 @@ def create(body: StudyCreate, user: EngineerUser, services: ServicesDep) -> Stud
                     result_ids=tuple(body.result_ids))
     request = StudyRequest(kind=body.kind, reference=body.reference,
                            tolerance_mm=body.tolerance_mm, tolerance_deg=body.tolerance_deg,
-                           truth=body.truth, title=body.title)
+                           truth=body.truth, title=body.title,
+                           same_part=body.same_part)
     try:
         samples = stored_samples(services.store, recipe, sel)
         study = build_study(request, samples, recipe, sel.describe())

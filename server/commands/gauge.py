@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="offsets from a file: the station's CSV export, or mvpose measure's "
                      "measurements.csv / .json for an image folder")
     src.add_argument("--study", type=int, help="a stored study's id: write its report again")
+    parser.add_argument("--same-part", action="store_true",
+                        help="type1: the selection is one part whatever its part ids say (a "
+                        "rehearsal that holds the part still numbers its part ids by trigger)")
     parser.add_argument("--reference",
                         help="type1: the part's true offset in the recipe's convention, "
                         "comma-separated (e.g. X,Y,Z,W,P,R); without it no bias and no Cgk")
@@ -156,7 +159,7 @@ def _new_study(args: argparse.Namespace, recipe: RecipeConfig,
         kind=args.kind,
         reference=_floats(args.reference, "--reference") if args.reference else None,
         tolerance_mm=args.tolerance_mm, tolerance_deg=args.tolerance_deg, truth=truth,
-        title=args.title,
+        title=args.title, same_part=args.same_part,
     )
     if args.measured is not None:
         samples = file_samples(args.measured, recipe, args.key)

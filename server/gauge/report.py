@@ -55,7 +55,9 @@ def _f(v: Any, digits: int = 3) -> str:
         return "yes" if v else "no"
     if isinstance(v, int):
         return str(v)
-    return f"{v:.{digits}f}" if np.isfinite(v) else str(v)
+    if not np.isfinite(v):
+        return str(v)
+    return f"{0.0 if round(v, digits) == 0 else v:.{digits}f}"  # no "-0.000"
 
 
 def table(results: Sequence[Result]) -> tuple[list[str], list[list[str]]]:

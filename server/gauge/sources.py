@@ -117,6 +117,7 @@ class StudyRequest:
     tolerance_deg: float | None = None
     truth: dict[str, list[float]] = field(default_factory=dict)  # linearity: key -> offset
     title: str = ""
+    same_part: bool = False  # type 1: one part whatever the records' part ids say
 
 
 def build_study(request: StudyRequest, samples: list[Sample], recipe: RecipeConfig,
@@ -131,9 +132,12 @@ def build_study(request: StudyRequest, samples: list[Sample], recipe: RecipeConf
     conv = recipe.robot_convention
     if request.kind == "type1":
         parts = sorted({s.part_id for s in samples if s.part_id})
-        if len(parts) > 1:
+        if request.same_part:
+            src["same_part"] = True
+        elif len(parts) > 1:
             raise GaugeError(f"a type-1 study measures one part; the selection has parts "
-                             f"{parts[:5]}{'…' if len(parts) > 5 else ''} (choose one part id)")
+                             f"{parts[:5]}{'…' if len(parts) > 5 else ''} (choose one part "
+                             "id, or say it is one part: --same-part)")
         ref = None
         if request.reference is not None:
             try:
