@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--measured", type=Path,
                      help="offsets from a file: the station's CSV export, or mvpose measure's "
                      "measurements.csv / .json for an image folder")
+    src.add_argument("--images", type=Path,
+                     help="an image folder (one sub-folder per trigger, named by its part id), "
+                     "measured first as mvpose measure measures it (into <out>/measured)")
     src.add_argument("--study", type=int, help="a stored study's id: write its report again")
     parser.add_argument("--same-part", action="store_true",
                         help="type1: the selection is one part whatever its part ids say (a "
@@ -99,9 +102,13 @@ def run(args: argparse.Namespace) -> int:
     station = load_station_file(args.station)
     recipe = station_recipe(station, args.recipe)
     store = _store(args, station.name)
+    if args.images is not None:
+        if args.measured is not None:
+            raise CliError("give --images or --measured, not both")
+        args.measured = measure_folder(args)
     if args.measured is None and store is None:
-        raise CliError("give the measurements: --data-dir / --database-url (the store) or "
-                       "--measured FILE")
+        raise CliError("give the measurements: --data-dir / --database-url (the store), "
+                       "--measured FILE or --images FOLDER")
     try:
         header = ReportHeader(station=station.name, created_at=datetime.now(UTC),
                               created_by=args.by)
@@ -143,6 +150,16 @@ def run(args: argparse.Namespace) -> int:
     return 0 if ok else 1
 
 
+def measure_folder(args: argparse.Namespace) -> Path:
+    """Measure ``args.images`` as ``mvpose measure`` does; the records' JSON it wrote."""
+    from server.commands import measure
+
+    out = args.out / "measured"
+    measure.run(argparse.Namespace(station=args.station, images=args.images,
+                                   recipe=args.recipe, calibration=None, out=out, quiet=True))
+    return out / "measurements.json"
+
+
 def _new_study(args: argparse.Namespace, recipe: RecipeConfig,
                store: Store | None) -> GaugeStudy:
     truth: dict[str, list[float]] = {}
@@ -164,6 +181,8 @@ def _new_study(args: argparse.Namespace, recipe: RecipeConfig,
     if args.measured is not None:
         samples = file_samples(args.measured, recipe, args.key)
         source: dict[str, object] = {"file": str(args.measured)}
+        if args.images is not None:
+            source = {"images": str(args.images)}
     elif store is not None:
         ids = tuple(int(x) for x in _floats(args.ids, "--ids")) if args.ids else ()
         sel = Selection(part_id=args.part_id, since=args.since, until=args.until,
