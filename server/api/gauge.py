@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mvpose_core.gauge import GaugeError
 from mvpose_core.station import RecipeConfig
-from server.api.deps import EngineerUser, IdInt, ReadUser, ServicesDep
+from server.api.deps import EngineerUser, IdInt, IsoDateTime, ReadUser, ServicesDep
 from server.errors import InvalidInputError, NotFoundError
 from server.gauge.report import ReportHeader, to_html, to_pdf
 from server.gauge.sources import Selection, StudyRequest, build_study, stored_samples
@@ -31,8 +31,8 @@ class StudyCreate(BaseModel):
     kind: Literal["type1", "type3", "linearity"]
     recipe: str | None = Field(None, max_length=64, description="default: the station's default")
     part_id: str | None = Field(None, max_length=64)
-    since: datetime | None = None
-    until: datetime | None = None
+    since: IsoDateTime | None = Field(None, description="triggered at or after (with zone)")
+    until: IsoDateTime | None = Field(None, description="triggered before (with zone)")
     result_ids: list[IdInt] = Field(default_factory=list, max_length=10000)
     reference: list[Finite] | None = Field(
         None, min_length=1, max_length=7,
