@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "token": ("server.commands.token", "create, list and revoke API tokens in the store"),
     "measure": ("server.commands.measure", "measure saved images offline (no deadline)"),
+    "gauge": (
+        "server.commands.gauge",
+        "gauge capability studies (type 1, type 3, linearity) with an HTML and PDF report",
+    ),
     "replay": (
         "server.commands.replay",
         "re-measure archived measurements with another calibration or recipe version",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from server.api import drift, health, measurements, metrics, station, tokens, versions
+from server.api import drift, gauge, health, measurements, metrics, station, tokens, versions
 from server.api.openapi import problem_responses
 
 PREFIX = "/api/v1"
@@ -24,6 +24,7 @@ def api_router() -> APIRouter:
     # What the station process can refuse (server.station.client): an unknown measurement or
     # recipe, a busy station (server/api/openapi.py adds 401/403/422/503 and the rest).
     router.include_router(station.router, responses=problem_responses(404, 409))
+    router.include_router(gauge.router, responses=problem_responses(404))
     # Verify names a measurement that may not exist or have no pose.
     router.include_router(drift.router, responses=problem_responses(404, 409))
     return router

@@ -7,6 +7,7 @@ from sqlalchemy import Engine
 
 from server.store.archive import ImageRepository
 from server.store.db import create_store_engine, current_revision, migrate, ping
+from server.store.gauge import GaugeStudyRepository
 from server.store.measurements import MeasurementRepository
 from server.store.shifts import ShiftRepository
 from server.store.tokens import TokenRepository
@@ -17,8 +18,9 @@ __all__ = ["DurableWriter", "Sealed", "Store", "StoreFailedError", "WriterStatus
 
 
 class Store:
-    """The station's database: ``measurements``, ``images``, ``versions``, ``tokens`` (and
-    ``shifts``: the line view's figures over ``measurements``).
+    """The station's database: ``measurements``, ``images``, ``versions``, ``tokens``,
+    ``gauge`` (the gauge studies) and ``shifts`` (the line view's figures over
+    ``measurements``).
 
     Every method is blocking (SQLAlchemy Core on a pooled connection): call it from a worker
     thread, never on the event loop (FastAPI runs ``def`` endpoints in its threadpool).
@@ -32,6 +34,7 @@ class Store:
         self.versions = VersionRepository(engine, station)
         self.shifts = ShiftRepository(engine, station)
         self.tokens = TokenRepository(engine)
+        self.gauge = GaugeStudyRepository(engine, station)
 
     @property
     def dialect(self) -> str:

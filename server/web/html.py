@@ -40,7 +40,7 @@ _UNITS = {
 }
 
 TABS = [("/", "Live"), ("/line", "Line"), ("/history", "History"), ("/trends", "Trends"),
-        ("/calibration", "Calibration"), ("/recipes", "Recipes")]
+        ("/calibration", "Calibration"), ("/recipes", "Recipes"), ("/gauge", "Gauge")]
 
 
 def esc(x: object) -> str:

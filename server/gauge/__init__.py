@@ -1,0 +1,1 @@
+"""Gauge capability studies of the station: data selection, the stored study, its report."""
