@@ -32,6 +32,11 @@ def relaxed_deadline(data: dict[str, Any]) -> None:
 def station_file(tmp: Path, name: str, *edits: Callable[[dict[str, Any]], None]) -> Path:
     """A copy of deploy/stations/<name>.yaml in ``tmp``, changed by ``edits``."""
     data = yaml.safe_load((STATIONS / f"{name}.yaml").read_text())
+    # The tests' PLC twin beats on the test's own event loop, beside the test's blocking calls
+    # (wait_idle, store reads): on a busy machine a beat can come later than the product's 1 s
+    # default, and the station would go to ERROR (WATCHDOG) under the test. The watchdog itself
+    # is tested in tests/drivers/test_plc_server.py.
+    data.setdefault("links", {}).setdefault("modbus", {}).setdefault("watchdog_s", 10.0)
     for edit in edits:
         edit(data)
     path = tmp / f"{name}.yaml"
