@@ -142,8 +142,9 @@ def nelson(values: ArrayLike, center: float, sigma: float) -> dict[int, list[int
     x = _finite(values, "run rules")
     if not (np.isfinite(center) and np.isfinite(sigma) and sigma >= 0):
         raise ValueError(f"run rules: centre {center} and σ {sigma} must be finite, σ ≥ 0")
-    z = (x - center) / sigma if sigma > 0 else np.sign(x - center) * np.inf
-    z = np.nan_to_num(z, nan=0.0)
+    # σ = 0 (a constant baseline): any departure from the centre is beyond every zone
+    z = ((x - center) / sigma if sigma > 0 else
+         np.where(x > center, np.inf, np.where(x < center, -np.inf, 0.0)))
     up, down = z > 0, z < 0
     d = np.diff(x)
     rises, falls = d > 0, d < 0

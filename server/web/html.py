@@ -39,7 +39,7 @@ _UNITS = {
     RobotConvention.UR: ("m",) * 3 + ("rad",) * 3,
 }
 
-TABS = [("/", "Live"), ("/line", "Line"), ("/history", "History"), ("/trends", "Trends"),
+TABS = [("/", "Live"), ("/line", "Line"), ("/history", "History"), ("/spc", "SPC"),
         ("/calibration", "Calibration"), ("/recipes", "Recipes"), ("/gauge", "Gauge")]
 
 
@@ -98,7 +98,7 @@ def status_panel(status: Mapping[str, Any] | None, error: str | None,
         why = esc(error or "no station process is connected to this API process")
         return (f'<section id="status" class="panel down"><h2>Station</h2>'
                 f'<p class="state bad" data-state="DOWN">station down</p><p class="why">{why}'
-                f'</p><p>History, trends and recipes below are read from the store.</p>'
+                f'</p><p>History, SPC charts and recipes below are read from the store.</p>'
                 f'<dl><dt>Calibration</dt><dd>{calibration}</dd>'
                 f'<dt>This shift</dt><dd class="counts">{counts}</dd></dl></section>')
     recipe = status.get("recipe") or {}

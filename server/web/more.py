@@ -1,4 +1,5 @@
-"""Operator page: Trends, Calibration health (with the drift detector's warnings) and Recipes."""
+"""Operator page: SPC (control charts), Calibration health (with the drift detector's warnings)
+and Recipes."""
 
 from __future__ import annotations
 
@@ -6,10 +7,11 @@ from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 
+from mvpose_core.shifts import time_zone
 from server.auth import Role
-from server.errors import DomainError
+from server.errors import DomainError, InvalidInputError
 from server.store.schemas import MeasurementFilter
 from server.web import html
 from server.web.context import (
@@ -24,11 +26,20 @@ from server.web.context import (
 )
 from server.web.pages import Html, to_login
 from server.web.reader import age_words
+from server.web.spc import BASELINE_POINTS, Baseline, spc_charts
 
 router = APIRouter(include_in_schema=False)
 NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
-#: newest records on the trend charts unless the page asks for another number
+#: newest records on the charts unless the page asks for another number
 TREND_POINTS = 2000
+#: most records a chart page reads (the SPC charts compute on all, draw at most spc.DRAWN)
+MAX_POINTS = 100_000
+Limit = Annotated[int, Query(ge=1, le=MAX_POINTS)]
+
+
+def _zone(reader: Any) -> str:
+    station = reader.services.station
+    return station.time_zone if station is not None else "UTC"
 
 
 @router.get("/web/trends.json")
@@ -38,37 +49,93 @@ async def trends_json(
     until: datetime | None = None,
     result: Literal["OK", "NOK"] | None = None,
     recipe: Annotated[str | None, Query(max_length=64)] = None,
-    limit: Annotated[int, Query(ge=1, le=20000)] = TREND_POINTS,
+    limit: Limit = TREND_POINTS,
 ) -> dict[str, Any]:
-    """Trend columns (oldest first) and the tolerances of the active recipe."""
+    """Columns (oldest first) and the tolerances of the active recipe (Calibration health)."""
     await need(request, Role.READ)
     reader = reader_of(request)
     filters = MeasurementFilter(since=since, until=until, result=result, recipe=recipe)
     cols = await in_thread(reader.trends, filters, limit)
     active = await in_thread(reader.active_recipe)
     tol = html.recipe_tolerances(active[2] if active else None, deadline_ms(reader))
-    return {"columns": cols, "tolerances": tol}
+    return {"columns": cols, "tolerances": tol, "time_zone": _zone(reader)}
 
 
-def _charts_page(title: str, active: str, intro: str, kind: str, user: Any,
-                 extra: str = "") -> HTMLResponse:
+@router.get("/web/spc.json")
+async def spc_json(
+    request: Request,
+    since: datetime | None = None,
+    until: datetime | None = None,
+    recipe: Annotated[str | None, Query(max_length=64)] = None,
+    limit: Limit = TREND_POINTS,
+    baseline: Annotated[int, Query(ge=2, le=MAX_POINTS)] = BASELINE_POINTS,
+    baseline_since: datetime | None = None,
+    baseline_until: datetime | None = None,
+) -> dict[str, Any]:
+    """I-MR charts per offset axis and camera residual: limits from the baseline, run rules'
+    points, Cp/Cpk and Pp/Ppk over the window (the newest ``limit`` results)."""
+    await need(request, Role.READ)
+    if baseline_since and baseline_until and (baseline_since.tzinfo is None) != (
+            baseline_until.tzinfo is None):
+        raise InvalidInputError("baseline_since and baseline_until: give both with a UTC "
+                                "offset or both without (the plant's time)")
+    if baseline_since and baseline_until and baseline_until < baseline_since:
+        raise InvalidInputError(f"baseline_until {baseline_until.isoformat()} is before "
+                                f"baseline_since {baseline_since.isoformat()}")
+    reader = reader_of(request)
+    zone = time_zone(_zone(reader))
+    # a baseline typed on the page (datetime-local) is the plant's wall-clock time
+    b_since, b_until = (None if d is None else d if d.tzinfo else d.replace(tzinfo=zone)
+                        for d in (baseline_since, baseline_until))
+    filters = MeasurementFilter(since=since, until=until, recipe=recipe)
+    cols = await in_thread(reader.trends, filters, limit)
+    active = await in_thread(reader.active_recipe)
+    tol = html.recipe_tolerances(active[2] if active else None, deadline_ms(reader))
+    base = Baseline(baseline, b_since, b_until)
+    charts = await in_thread(spc_charts, cols, tol, base)
+    return {"points": len(cols["t"]), "time_zone": _zone(reader), "baseline": base.words(),
+            "recipe": f"{active[0]} v{active[1]}" if active else None, "charts": charts}
+
+
+def _charts_page(title: str, active: str, intro: str, kind: str, user: Any, zone: str,
+                 extra: str = "", src: str = "/web/trends.json", more: str = "") -> HTMLResponse:
     body = f"""<section class="panel"><h2>{html.esc(title)}</h2>{intro}
 <form id="trend-filters" class="filters"><label>points <input name="limit" type="number"
- min="1" max="20000" value="{TREND_POINTS}"></label><label>recipe <input name="recipe"></label>
-<button type="submit">Show</button></form>
-<div id="charts" data-kind="{kind}" data-src="/web/trends.json"></div></section>{extra}"""
+ min="1" max="{MAX_POINTS}" value="{TREND_POINTS}"></label><label>recipe <input name="recipe">
+</label>{more}<button type="submit">Show</button></form>
+<div id="charts" data-kind="{kind}" data-src="{src}" data-tz="{html.esc(zone)}"></div>
+</section>{extra}"""
     return HTMLResponse(html.layout(title, user, body, active))
 
 
 @router.get("/trends")
-async def trends_page(request: Request) -> Html:
+async def trends_page(request: Request) -> RedirectResponse:
+    """The SPC page's old name."""
+    query = f"?{request.url.query}" if request.url.query else ""
+    return RedirectResponse(f"/spc{query}", status_code=307)
+
+
+@router.get("/spc")
+async def spc_page(request: Request) -> Html:
     user = await page_user(request)
     if user is None:
         return to_login(request)
-    intro = ("<p>The newest results, oldest on the left: offsets per axis, 1σ at the grasp "
-             "point, RMS residual per camera, cycle time and the NOK rate by reason (per 50 "
-             "results). Dashed lines are the active recipe's tolerances.</p>")
-    return _charts_page("Trends", "/trends", intro, "trends", user)
+    zone = _zone(reader_of(request))
+    intro = (f"<p>Individuals and moving-range (I-MR) charts of the newest results, oldest on "
+             f"the left, per offset axis and per camera's RMS residual. The control limits "
+             f"(UCL, centre, LCL: x̄ ± 3·MR̄/1.128) come from the baseline: the first "
+             f"{BASELINE_POINTS} points of the window unless a baseline time range is given. "
+             f"Dashed lines are the active recipe's tolerances. Points that break a run rule "
+             f"(Nelson's eight; rules 1, 2, 5 and 6 are the Western Electric rules) are marked "
+             f"and listed under their chart. Cp/Cpk use σ within (MR̄/1.128), Pp/Ppk the "
+             f"overall σ, over all points of the window. Times are the plant's "
+             f"({html.esc(zone)}).</p>")
+    more = (f'<label>baseline points <input name="baseline" type="number" min="2" '
+            f'max="{MAX_POINTS}" value="{BASELINE_POINTS}"></label>'
+            f'<label>or baseline from <input name="baseline_since" type="datetime-local">'
+            f'</label><label>to <input name="baseline_until" type="datetime-local"></label>')
+    return _charts_page("SPC", "/spc", intro, "spc", user, zone, src="/web/spc.json",
+                        more=more)
 
 
 @router.get("/calibration")
@@ -93,7 +160,8 @@ async def calibration_page(request: Request) -> Html:
     intro = ("<p>Per camera, the mean reprojection residual of each result (du, dv in px: the "
              "marks' detected minus reprojected centres) and its RMS. A calibration that has "
              "stopped fitting shows as a mean that leaves zero and stays away.</p>")
-    return _charts_page("Calibration health", "/calibration", intro, "calibration", user, extra)
+    return _charts_page("Calibration health", "/calibration", intro, "calibration", user,
+                        _zone(reader), extra)
 
 
 def calibration_ages(reader: Any) -> str:

@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
                     "live": ("/", "#frames figure.cam"),
                     "history": ("/history?limit=15", "table.history"),
                     "record": (f"/history/{newest[0].id - 2}", "figure.cam"),
-                    "trends": ("/trends", "#charts[data-points]"),
+                    "spc": ("/spc", "#charts[data-points]"),
                     "calibration": ("/calibration", "#charts[data-points]"),
                     "recipes": ("/recipes/floor_panel", "table.diff"),
                     "docs": ("/docs", ".swagger-ui .opblock"),

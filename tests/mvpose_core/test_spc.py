@@ -120,3 +120,10 @@ def test_bad_input_is_named() -> None:
         xbar_r_limits(np.zeros((2, 11)))
     with pytest.raises(ValueError, match="upper limit 1 is not above lower limit 2"):
         capability([1.0, 2.0], lsl=2, usl=1)
+
+
+def test_a_constant_baseline_flags_any_departure() -> None:
+    lim = imr_limits([1.0, 1.0, 1.0])
+    assert lim.sigma_within == 0.0 and lim.ucl == lim.lcl == 1.0
+    assert nelson([1.0, 1.0, 1.2, 1.0], lim.center, lim.sigma_within)[1] == [2]
+    assert capability([1.0, 1.0, 1.0], lsl=0, usl=2).cpk is None  # no spread: no index

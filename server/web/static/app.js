@@ -1,5 +1,5 @@
 // The operator page's behaviour: log in/out, the Live page's server-sent events, actions with
-// confirmation, and the trend charts (uPlot). No framework; htmx handles the History filters.
+// confirmation, and the SPC and calibration charts (uPlot). No framework; htmx handles the History filters.
 "use strict";
 
 function postJSON(url, body) {
@@ -116,8 +116,13 @@ function chart(host, title, x, series, opts) {
   const values = [];
   series.forEach((s, i) => {
     data.push(s.values);
-    spec.push({label: s.label, stroke: s.band ? "#6b7280" : COLORS[i % COLORS.length],
-      dash: s.band ? [6, 4] : undefined, width: s.band ? 1.5 : 1.5,
+    if (s.marks) {  // points that break a run rule: drawn as dots, no line
+      spec.push({label: s.label, stroke: "#b91c1c", fill: "#b91c1c", paths: () => null,
+        points: {show: true, size: 9, stroke: "#b91c1c", fill: "#b91c1c"}});
+      return;
+    }
+    spec.push({label: s.label, stroke: s.color || (s.band ? "#6b7280" : COLORS[i % COLORS.length]),
+      dash: s.dash || (s.band ? [6, 4] : undefined), width: 1.5,
       points: {show: !s.band && x.length < 200}, spanGaps: false});
     if (!s.band) s.values.forEach((v) => { if (v !== null && v !== undefined) values.push(v); });
   });
@@ -148,8 +153,9 @@ function chart(host, title, x, series, opts) {
   }
   const width = Math.max(Math.min(host.clientWidth - 10, 1400), 320);
   const plot = new uPlot({width: width, height: opts.height || 220, series: spec,
+    tzDate: (ts) => uPlot.tzDate(new Date(ts * 1e3), ZONE),  // ticks on the plant's hours
     scales: {x: {time: true, range: timeRange(x)}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
-    axes: [{values: timeTicks, label: "UTC"},
+    axes: [{values: timeTicks, label: "time (" + ZONE + ")"},
            {label: opts.unit || "", values: opts.log ? undefined : numberTicks}],
     cursor: {drag: {x: true, y: false}}}, data, box);
   box.plot = plot;  // the browser tests read the drawn tick labels (plot.axes[i]._values)
@@ -167,13 +173,33 @@ function timeRange(x) {
   };
 }
 
-// Time ticks in UTC, as precise as the tick step needs and with the date once the span
-// passes most of a day (uPlot's own labels read ":53.900" on short spans).
+// The plant's time zone (the station file's time_zone, an IANA name): every time on the
+// charts is the plant's wall-clock time.
+let ZONE = "UTC";
+const ZONE_FORMATS = {};
+
+// 2026-11-02T07:00:00.000 in ZONE (the layout of toISOString, without the Z).
+function zoneTime(t) {
+  const ms = Math.round(t * 1000);
+  let f = ZONE_FORMATS[ZONE];
+  if (!f) {
+    f = ZONE_FORMATS[ZONE] = new Intl.DateTimeFormat("en-CA", {timeZone: ZONE, hourCycle: "h23",
+      year: "numeric", month: "2-digit", day: "2-digit", hour: "2-digit", minute: "2-digit",
+      second: "2-digit"});
+  }
+  const p = {};
+  f.formatToParts(new Date(ms)).forEach((x) => { p[x.type] = x.value; });
+  return p.year + "-" + p.month + "-" + p.day + "T" + p.hour + ":" + p.minute + ":" + p.second +
+    "." + String(((ms % 1000) + 1000) % 1000).padStart(3, "0");
+}
+
+// Time ticks in the plant's zone, as precise as the tick step needs and with the date once
+// the span passes most of a day (uPlot's own labels read ":53.900" on short spans).
 function timeTicks(u, splits, axisIdx, space, incr) {
   const span = u.scales.x.max - u.scales.x.min;
   const d = incr < 1 ? Math.min(3, Math.ceil(-Math.log10(incr) - 1e-9)) : 0;
   return splits.map((t) => {
-    const s = new Date(t * 1000).toISOString();  // 2026-11-02T06:00:00.000Z
+    const s = zoneTime(t);  // 2026-11-02T07:00:00.000
     if (incr >= 86400) return s.slice(0, 10);
     if (span > 20 * 3600) return s.slice(5, 10) + " " + s.slice(11, 16);
     if (incr >= 60) return s.slice(11, 16);
@@ -192,47 +218,70 @@ function numberTicks(u, splits, axisIdx, space, incr) {
 
 function band(n, value) { return new Array(n).fill(value === undefined ? null : value); }
 
-function nokRate(cols, per) {
-  const reasons = [...new Set(cols.reason.filter((r, i) => cols.result[i] !== "OK"))];
-  const x = [], ys = reasons.map(() => []);
-  for (let start = 0; start < cols.t.length; start += per) {
-    const end = Math.min(start + per, cols.t.length);
-    x.push(cols.t[end - 1]);
-    reasons.forEach((r, k) => {
-      let n = 0;
-      for (let i = start; i < end; i++) if (cols.reason[i] === r) n++;
-      ys[k].push(100 * n / (end - start));
-    });
-  }
-  return {x, series: reasons.map((r, k) => ({label: r + " %", values: ys[k]}))};
+function para(host, cls, text) {
+  const p = document.createElement("p");
+  p.className = cls;
+  p.textContent = text;
+  host.appendChild(p);
+  return p;
 }
 
-function drawTrends(host, d) {
-  const c = d.columns, tol = d.tolerances || {}, n = c.t.length;
-  const labels = tol.labels || ["X", "Y", "Z", "W", "P", "R"];
-  const units = tol.units || ["mm", "mm", "mm", "°", "°", "°"];
-  const lin = [0, 1, 2].map((k) => ({label: labels[k], values: c.offset[k] || band(n)}));
-  lin.push({label: "+tol", band: true, values: band(n, tol.max_offset_mm)},
-           {label: "−tol", band: true, values: band(n, tol.max_offset_mm && -tol.max_offset_mm)});
-  chart(host, "Offset " + labels.slice(0, 3).join(", ") + " (" + units[0] + ")", c.t, lin, {unit: units[0]});
-  if (labels.length === 6) {
-    const rot = [3, 4, 5].map((k) => ({label: labels[k], values: c.offset[k] || band(n)}));
-    rot.push({label: "+tol", band: true, values: band(n, tol.max_offset_deg)},
-             {label: "−tol", band: true, values: band(n, tol.max_offset_deg && -tol.max_offset_deg)});
-    chart(host, "Offset " + labels.slice(3).join(", ") + " (" + units[3] + ")", c.t, rot, {unit: units[3]});
-  }
-  chart(host, "1σ at the grasp point, translation (mm, log scale)", c.t,
-    [{label: "1σ mm", values: c.sigma_mm}, {label: "tolerance", band: true, values: band(n, tol.sigma_mm)}], {unit: "mm", log: true});
-  chart(host, "1σ at the grasp point, rotation (°, log scale)", c.t,
-    [{label: "1σ °", values: c.sigma_deg}, {label: "tolerance", band: true, values: band(n, tol.sigma_deg)}], {unit: "°", log: true});
-  const rms = c.cameras.map((cam) => ({label: cam, values: c.camera_rms[cam]}));
-  rms.push({label: "max RMS", band: true, values: band(n, tol.max_rms_px)});
-  chart(host, "RMS residual per camera (px, log scale)", c.t, rms, {unit: "px", log: true});
-  chart(host, "Cycle time (ms)", c.t,
-    [{label: "total ms", values: c.total_ms}, {label: "deadline", band: true, values: band(n, tol.deadline_ms)}], {unit: "ms"});
-  const rate = nokRate(c, 50);
-  if (rate.series.length) chart(host, "NOK rate by reason (% of each 50 results)", rate.x, rate.series, {unit: "%"});
-  else { const p = document.createElement("p"); p.textContent = "No NOK results in these points."; host.appendChild(p); }
+function fmt(v, digits) { return v === null || v === undefined ? "—" : Number(v).toFixed(digits); }
+
+// One I-MR chart per offset axis and camera residual (server/web/spc.py computes everything:
+// limits from the baseline, the run rules' points, Cp/Cpk and Pp/Ppk).
+function drawSpc(host, d) {
+  para(host, "spc-head", d.points + " results" + (d.recipe ? ", tolerances of " + d.recipe : "") +
+    "; control limits from " + d.baseline + "; times in " + d.time_zone + ".");
+  d.charts.forEach((c) => {
+    const box = document.createElement("section");
+    box.className = "spc";
+    box.dataset.key = c.key;
+    host.appendChild(box);
+    if (!c.points) { para(box, "muted", c.title + ": " + (c.message || "no values")); return; }
+    const n = c.t.length, L = c.limits, name = c.key.split(".").pop();
+    const ind = [{label: name, values: c.values}];
+    if (L) {
+      ind.push({label: "UCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.ucl)},
+               {label: "centre", band: true, color: "#15803d", dash: [1, 0], values: band(n, L.center)},
+               {label: "LCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.lcl)});
+    }
+    if (c.usl !== null) ind.push({label: "USL (tolerance)", band: true, values: band(n, c.usl)});
+    if (c.lsl !== null) ind.push({label: "LSL (tolerance)", band: true, values: band(n, c.lsl)});
+    ind.push({label: "run rule broken", marks: true, values: c.flagged});
+    chart(box, c.title + ": individuals", c.t, ind, {unit: c.unit, height: 200});
+    const mr = [{label: "moving range", values: c.mr}];
+    if (L) {
+      mr.push({label: "UCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.mr_ucl)},
+              {label: "MR\u0304", band: true, color: "#15803d", dash: [1, 0], values: band(n, L.mr_center)});
+    }
+    chart(box, c.title + ": moving range", c.t, mr, {unit: c.unit, height: 130});
+    if (c.message) para(box, "hook", c.message);
+    const k = c.capability;
+    para(box, "capability", k ? "Over the " + k.n + " points: Cp " + fmt(k.cp, 2) + ", Cpk " +
+      fmt(k.cpk, 2) + " (σ within " + fmt(k.sigma_within, 4) + " " + c.unit + "); Pp " +
+      fmt(k.pp, 2) + ", Ppk " + fmt(k.ppk, 2) + " (σ overall " + fmt(k.sigma_overall, 4) + " " +
+      c.unit + ")." : "No tolerance for this series: no capability.");
+    const ul = document.createElement("ul");
+    ul.className = "rules";
+    c.rules.forEach((r) => {
+      const li = document.createElement("li");
+      li.className = "rule-broken";
+      li.dataset.rule = String(r.rule);
+      li.textContent = "Rule " + r.rule + (r.western_electric ? " (Western Electric)" : "") + ", " +
+        r.name + ": " + r.count + (r.count === 1 ? " point" : " points") +
+        (r.count > r.points.length ? " (the newest " + r.points.length + ")" : "") + " — " +
+        r.points.map((p) => zoneTime(p.t).replace("T", " ").slice(0, 19) + " #" + p.id + " " +
+          fmt(p.value, 3)).join("; ");
+      ul.appendChild(li);
+    });
+    if (!c.rules.length) {
+      const li = document.createElement("li");
+      li.textContent = L ? "No run rule broken." : "No control limits: no run rules.";
+      ul.appendChild(li);
+    }
+    box.appendChild(ul);
+  });
 }
 
 function drawCalibration(host, d) {
@@ -245,6 +294,7 @@ function drawCalibration(host, d) {
 function setupCharts() {
   const host = document.getElementById("charts");
   if (!host) return;
+  ZONE = host.dataset.tz || "UTC";
   const form = document.getElementById("trend-filters");
   const load = () => {
     const q = new URLSearchParams();
@@ -253,13 +303,18 @@ function setupCharts() {
     delete host.dataset.points;
     const t0 = performance.now();
     fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
-      .then((r) => r.json()).then((d) => {
+      .then(async (r) => {
+        const d = await r.json();
+        if (!r.ok) throw new Error(d.detail || ("HTTP " + r.status));
+        return d;
+      }).then((d) => {
         host.textContent = "";
         const t1 = performance.now();
-        (host.dataset.kind === "calibration" ? drawCalibration : drawTrends)(host, d);
+        ZONE = d.time_zone || host.dataset.tz || "UTC";
+        (host.dataset.kind === "calibration" ? drawCalibration : drawSpc)(host, d);
         host.dataset.renderMs = String(Math.round(performance.now() - t1));
         host.dataset.loadMs = String(Math.round(t1 - t0));
-        host.dataset.points = String(d.columns.t.length);
+        host.dataset.points = String(d.columns ? d.columns.t.length : d.points);
         host.dataset.limit = q.get("limit") || "";
       }).catch((err) => { host.textContent = "could not load: " + err.message; });
   };
