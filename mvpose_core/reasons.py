@@ -115,7 +115,7 @@ CHECKS: dict[Reason, str] = {
     Reason.MARK_BEHIND_CAMERA: "a mark mix-up or a camera's pose in the calibration",
     Reason.CAMERA_FAILED: "the camera's cable, power and status on the Live page",
     Reason.DETECTION_FAILED: "the camera's image size and pixel format against the station file",
-    Reason.DEADLINE_EXCEEDED: "the cycle times on Trends; a slow camera or a busy machine",
+    Reason.DEADLINE_EXCEEDED: "the cycle time chart on SPC; a slow camera or a busy machine",
     Reason.UNKNOWN_RECIPE: "the recipe number the PLC sends",
     Reason.UNKNOWN_VIEW: "the view index the PLC sends",
     Reason.INTERNAL_ERROR: "the log: it has the traceback; call the engineer",

@@ -142,9 +142,11 @@ def nelson(values: ArrayLike, center: float, sigma: float) -> dict[int, list[int
     x = _finite(values, "run rules")
     if not (np.isfinite(center) and np.isfinite(sigma) and sigma >= 0):
         raise ValueError(f"run rules: centre {center} and σ {sigma} must be finite, σ ≥ 0")
-    # σ = 0 (a constant baseline): any departure from the centre is beyond every zone
-    z = ((x - center) / sigma if sigma > 0 else
-         np.where(x > center, np.inf, np.where(x < center, -np.inf, 0.0)))
+    # σ = 0 (a constant baseline): any departure from the centre is beyond every zone, but not
+    # the centre's own rounding (a mean of equal floats need not equal them to the last bit)
+    dev = x - center
+    dev[np.abs(dev) <= 1e-9 * max(1.0, abs(center))] = 0.0
+    z = dev / sigma if sigma > 0 else np.where(dev > 0, np.inf, np.where(dev < 0, -np.inf, 0.0))
     up, down = z > 0, z < 0
     d = np.diff(x)
     rises, falls = d > 0, d < 0
@@ -156,7 +158,8 @@ def nelson(values: ArrayLike, center: float, sigma: float) -> dict[int, list[int
         4: _windows(alt, 12, 12) + 2,
         5: np.union1d(_windows(z > 2, 3, 2), _windows(z < -2, 3, 2)),
         6: np.union1d(_windows(z > 1, 5, 4), _windows(z < -1, 5, 4)),
-        7: _windows(np.abs(z) < 1, 15, 15),
+        # with σ = 0 there is no 1σ zone to be within (a constant series is not a stratified one)
+        7: _windows(np.abs(z) < 1, 15, 15) if sigma > 0 else np.zeros(0, dtype=np.intp),
         8: _windows(np.abs(z) > 1, 8, 8),
     }
     return {k: [int(i) for i in v] for k, v in out.items()}

@@ -1,4 +1,4 @@
-"""The operator page, served by the API process: Live, Line, History, Trends, Calibration,
+"""The operator page, served by the API process: Live, Line, History, SPC, Calibration,
 Recipes, Gauge.
 
 ``install(app)`` mounts its routes (outside the OpenAPI schema) and the offline ``/docs``;

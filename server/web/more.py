@@ -32,8 +32,9 @@ router = APIRouter(include_in_schema=False)
 NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
 #: newest records on the charts unless the page asks for another number
 TREND_POINTS = 2000
-#: most records a chart page reads (the SPC charts compute on all, draw at most spc.DRAWN)
-MAX_POINTS = 100_000
+#: most records a chart page reads (the SPC charts compute on all, draw at most spc.DRAWN per
+#: chart); 100,000 took minutes to read (docs/operations.md, "SPC")
+MAX_POINTS = 20_000
 Limit = Annotated[int, Query(ge=1, le=MAX_POINTS)]
 
 
@@ -122,10 +123,12 @@ async def spc_page(request: Request) -> Html:
         return to_login(request)
     zone = _zone(reader_of(request))
     intro = (f"<p>Individuals and moving-range (I-MR) charts of the newest results, oldest on "
-             f"the left, per offset axis and per camera's RMS residual. The control limits "
+             f"the left, per offset axis, per camera's RMS residual and for the cycle time. "
+             f"The control limits "
              f"(UCL, centre, LCL: x̄ ± 3·MR̄/1.128) come from the baseline: the first "
              f"{BASELINE_POINTS} points of the window unless a baseline time range is given. "
-             f"Dashed lines are the active recipe's tolerances. Points that break a run rule "
+             f"Dashed grey lines are the active recipe's tolerances (the deadline for the "
+             f"cycle time). Points that break a run rule "
              f"(Nelson's eight; rules 1, 2, 5 and 6 are the Western Electric rules) are marked "
              f"and listed under their chart. Cp/Cpk use σ within (MR̄/1.128), Pp/Ppk the "
              f"overall σ, over all points of the window. Times are the plant's "

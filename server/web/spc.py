@@ -1,7 +1,8 @@
-"""The SPC page's charts, built from the reader's columns with mvpose_core.spc: per offset axis and
-per camera's RMS residual an I-MR chart, its limits from a baseline, the run rules' points and the
-capability over the window. Limits, rules and indices use every point; only the drawn series is
-thinned (min and max per bucket) when it has more points than a chart can show."""
+"""The SPC page's charts, built from the reader's columns with mvpose_core.spc: per offset axis,
+per camera's RMS residual and for the cycle time an I-MR chart, its limits from a baseline, the
+run rules' points and the capability over the window. Limits, rules and capability use every
+point; only the drawn series is thinned (min and max per bucket) when it has more points than a
+chart can show."""
 
 from __future__ import annotations
 
@@ -119,7 +120,7 @@ def chart(key: str, title: str, unit: str, ids: list[int], t: list[float],
 
 def spc_charts(cols: dict[str, Any], tol: dict[str, Any],
                baseline: Baseline) -> list[dict[str, Any]]:
-    """Every chart of the page: the offset axes, then each camera's RMS residual."""
+    """Every chart of the page: the offset axes, each camera's RMS residual, the cycle time."""
     labels = tol.get("labels") or ["X", "Y", "Z", "W", "P", "R"]
     units = tol.get("units") or ["mm", "mm", "mm", "°", "°", "°"]
     charts = []
@@ -134,4 +135,6 @@ def spc_charts(cols: dict[str, Any], tol: dict[str, Any],
         charts.append(chart(f"rms.{cam}", f"RMS residual, camera {cam} (px)", "px", cols["id"],
                             cols["t"], cols["camera_rms"][cam], None, tol.get("max_rms_px"),
                             baseline))
+    charts.append(chart("cycle.total", "Cycle time (ms)", "ms", cols["id"], cols["t"],
+                        cols["total_ms"], None, tol.get("deadline_ms"), baseline))
     return charts

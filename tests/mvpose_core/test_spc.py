@@ -126,4 +126,9 @@ def test_a_constant_baseline_flags_any_departure() -> None:
     lim = imr_limits([1.0, 1.0, 1.0])
     assert lim.sigma_within == 0.0 and lim.ucl == lim.lcl == 1.0
     assert nelson([1.0, 1.0, 1.2, 1.0], lim.center, lim.sigma_within)[1] == [2]
+    # a mean of equal values that misses them in the last bit is still their centre
+    same = [-8.27] * 7
+    centre = float(np.mean(same))
+    assert nelson(same, centre, 0.0)[1] == [] and nelson(same, centre + 1e-14, 0.0)[1] == []
+    assert not any(nelson([2.0] * 20, 2.0, 0.0).values())  # no zones: no rule 7 either
     assert capability([1.0, 1.0, 1.0], lsl=0, usl=2).cpk is None  # no spread: no index

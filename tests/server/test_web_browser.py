@@ -36,7 +36,7 @@ from server.web.screenshots import VIEWPORT, launch, login, serve
 
 ROOT = Path(__file__).resolve().parents[2]
 SHOTS = ROOT / "var" / "screenshots"
-BULK = 1200  # results on the trend charts besides the sample line's (7 charts: ~9,000 points)
+BULK = 1200  # results on the SPC charts besides the sample line's (22 charts: ~27,000 points)
 
 
 @dataclass
@@ -68,7 +68,7 @@ class Site:
 
 
 def _bulk(line: SampleLine, n: int) -> None:
-    """``n`` results fast: one measured record replayed with new numbers (trend charts)."""
+    """``n`` results fast: one measured record replayed with new numbers (SPC charts)."""
     rng = np.random.default_rng(3)
     template, _ = line.record()
     assert template.offset is not None and template.uncertainty is not None
@@ -376,7 +376,7 @@ def _assert_readable_ticks(charts: list[dict[str, Any]], points: int, data_span:
 
 def test_chart_axes_are_readable_at_few_and_many_points(site: Site) -> None:
     page = site.page("read")
-    page.goto(f"{site.base}/trends")
+    page.goto(f"{site.base}/spc")
     for limit in (3, 60, 20000):
         page.fill("#trend-filters input[name=limit]", str(limit))
         page.click("#trend-filters button[type=submit]")
@@ -408,20 +408,22 @@ def test_chart_axes_are_readable_at_few_and_many_points(site: Site) -> None:
     page.context.close()
 
 
-def test_trends_and_calibration_draw_thousands_of_points(site: Site) -> None:
+def test_spc_and_calibration_draw_thousands_of_points(site: Site) -> None:
     page = site.page("engineer")
-    page.goto(f"{site.base}/trends")
+    page.goto(f"{site.base}/spc")
     page.wait_for_selector("#charts[data-points]", timeout=30000)
     points = int(page.locator("#charts").get_attribute("data-points"))
     assert points >= BULK
-    assert page.locator("#charts .uplot").count() == 7
+    # 6 offset axes, 4 cameras, the cycle time: an individuals and a moving-range chart each
+    assert page.locator("#charts .uplot").count() == 22
     render_ms = float(page.locator("#charts").get_attribute("data-render-ms"))
     assert render_ms > 0  # the page measured its own drawing; its speed is not asserted
-    print(f"trends: {points} points per chart, 7 charts drawn in {render_ms:.0f} ms")
+    print(f"spc: {points} points per chart, 22 charts drawn in {render_ms:.0f} ms")
     titles = page.locator("#charts h3").all_inner_texts()
-    assert any(t.startswith("NOK rate by reason") for t in titles)
-    assert "deadline" in page.locator("#charts").inner_text()
-    site.shot(page, "trends")
+    assert titles[0].startswith("Offset X (mm): individuals")
+    assert page.locator("#charts p.capability").count() == 11
+    assert "control limits from the first 50 points" in page.inner_text("#charts")
+    site.shot(page, "spc")
 
     page.goto(f"{site.base}/calibration")
     page.wait_for_selector("#charts[data-points]", timeout=30000)
@@ -554,7 +556,7 @@ def test_the_trigger_form_says_the_stations_reason_and_message(
 
 #: every page, and what shows it has drawn
 PAGES = {"/": "#status", "/line": "#verdict", "/history": "table.history",
-         "/trends": "#charts[data-points]", "/calibration": "#charts[data-points]",
+         "/spc": "#charts[data-points]", "/calibration": "#charts[data-points]",
          "/recipes": "table", "/recipes/floor_panel": "table.diff"}
 
 
@@ -574,3 +576,4 @@ def test_axe_finds_nothing_serious_on_any_page(site: Site, role: str) -> None:
     login_page.goto(f"{site.base}/login")
     assert_accessible(login_page, "/login")
     context.close()
+

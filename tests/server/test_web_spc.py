@@ -95,7 +95,8 @@ async def test_the_spc_json_has_limits_rules_and_capability(seeded: Seeded) -> N
         keys = [c["key"] for c in d["charts"]]
         assert keys[:6] == [f"offset.{a}" for a in "XYZWPR"]
         assert keys[6:] == [f"rms.{c}" for c in ("back_left", "back_right", "top_left",
-                                                 "top_right")]
+                                                 "top_right")] + ["cycle.total"]
+        assert d["charts"][-1]["usl"] == 50.0  # the station's cycle deadline
         x = d["charts"][0]
         values = np.array([_x(k) for k in range(N)])
         base = values[:30]
@@ -122,6 +123,8 @@ async def test_the_spc_json_has_limits_rules_and_capability(seeded: Seeded) -> N
         assert cap["cp"] == pytest.approx(2 * tol / (6 * within), abs=1e-3)
         assert cap["cpk"] == pytest.approx((tol - abs(mean)) / (3 * within), abs=1e-3)
         assert cap["ppk"] == pytest.approx((tol - abs(mean)) / (3 * overall), abs=1e-3)
+        # Y is the same in every record: its limits collapse on it and flag nothing
+        assert d["charts"][1]["limits"]["sigma_within"] == 0 and d["charts"][1]["rules"] == []
         # a camera's residual has an upper tolerance only: Cpk is its Cpu, no Cp
         rms = d["charts"][6]
         assert rms["lsl"] is None and rms["usl"] is not None and rms["capability"]["cp"] is None
@@ -176,9 +179,9 @@ def test_the_spc_page_draws_limits_and_marks_the_rule_1_point(
                            "document.querySelector('.spc-head').textContent.includes('first 30')",
                            timeout=30000)
     assert int(page.locator("#charts").get_attribute("data-points")) == N
-    # 6 axes and 4 cameras, an individuals and a moving-range chart each
-    assert page.locator("#charts section.spc").count() == 10
-    assert page.locator("#charts .uplot").count() == 20
+    # 6 axes, 4 cameras and the cycle time, an individuals and a moving-range chart each
+    assert page.locator("#charts section.spc").count() == 11
+    assert page.locator("#charts .uplot").count() == 22
     x = page.locator("#charts section.spc[data-key='offset.X']")
     labels = x.evaluate("(b) => b.querySelector('.chart').plot.series.map((s) => s.label)")
     assert {"UCL", "centre", "LCL", "USL (tolerance)", "LSL (tolerance)",

@@ -156,7 +156,8 @@ function chart(host, title, x, series, opts) {
     tzDate: (ts) => uPlot.tzDate(new Date(ts * 1e3), ZONE),  // ticks on the plant's hours
     scales: {x: {time: true, range: timeRange(x)}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
     axes: [{values: timeTicks, label: "time (" + ZONE + ")"},
-           {label: opts.unit || "", values: opts.log ? undefined : numberTicks}],
+           // 24 px between y ticks (uPlot's 30 leaves one tick on a short chart's narrow range)
+           {label: opts.unit || "", space: 24, values: opts.log ? undefined : numberTicks}],
     cursor: {drag: {x: true, y: false}}}, data, box);
   box.plot = plot;  // the browser tests read the drawn tick labels (plot.axes[i]._values)
   return plot;
@@ -249,13 +250,13 @@ function drawSpc(host, d) {
     if (c.usl !== null) ind.push({label: "USL (tolerance)", band: true, values: band(n, c.usl)});
     if (c.lsl !== null) ind.push({label: "LSL (tolerance)", band: true, values: band(n, c.lsl)});
     ind.push({label: "run rule broken", marks: true, values: c.flagged});
-    chart(box, c.title + ": individuals", c.t, ind, {unit: c.unit, height: 200});
+    chart(box, c.title + ": individuals", c.t, ind, {unit: c.unit, height: 230});
     const mr = [{label: "moving range", values: c.mr}];
     if (L) {
       mr.push({label: "UCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.mr_ucl)},
               {label: "MR\u0304", band: true, color: "#15803d", dash: [1, 0], values: band(n, L.mr_center)});
     }
-    chart(box, c.title + ": moving range", c.t, mr, {unit: c.unit, height: 130});
+    chart(box, c.title + ": moving range", c.t, mr, {unit: c.unit, height: 200});
     if (c.message) para(box, "hook", c.message);
     const k = c.capability;
     para(box, "capability", k ? "Over the " + k.n + " points: Cp " + fmt(k.cp, 2) + ", Cpk " +
@@ -296,7 +297,9 @@ function setupCharts() {
   if (!host) return;
   ZONE = host.dataset.tz || "UTC";
   const form = document.getElementById("trend-filters");
+  let asked = 0;  // a slower earlier answer must not replace the newest one's charts
   const load = () => {
+    const mine = ++asked;
     const q = new URLSearchParams();
     new FormData(form).forEach((v, k) => { if (v) q.set(k, v); });
     host.textContent = "loading…";
@@ -308,6 +311,7 @@ function setupCharts() {
         if (!r.ok) throw new Error(d.detail || ("HTTP " + r.status));
         return d;
       }).then((d) => {
+        if (mine !== asked) return;
         host.textContent = "";
         const t1 = performance.now();
         ZONE = d.time_zone || host.dataset.tz || "UTC";
@@ -316,7 +320,7 @@ function setupCharts() {
         host.dataset.loadMs = String(Math.round(t1 - t0));
         host.dataset.points = String(d.columns ? d.columns.t.length : d.points);
         host.dataset.limit = q.get("limit") || "";
-      }).catch((err) => { host.textContent = "could not load: " + err.message; });
+      }).catch((err) => { if (mine === asked) host.textContent = "could not load: " + err.message; });
   };
   form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });
   load();
