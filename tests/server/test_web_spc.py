@@ -10,9 +10,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import timedelta
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
+from zoneinfo import ZoneInfo
 
 import numpy as np
 import pytest
@@ -200,6 +201,14 @@ def test_the_spc_page_draws_limits_and_marks_the_rule_1_point(
     assert "Cp " in x.locator("p.capability").inner_text()
     axis = page.evaluate("document.querySelector('#charts .chart').plot.axes[0].label")
     assert axis == f"time ({ZONE})"
+    # the time ticks are the plant's wall clock, on its whole minutes
+    ticks = page.evaluate("""() => {
+        const a = document.querySelector('#charts .chart').plot.axes[0];
+        return [a._splits, a._values]; }""")
+    assert len(ticks[0]) >= 2
+    for t, label in zip(*ticks, strict=True):
+        if label:
+            assert label == datetime.fromtimestamp(t, ZoneInfo(ZONE)).strftime("%H:%M"), ticks
     assert_accessible(page, "/spc")
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / "spc.png"), full_page=True)
