@@ -11,30 +11,42 @@ from collections.abc import Callable
 import numpy as np
 
 from bench.timing import Timing, check
-from drivers.plc import Control, PlcConfig, PlcServer, Status, TriggerOutcome, TriggerRequest
-from drivers.plc.twin import PlcStatus, PlcTwin
+from drivers.links.base import LinkOutcome, LinkRequest
+from drivers.links.modbus import Control, PlcConfig, PlcServer, Status
+from drivers.links.modbus.twin import PlcStatus, PlcTwin
+from mvpose_core.transforms import RobotConvention
 
 HANDSHAKE_P99_TARGET_MS = 2.0
 N = 2000
 
 
 class InstantPipeline:
-    """Answers at once, so the numbers are the PLC link's own cost."""
+    """Answers at once, so the numbers are the PLC link's own cost (the calls of
+    drivers.links.base.StationHandler that the Modbus backend makes)."""
 
-    async def measure(self, request: TriggerRequest) -> TriggerOutcome:
-        return TriggerOutcome(0, (1.0, 2.0, 3.0, 0.1, 0.2, 0.3), 0.05, 0.01, 0.0)
+    def __init__(self) -> None:
+        self.seq = 0
+
+    async def measure(self, request: LinkRequest) -> LinkOutcome:
+        self.seq += 1
+        return LinkOutcome(0, self.seq, (1.0, 2.0, 3.0, 0.1, 0.2, 0.3), 0.05, 0.01, 0.0)
+
+    async def record_failure(self, request: LinkRequest, code: int, message: str,
+                             processing_ms: float) -> int:
+        self.seq += 1
+        return self.seq
 
     async def select_recipe(self, recipe: int) -> int:
         return 0
 
-    async def teach_reference(self) -> int:
+    async def teach_reference(self, by: str) -> int:
         return 0
 
     async def reset(self) -> None:
         return None
 
-    def convention_code(self) -> int:
-        return 1
+    def convention(self) -> RobotConvention:
+        return RobotConvention.FANUC
 
 
 def _toggled(before: bool) -> Callable[[PlcStatus], bool]:
@@ -42,7 +54,8 @@ def _toggled(before: bool) -> Callable[[PlcStatus], bool]:
 
 
 async def _run() -> tuple[Timing, Timing, Timing]:
-    server = PlcServer(InstantPipeline(), PlcConfig(initial_recipe=1, watchdog_s=0))
+    server = PlcServer(InstantPipeline(),  # type: ignore[arg-type]
+                       PlcConfig(initial_recipe=1, watchdog_s=0))
     await server.start()
     twin = PlcTwin("127.0.0.1", server.port)
     await twin.connect()

@@ -32,8 +32,8 @@ from asyncua import Client, ua
 
 from drivers.cameras import RenderOptions
 from drivers.links.opcua import MV_URI
+from drivers.links.opcua.settings import hash_password
 from drivers.links.process import ProcessLink
-from mvpose_core.linkconfig import hash_password
 from server.loopback import move_part, running_station, trigger
 from server.settings import Settings
 from server.station.core import StationOptions

@@ -36,7 +36,6 @@ from pydantic import (
 )
 
 from mvpose_core.camera import CameraModel
-from mvpose_core.linkconfig import LinksConfig
 from mvpose_core.plantconfig import PlantConfig
 from mvpose_core.shifts import DEFAULT_SHIFTS, Shift, check_shifts, time_zone
 from mvpose_core.transforms import (
@@ -463,7 +462,11 @@ class StationConfig(_Model):
     recipes: list[RecipeConfig] = Field(min_length=1)
     default_recipe: Identifier | None = None
     calibration: str | None = Field(None, description="calibration file this station uses")
-    links: LinksConfig = Field(LinksConfig(), description="PLC and controller links")
+    links: dict[str, Any] = Field(
+        default_factory=dict,
+        description="PLC and controller links: backend name → its settings, each block checked by "
+                    "its backend's own model where the server loads the file "
+                    "(drivers.links.link_settings)")
     plant: PlantConfig | None = Field(
         None, description="ISA-95 names and the MQTT broker results stream to")
     uncertainty: UncertaintyConfig = Field(

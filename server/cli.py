@@ -44,7 +44,8 @@ class CliError(Exception):
 
 def load_station_file(path: Path) -> StationConfig:
     """The station file; a malformed one is a CliError naming file, field and value."""
-    from mvpose_core.station import StationFileError, load_station
+    from mvpose_core.station import StationFileError
+    from server.links import load_station
 
     try:
         return load_station(path)
@@ -83,8 +84,10 @@ def one_line(message: object) -> str:
     return "; ".join(x for x in lines if x and set(x) != {"^"})
 
 
-def check_port_free(host: str, port: int) -> None:
-    """CliError naming the address when ``host:port`` cannot be bound (in use, not ours)."""
+def check_port_free(host: str, port: int, what: str = "REST address",
+                    hint: str = "pass --port / set MVPOSE_PORT") -> None:
+    """CliError naming ``what`` and the address when ``host:port`` cannot be bound (in use,
+    not ours); ``hint`` says how to choose another."""
     import socket
 
     if port == 0:
@@ -94,8 +97,8 @@ def check_port_free(host: str, port: int) -> None:
         try:
             s.bind((host, port))
         except OSError as err:
-            raise CliError(f"REST address {host}:{port} is not free ({err.strerror}): stop "
-                           "what listens there, or pass --port / set MVPOSE_PORT") from None
+            raise CliError(f"{what} {host}:{port} is not free ({err.strerror}): stop "
+                           f"what listens there, or {hint}") from None
 
 
 def check_start_up(args: argparse.Namespace) -> None:

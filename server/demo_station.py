@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.plc.registers import Status
+from drivers.links.modbus.registers import Status
 from mvpose_core.reasons import describe, reason_name
-from mvpose_core.station import load_station
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention
+from server.links import load_station
 from server.loopback import Loopback, TriggerRow, move_part, running_station, trigger
 from server.pipeline import PipelineOptions, auto_detect_processes
 from server.settings import Settings
@@ -85,7 +85,8 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         print(f"REST API  {lb.base_url}/api/v1   (OpenAPI: {lb.base_url}/docs)")
         print(f"token     {token}   (engineer; e.g. curl -H 'Authorization: Bearer {token}' "
               f"{lb.base_url}/api/v1/measurements)")
-        print(f"Modbus    127.0.0.1:{rt.plc_port}   store {settings.resolved_database_url}")
+        print(f"Modbus    127.0.0.1:{rt.link_port('modbus')}   "
+              f"store {settings.resolved_database_url}")
         conv = recipe.robot_convention
         lin, ang = _units(conv)
         labels = " ".join(f"{x:>7}" for x in conv.labels[:3]) + " |" + " ".join(

@@ -17,11 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 import uvicorn
 
-from drivers.plc.registers import Status
-from drivers.plc.twin import PlcStatus, PlcTwin
-from mvpose_core.station import RecipeConfig, load_station
+from drivers.links.modbus.registers import Status
+from drivers.links.modbus.twin import PlcStatus, PlcTwin
+from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array, compose, from_robot, invert, to_robot, transform_error
 from server.app import create_app
+from server.links import load_station
 from server.settings import Settings
 from server.station.client import StationClient
 from server.station.core import Station, StationOptions
@@ -120,9 +121,9 @@ async def running_server(
     if settings.station is None:
         raise ValueError("settings.station must name the station file")
     station = load_station(settings.station)
-    modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
-    station = station.model_copy(update={"links": station.links.model_copy(
-        update={"modbus": modbus})})
+    links = dict(station.links)  # the PLC twin's link, on loopback
+    links["modbus"] = {**(links.get("modbus") or {}), "host": "127.0.0.1", "port": 0}
+    station = station.model_copy(update={"links": links})
     proc = StationProcess(settings, station, options or StationOptions())
     await asyncio.to_thread(proc.start)
     try:
@@ -204,7 +205,7 @@ async def running_station(
                               http_port=http_port) as rs:
         # A PLC scans every few ms; a twin polling flat out in this process would only
         # compete with the pipeline for the GIL.
-        twin, beat = await attach_twin(rs.runtime.plc_port, twin_poll_s)
+        twin, beat = await attach_twin(rs.runtime.link_port("modbus"), twin_poll_s)
         try:
             yield Loopback(runtime=rs.runtime, twin=twin, server=rs.server, base_url=rs.base_url)
         finally:

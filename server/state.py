@@ -7,9 +7,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mvpose_core.station import RecipeConfig, StationConfig, load_station
+from mvpose_core.station import RecipeConfig, StationConfig
 from server.auth import ensure_access
 from server.images import ImageArchive
+from server.links import load_station
 from server.metrics import Metrics
 from server.settings import Settings
 from server.store import Store, open_store

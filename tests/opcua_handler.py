@@ -18,8 +18,8 @@ from drivers.links.base import (
     RecipeInfo,
     ResultQuery,
 )
+from drivers.links.opcua.settings import OpcUaLinkConfig, hash_password
 from drivers.links.result import ResultEvent
-from mvpose_core.linkconfig import OpcUaLinkConfig, hash_password
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
 

@@ -223,7 +223,7 @@ def test_compose_files_run_the_image_on_an_example_station_with_known_settings()
     from server.settings import Settings
 
     known = {f"MVPOSE_{name.upper()}" for name in Settings.model_fields}
-    known |= {"MVPOSE_HOST", "MVPOSE_PORT"} | {env for env, _, _ in LINK_OPTIONS.values()}
+    known |= {"MVPOSE_HOST", "MVPOSE_PORT"} | {env for env, *_ in LINK_OPTIONS.values()}
     files = sorted((ROOT / "deploy").glob("compose.*.yaml"))
     plant = [ROOT / "deploy" / "compose.plant.yaml"]  # three stations, PostgreSQL, a broker
     single = [f for f in files if not f.name.endswith(".split.yaml") and f not in plant]

@@ -58,7 +58,7 @@ def test_layer_rule(package: str) -> None:
 def test_checker_sees_violations(tmp_path: Path) -> None:
     f = tmp_path / "x.py"
     f.write_text(
-        "import server.app\nfrom drivers.plc import x\nimportlib.import_module('server.cli')\n"
+        "import server.app\nfrom drivers.links import x\nimportlib.import_module('server.cli')\n"
     )
     assert imported_packages(f) == {"server", "drivers"}
     f.write_text("from .sibling import y\nimport numpy as np\n")

@@ -1,15 +1,21 @@
 """Links to the line's controllers behind one trigger interface (:mod:`drivers.links.base`).
 
-``BACKENDS`` names each backend's module and class; they are imported only when a station file
-enables them, so a station without OPC UA never imports asyncua. A backend in ``OWN_PROCESS`` runs
-in a child process of the station (:mod:`drivers.links.process`): its per-result work is pure
-Python and would otherwise hold the station process's GIL beside the trigger path.
+Every backend is a folder ``drivers/links/<backend>/`` with its link class and its settings
+model (the station file's ``links.<backend>`` block). ``BACKENDS`` and ``SETTINGS`` name each
+backend's module and class; they are imported only when a station file names the backend, so a
+station without OPC UA never imports asyncua. A backend in ``OWN_PROCESS`` runs in a child
+process of the station (:mod:`drivers.links.process`): its per-result work is pure Python and
+would otherwise hold the station process's GIL beside the trigger path. A backend in
+``ON_BY_DEFAULT`` runs with its default settings when the station file does not name it.
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from typing import Any
+
+from pydantic import BaseModel, ValidationError
 
 from .base import Link, LinkOutcome, LinkRequest, StationHandler, relay
 
@@ -17,20 +23,71 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
 }
+SETTINGS: dict[str, tuple[str, str]] = {
+    "modbus": ("drivers.links.modbus.settings", "ModbusLinkConfig"),
+    "opcua": ("drivers.links.opcua.settings", "OpcUaLinkConfig"),
+}
 OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
+ON_BY_DEFAULT: tuple[str, ...] = ("modbus",)
+
+
+class LinkSettingsError(ValueError):
+    """A station file's ``links`` section does not fit the backends' settings models:
+    ``problems`` holds (where, e.g. ``links.modbus.port``, what is wrong, the value)."""
+
+    def __init__(self, problems: list[tuple[str, str, Any]]) -> None:
+        super().__init__("; ".join(f"{where}: {msg} (value: {value!r})"
+                                   for where, msg, value in problems))
+        self.problems = problems
+
+
+def _load(table: dict[str, tuple[str, str]], name: str) -> Any:
+    try:
+        module, cls = table[name]
+    except KeyError:
+        raise ValueError(f"unknown link backend {name!r}; known: {sorted(table)}") from None
+    return getattr(importlib.import_module(module), cls)
 
 
 def link_class(name: str) -> type[Link]:
     """The backend class for ``name`` (a key of BACKENDS)."""
-    try:
-        module, cls = BACKENDS[name]
-    except KeyError:
-        raise ValueError(f"unknown link backend {name!r}; known: {sorted(BACKENDS)}") from None
-    found: type[Link] = getattr(importlib.import_module(module), cls)
+    found: type[Link] = _load(BACKENDS, name)
     return found
 
 
-def open_links(configs: dict[str, Any], handler: StationHandler) -> list[Link]:
+def settings_model(name: str) -> type[BaseModel]:
+    """The settings model of backend ``name`` (a key of SETTINGS)."""
+    found: type[BaseModel] = _load(SETTINGS, name)
+    return found
+
+
+def link_settings(raw: Mapping[str, Any]) -> dict[str, BaseModel]:
+    """Every backend's settings from a station file's ``links`` section (backend name → its
+    block; a block that is null counts as absent), each validated by its backend's own model;
+    the backends in ON_BY_DEFAULT with their defaults when absent. In BACKENDS order.
+    LinkSettingsError names every unknown backend and every field that does not fit."""
+    problems: list[tuple[str, str, Any]] = []
+    for name in raw:
+        if name not in SETTINGS:
+            problems.append((f"links.{name}",
+                             f"unknown link backend; known: {', '.join(SETTINGS)}", name))
+    out: dict[str, BaseModel] = {}
+    for name in SETTINGS:
+        block = raw.get(name)
+        if block is None and name not in ON_BY_DEFAULT:
+            continue
+        try:
+            out[name] = settings_model(name).model_validate(block or {})
+        except ValidationError as err:
+            for e in err.errors():
+                where = ".".join(["links", name, *(str(x) for x in e["loc"])])
+                problems.append((where, e["msg"], e.get("input")))
+    if problems:
+        raise LinkSettingsError(problems)
+    return out
+
+
+def open_links(configs: Mapping[str, Any], handler: StationHandler) -> list[Link]:
     """One link per enabled backend config (``{name: config}``); not started yet. A backend in
     OWN_PROCESS is a :class:`~drivers.links.process.ProcessLink` here (the backend itself is
     imported only in its child process)."""
@@ -40,5 +97,6 @@ def open_links(configs: dict[str, Any], handler: StationHandler) -> list[Link]:
             for name, cfg in configs.items() if getattr(cfg, "enabled", True)]
 
 
-__all__ = ["BACKENDS", "OWN_PROCESS", "Link", "LinkOutcome", "LinkRequest", "StationHandler",
-           "link_class", "open_links", "relay"]
+__all__ = ["BACKENDS", "ON_BY_DEFAULT", "OWN_PROCESS", "SETTINGS", "Link", "LinkOutcome",
+           "LinkRequest", "LinkSettingsError", "StationHandler", "link_class", "link_settings",
+           "open_links", "relay", "settings_model"]

@@ -1,8 +1,10 @@
 """The one trigger interface every link speaks (python-can style): request, outcome, handler, ABC.
 
-A link is how a controller reaches the station: Modbus/TCP for the PLC today, OPC UA next. Each
-backend lives in a module of its own and is the only code that knows its wire format (registers,
-word order, scaling; nodes and events). What crosses this seam is in the station's terms:
+A link is how a controller reaches the station: Modbus/TCP for the PLC, OPC UA for cells and MES.
+Each backend lives in a folder of its own (``drivers/links/<backend>/``) and is the only code that
+knows its wire format (registers, word order, scaling; nodes and events), its settings model and
+its twin. What crosses this seam is in the station's terms, and it is the only request/outcome
+pair there is:
 
 - a :class:`LinkRequest`: trigger id, view index, the robot's actual flange pose at full precision
   in the recipe's robot convention (``mvpose_core.transforms.to_robot`` form), part id, recipe;
@@ -222,6 +224,11 @@ class Link(ABC):
     @abstractmethod
     def ready(self) -> bool:
         """The link is up (listening, connected or registered as the backend needs)."""
+
+    def line_state(self) -> str | None:
+        """The handshake state this link shows the line's PLC (the station status's ``state``
+        and ``plc`` entries come from the first link that has one); None: it has none."""
+        return None
 
     def recipe_changed(self) -> None:  # noqa: B027 - optional hook
         """The selected recipe (or its robot convention) changed outside this link."""

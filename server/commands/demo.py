@@ -27,9 +27,10 @@ import numpy as np
 from mvpose_core.estimate import PoseInputError
 from mvpose_core.measure import measure
 from mvpose_core.offset import base_frame_offset
-from mvpose_core.station import StationFileError, load_station
+from mvpose_core.station import StationFileError
 from mvpose_core.synth import random_displacement, synthetic_observations
 from mvpose_core.transforms import matrix_to_xyzwpr, transform_error
+from server.links import load_station
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_STATIONS = (

@@ -17,16 +17,19 @@ from server.cli import CliError, load_station_file
 
 _N = TypeVar("_N", int, float)
 
-# option → (environment variable, station-file field of links.modbus, what it is)
-LINK_OPTIONS: dict[str, tuple[str, str, str]] = {
-    "plc_host": ("MVPOSE_PLC_HOST", "host", "Modbus/TCP address to listen on"),
-    "plc_port": ("MVPOSE_PLC_PORT", "port", "Modbus/TCP port"),
-    "plc_unit_id": ("MVPOSE_PLC_UNIT_ID", "unit_id", "Modbus unit id answered (0 = any)"),
-    "plc_word_order": ("MVPOSE_PLC_WORD_ORDER", "word_order", "ABCD or CDAB"),
-    "plc_allowlist": ("MVPOSE_PLC_ALLOWLIST", "allowlist",
+# option → (environment variable, link backend, field of its settings, what it is); the value
+# is checked by the backend's own settings model (drivers.links.settings_model)
+LINK_OPTIONS: dict[str, tuple[str, str, str, str]] = {
+    "plc_host": ("MVPOSE_PLC_HOST", "modbus", "host", "Modbus/TCP address to listen on"),
+    "plc_port": ("MVPOSE_PLC_PORT", "modbus", "port", "Modbus/TCP port"),
+    "plc_unit_id": ("MVPOSE_PLC_UNIT_ID", "modbus", "unit_id",
+                    "Modbus unit id answered (0 = any)"),
+    "plc_word_order": ("MVPOSE_PLC_WORD_ORDER", "modbus", "word_order", "ABCD or CDAB"),
+    "plc_allowlist": ("MVPOSE_PLC_ALLOWLIST", "modbus", "allowlist",
                       "comma-separated PLC addresses or networks allowed to connect"),
-    "plc_watchdog_s": ("MVPOSE_PLC_WATCHDOG_S", "watchdog_s", "PLC heartbeat timeout, s"),
-    "plc_trigger_hold_s": ("MVPOSE_PLC_TRIGGER_HOLD_S", "trigger_hold_s",
+    "plc_watchdog_s": ("MVPOSE_PLC_WATCHDOG_S", "modbus", "watchdog_s",
+                       "PLC heartbeat timeout, s"),
+    "plc_trigger_hold_s": ("MVPOSE_PLC_TRIGGER_HOLD_S", "modbus", "trigger_hold_s",
                            "TRIGGER held this long after the answer is an error, s"),
 }
 
@@ -42,10 +45,10 @@ def add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def add_station_options(parser: argparse.ArgumentParser) -> None:
-    for name, (env, field, what) in LINK_OPTIONS.items():
+    for name, (env, backend, field, what) in LINK_OPTIONS.items():
         parser.add_argument("--" + name.replace("_", "-"), dest=name, default=None,
                             help=f"{what} (default: ${env}, else the station file's "
-                            f"links.modbus.{field})")
+                            f"links.{backend}.{field})")
     parser.add_argument("--detect-processes", type=int, default=None,
                         help="worker processes for mark detection (0 = in the station process; "
                         "default: none below 4 cores, else half the cores, at most 4)")
@@ -100,30 +103,58 @@ def settings_from(args: argparse.Namespace) -> Any:
 
 
 def station_with_links(args: argparse.Namespace, path: Path) -> Any:
-    """The station file, its links.modbus block overridden from the command line and env."""
+    """The station file, its link settings overridden from the command line and env (each value
+    checked by its backend's settings model; the file's own blocks are checked on load)."""
     from pydantic import ValidationError
 
-    from mvpose_core.linkconfig import ModbusLinkConfig
+    from drivers.links import link_settings, settings_model
 
     station = load_station_file(path)
-    data = station.links.modbus.model_dump()
-    for name, (env, field, _what) in LINK_OPTIONS.items():
+    blocks = {name: cfg.model_dump() for name, cfg in link_settings(station.links).items()}
+    changed: set[str] = set()
+    for name, (env, backend, field, _what) in LINK_OPTIONS.items():
         given = getattr(args, name, None)
         raw = given if given is not None else os.environ.get(env)
         if raw is None or raw == "":
             continue
+        data = blocks.setdefault(backend, {})
         if field == "allowlist":
             data[field] = tuple(x.strip() for x in str(raw).split(",") if x.strip())
         else:
             data[field] = raw
         try:
-            ModbusLinkConfig.model_validate(data)
+            settings_model(backend).model_validate(data)
         except ValidationError as err:
             src = "--" + name.replace("_", "-") if given is not None else env
             raise CliError(f"{src}: {err.errors()[0]['msg']} (value: {raw!r})") from None
-    modbus = ModbusLinkConfig.model_validate(data)
-    return station.model_copy(update={"links": station.links.model_copy(
-        update={"modbus": modbus})})
+        changed.add(backend)
+    if not changed:
+        return station
+    links = dict(station.links)
+    for backend in changed:  # as plain data, as the file has it
+        links[backend] = settings_model(backend).model_validate(blocks[backend]).model_dump(
+            mode="json")
+    return station.model_copy(update={"links": links})
+
+
+def check_link_ports(station: Any) -> None:
+    """CliError naming the link and its address when a link's port is taken (before anything
+    starts: a link that fails to listen later would stop the station with a traceback)."""
+    from drivers.links import link_settings
+    from server.cli import check_port_free
+
+    for backend, cfg in link_settings(station.links).items():
+        host, port = getattr(cfg, "host", None), getattr(cfg, "port", None)
+        if not getattr(cfg, "enabled", True) or not isinstance(host, str) \
+                or not isinstance(port, int):
+            continue
+        hint = f"change links.{backend}.port in the station file"
+        options = [(name, env) for name, (env, b, field, _) in LINK_OPTIONS.items()
+                   if (b, field) == (backend, "port")]
+        if options:
+            name, env = options[0]
+            hint += f", or pass --{name.replace('_', '-')} / set {env}"
+        check_port_free(host, port, f"{backend} link address", hint)
 
 
 def setup_logging(level: str) -> None:

@@ -23,6 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.links import link_settings
     from server.commands.api import API_ADDRESS_FILE
     from server.station.client import StationClient, StationDownError
     from server.supervisor import Child, Supervisor, python_argv
@@ -36,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
         print("mvpose serve: --rest-yield-ms and --answer-read-wait-ms are ignored: the API "
               "runs in a process of its own", file=sys.stderr)
     check_port_free(host, port)
+    options.check_link_ports(station)
     common = ["--station", str(settings.station), "--data-dir", str(settings.data_dir),
               "--log-level", args.log_level]
     station_argv = common + options.forward(args, [*options.LINK_OPTIONS, "detect_processes",
@@ -62,9 +64,11 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError, KeyError):
             return False
 
-    modbus = station.links.modbus
-    print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 (docs /docs), "
-          f"Modbus/TCP {modbus.host}:{modbus.port}", flush=True)
+    links = "".join(f", {name} {getattr(cfg, 'host', '')}:{getattr(cfg, 'port', '')}"
+                    for name, cfg in link_settings(station.links).items()
+                    if getattr(cfg, "enabled", True))
+    print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 (docs /docs)"
+          f"{links}", flush=True)
     return Supervisor([
         Child("station", python_argv("station", station_argv), station_ready),
         Child("api", python_argv("api", api_argv), api_ready),

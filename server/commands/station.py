@@ -16,6 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.errors import DriverInitError
     from server.pipeline import PipelineOptions, auto_detect_processes
     from server.station import scheduling
     from server.station.core import StationOptions
@@ -24,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
     options.setup_logging(args.log_level)
     settings = options.settings_from(args)
     station = options.station_with_links(args, settings.station)
+    options.check_link_ports(station)
     procs = args.detect_processes
     if procs is None:
         procs = auto_detect_processes()
@@ -35,5 +37,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--trigger-priority must be 0-99 (0: normal scheduler), got {priority}")
     # before anything starts: every thread and worker process inherits the policy
     cpu = scheduling.enter(priority)
-    return run_station(settings, station, StationOptions(
-        sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)), cpu)
+    try:
+        return run_station(settings, station, StationOptions(
+            sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)), cpu)
+    except DriverInitError as err:  # a link that cannot listen (taken since the check above)
+        raise CliError(str(err)) from None

@@ -29,7 +29,6 @@ from typing import Any
 
 from drivers.links import Link, LinkOutcome, LinkRequest
 from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery
-from drivers.links.modbus import ModbusLink
 from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
 from mvpose_core.station import StationConfig
@@ -184,16 +183,17 @@ class Station:
     def links(self) -> list[Link]:
         return self.host.links
 
-    @property
-    def modbus(self) -> ModbusLink | None:
-        return self.host.modbus
+    def link(self, name: str) -> Link | None:
+        """The running link of backend ``name`` (a key of drivers.links.BACKENDS), if any."""
+        return self.host.link(name)
 
-    @property
-    def plc_port(self) -> int:
-        link = self.modbus
-        if link is None:
-            raise RuntimeError("the station has no Modbus link running")
-        return link.port
+    def link_port(self, name: str) -> int:
+        """The port the running link of backend ``name`` listens on."""
+        link = self.host.link(name)
+        port = None if link is None else link.status().get("port")
+        if not isinstance(port, int):
+            raise RuntimeError(f"the station has no {name} link listening")
+        return port
 
     # ------------------------------------------------------------------ StationHandler (links)
     def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
@@ -221,7 +221,7 @@ class Station:
         if found is None:
             return int(Reason.UNKNOWN_RECIPE)
         await self.triggers.between_async(self.measuring.select, found.config.name, None, "plc")
-        self._recipe_changed()  # every link shows it (Modbus: INITIALIZED -> READY)
+        self._recipe_changed()  # every link shows it (a PLC handshake: INITIALIZED -> READY)
         return 0
 
     async def teach_reference(self, by: str) -> int:
@@ -317,12 +317,12 @@ class Station:
     def status(self) -> dict[str, Any]:
         m = self.measuring
         active = self.active
-        modbus = self.modbus
+        plc = self.host.plc()
         last, counts = self.recorder.snapshot()
         prov = m.provenance
         return {
             "station": self.station.name,
-            "state": modbus.status()["state"] if modbus and modbus.server else "STOPPED",
+            "state": plc.line_state() if plc is not None else "STOPPED",
             "pid": os.getpid(),
             "started_at": self.started_at.isoformat() if self.started_at else None,
             "deadline_ms": self.station.deadline_ms,
@@ -336,7 +336,7 @@ class Station:
             "teach_armed": m.teach_armed_by is not None,
             "cameras": m.capture.status() if m.capture else {},
             "links": self.host.status(),
-            "plc": modbus.status() if modbus else {"running": False},
+            "plc": plc.status() if plc is not None else {"running": False},
             "counts": counts,
             "sequence_views": [v.view for v in m.sequence.views] if m.sequence else [],
             "last_result": last,

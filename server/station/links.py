@@ -1,8 +1,8 @@
 """The station loop and the links on it: their start, stop, status and readiness.
 
-``station-loop`` is an asyncio loop in a thread of its own holding the links (Modbus/TCP; the
-station's side of OPC UA, whose server runs in a child process: drivers.links.process), the
-control channel and the station's background tasks, so nothing a caller of the station does can
+``station-loop`` is an asyncio loop in a thread of its own holding the links (or the station's
+side of a link whose server runs in a child process: drivers.links.process), the control
+channel and the station's background tasks, so nothing a caller of the station does can
 delay a trigger's arrival or its answer.
 """
 
@@ -16,8 +16,7 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
-from drivers.links import Link, StationHandler, open_links
-from drivers.links.modbus import ModbusLink
+from drivers.links import Link, StationHandler, link_settings, open_links
 from mvpose_core.station import StationConfig
 
 log = logging.getLogger(__name__)
@@ -49,10 +48,7 @@ class LinkHost:
                      margin: float, data_dir: Path | None,
                      tasks: dict[str, Callable[[], Coroutine[Any, Any, None]]]) -> None:
         configs: dict[str, Any] = {}
-        for name in type(station.links).model_fields:  # one block per backend
-            cfg = getattr(station.links, name)
-            if cfg is None:
-                continue
+        for name, cfg in link_settings(station.links).items():  # one block per backend
             if getattr(cfg, "measure_timeout_s", 0) is None:  # a backstop behind the watchdog
                 cfg = cfg.model_copy(update={
                     "measure_timeout_s": station.deadline_ms / 1000.0 + margin + 1.0})
@@ -96,16 +92,21 @@ class LinkHost:
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
 
     def recipe_changed(self) -> None:
-        """Every link shows the selected recipe again (Modbus: INITIALIZED -> READY)."""
+        """Every link shows the selected recipe again (a PLC handshake: INITIALIZED -> READY)."""
         if self._loop is None:
             return
         for link in self.links:
             self._loop.call_soon_threadsafe(link.recipe_changed)
 
     # ------------------------------------------------------------------ status
-    @property
-    def modbus(self) -> ModbusLink | None:
-        return next((lk for lk in self.links if isinstance(lk, ModbusLink)), None)
+    def link(self, name: str) -> Link | None:
+        """The running link of backend ``name`` (a key of drivers.links.BACKENDS), if any."""
+        return next((lk for lk in self.links if lk.name == name), None)
+
+    def plc(self) -> Link | None:
+        """The link that shows the line's PLC a handshake state (Link.line_state), if any: the
+        station status's ``state`` and ``plc`` entries are its."""
+        return next((lk for lk in self.links if lk.line_state() is not None), None)
 
     def ready(self) -> bool:
         return bool(self.links) and all(lk.ready() for lk in self.links)

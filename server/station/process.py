@@ -70,7 +70,7 @@ def run_station(settings: Settings, station: StationConfig, options: StationOpti
                 cpu: dict[str, Any] | None = None) -> int:
     """Run until SIGTERM/SIGINT; 0 on a clean stop. ``cpu``: the scheduling policy the process
     runs under (server.station.scheduling), shown in the status."""
-    # A thread that wants the GIL (the trigger thread, the Modbus loop) gets it from a busy one
+    # A thread that wants the GIL (the trigger thread, the links' loop) gets it from a busy one
     # (the database commit, a store query for an OPC UA client) within 1 ms instead of CPython's
     # default 5 ms.
     sys.setswitchinterval(0.001)

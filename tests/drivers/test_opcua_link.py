@@ -28,7 +28,7 @@ from opcua_handler import AT, PASSWORDS, RecordingHandler, link_config
 from pydantic import ValidationError
 from waiting import until
 
-from drivers.links import link_class
+from drivers.links import link_class, link_settings
 from drivers.links.base import (
     LinkOutcome,
     LinkRequest,
@@ -41,7 +41,7 @@ from drivers.links.opcua import (
     import_order,
     nodeset_path,
 )
-from mvpose_core.linkconfig import LinksConfig, OpcUaLinkConfig, hash_password
+from drivers.links.opcua.settings import OpcUaLinkConfig, hash_password
 from mvpose_core.reasons import Reason
 
 MODULE_LOOP = pytest.mark.asyncio(loop_scope="module")  # the one server's loop
@@ -354,7 +354,7 @@ async def test_no_security_is_offered_only_when_the_station_file_says_so(served:
                for e in endpoints for t in e.UserIdentityTokens)
     explicit = OpcUaLinkConfig(security=("None",))
     assert explicit.security == ("None",)
-    assert LinksConfig().opcua is None  # no OPC UA server unless the station file has the block
+    assert "opcua" not in link_settings({})  # no OPC UA unless the station file has the block
 
 
 def test_station_file_users_need_a_password_hash_never_a_password(tmp_path: Path) -> None:

@@ -9,8 +9,8 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 from pyModbusTCP import utils as mtcp
 
-from drivers.plc import PlcConfig, WordOrder
-from drivers.plc import codecs as c
+from drivers.links.modbus import PlcConfig, WordOrder
+from drivers.links.modbus import codecs as c
 from mvpose_core.transforms import (
     RobotConvention,
     from_robot,

@@ -19,8 +19,8 @@ from plc_peers import ServerFactory, plc  # noqa: F401
 from pyModbusTCP.client import ModbusClient
 from system_packages import ensure_commands
 
-from drivers.plc import registers as r
-from drivers.plc.transport import FRAME_TIMEOUT_S, MAX_LENGTH, MAX_PENDING, MIN_LENGTH
+from drivers.links.modbus import registers as r
+from drivers.links.modbus.transport import FRAME_TIMEOUT_S, MAX_LENGTH, MAX_PENDING, MIN_LENGTH
 
 UNIT = 0x11  # not 0, 1 or 255, so an echo of the wrong byte shows
 CLOSE_WITHIN_S = 2.0  # what the docs promise for a malformed frame

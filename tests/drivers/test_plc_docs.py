@@ -7,16 +7,15 @@ import re
 from pathlib import Path
 
 import pytest
-from plc_peers import ServerFactory, cfg, plc  # noqa: F401
+from plc_peers import ArithmeticHandler, ServerFactory, cfg, plc  # noqa: F401
 
-from drivers.plc import (
+from drivers.links.base import LinkOutcome, LinkRequest
+from drivers.links.modbus import (
     Command,
     Control,
     ErrorCode,
     State,
     Status,
-    TriggerOutcome,
-    TriggerRequest,
     WordOrder,
 )
 from mvpose_core.reasons import Reason
@@ -44,23 +43,11 @@ def test_bit_and_code_tables_match_the_enums() -> None:
         assert _rows(str(cmd.value), cmd.name), cmd
 
 
-class ExampleHandler:
-    """The pipeline answer used in the worked example."""
+class ExampleHandler(ArithmeticHandler):
+    """The station's answer used in the worked example (the first record of a store)."""
 
-    async def measure(self, request: TriggerRequest) -> TriggerOutcome:
-        return TriggerOutcome(0, (0.512, -1.25, 2.0, 0.05, -0.1, 0.25), 0.08, 0.012, 23.4)
-
-    async def select_recipe(self, recipe: int) -> int:
-        return 0
-
-    async def teach_reference(self) -> int:
-        return 0
-
-    async def reset(self) -> None:
-        return None
-
-    def convention_code(self) -> int:
-        return 1
+    async def measure(self, request: LinkRequest) -> LinkOutcome:
+        return LinkOutcome(0, 1, (0.512, -1.25, 2.0, 0.05, -0.1, 0.25), 0.08, 0.012, 23.4)
 
 
 def _dump(order: WordOrder) -> list[str]:

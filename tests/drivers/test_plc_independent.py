@@ -17,8 +17,8 @@ from plc_peers import ServerFactory, cfg, expected_outcome, plc, published_offse
 from pyModbusTCP import utils
 from pyModbusTCP.client import ModbusClient
 
-from drivers.plc import Control, WordOrder
-from drivers.plc import registers as r
+from drivers.links.modbus import Control, WordOrder
+from drivers.links.modbus import registers as r
 
 READY, TRIGGER_ACK, RESULT_VALID, RESULT_OK, DONE_TOGGLE = 1, 2, 8, 16, 512
 EN, TRIG, ACK = 16, 1, 2

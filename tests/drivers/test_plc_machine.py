@@ -6,14 +6,22 @@ import math
 
 import pytest
 
-from drivers.plc import codecs as c
-from drivers.plc import registers as r
-from drivers.plc.machine import Handshake, Measure, ResetPipeline, RunCommand
-from drivers.plc.registers import Command, Control, ErrorCode, State, Status, WordOrder
-from drivers.plc.seam import PlcConfig, TriggerOutcome
+from drivers.links.base import LinkOutcome
+from drivers.links.modbus import codecs as c
+from drivers.links.modbus import registers as r
+from drivers.links.modbus.machine import Handshake, Measure, ResetPipeline, RunCommand
+from drivers.links.modbus.registers import Command, Control, ErrorCode, State, Status, WordOrder
+from drivers.links.modbus.settings import PlcConfig
 from mvpose_core.reasons import Reason
 
 EN = Control.TRIGGER_ENABLE
+
+
+def answer(code: int = 0, offset: tuple[float, ...] | None = None, result_id: int = 1,
+           **kw: float) -> LinkOutcome:
+    """The station's answer: a record's seq (result_id) and the offset in the recipe's
+    convention (None unless OK)."""
+    return LinkOutcome(code, result_id, offset, **kw)  # type: ignore[arg-type]
 
 
 class Plc:
@@ -78,7 +86,7 @@ def test_trigger_result_ack_cycle(order: WordOrder) -> None:
     assert p.m.state is State.SINGLE_EXECUTION and p.u32(r.IR_TRIGGER_ID) == 0x01020304
     toggle = s & Status.DONE_TOGGLE
 
-    p.m.measured(TriggerOutcome(0, (1.0, 2.0, 3.0, 0.1, 0.2, 0.3), 0.05, 0.01, 12.34, 1))
+    p.m.measured(LinkOutcome(0, 1, (1.0, 2.0, 3.0, 0.1, 0.2, 0.3), 0.05, 0.01, 12.34, 1))
     s = p.status()
     assert s & Status.RESULT_VALID and s & Status.RESULT_OK and (s & Status.DONE_TOGGLE) != toggle
     assert not s & Status.READY  # not before the acknowledgement
@@ -96,11 +104,11 @@ def test_trigger_result_ack_cycle(order: WordOrder) -> None:
 def test_ack_is_an_edge_so_a_held_ack_never_swallows_the_next_result() -> None:
     p = Plc().ready()
     p.trigger(1)
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     p.ctl(EN | Control.RESULT_ACK)
     p.m.write(r.HR_TRIGGER_ID, c.encode_uint32(2, WordOrder.ABCD), p.t)
     assert p.ctl(EN | Control.RESULT_ACK | Control.TRIGGER)  # ACK still high: trigger accepted
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer(result_id=2))
     p.ctl(EN | Control.RESULT_ACK)
     assert p.status() & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 2
 
@@ -112,7 +120,7 @@ def test_trigger_while_busy_is_missed_and_gives_no_second_result() -> None:
     assert p.trigger(2) == []
     assert p.status() & Status.MISSED_TRIGGER and p.m.stats.missed_triggers == 1
     assert p.u32(r.IR_TRIGGER_ID) == 1
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     assert p.u32(r.IR_RESULT_ID) == 1
     p.ctl(EN | Control.RESULT_ACK)
     assert p.trigger(3)  # the next accepted trigger clears MISSED_TRIGGER
@@ -122,7 +130,7 @@ def test_trigger_while_busy_is_missed_and_gives_no_second_result() -> None:
 def test_unacknowledged_result_blocks_the_next_trigger() -> None:
     p = Plc().ready()
     p.trigger(1)
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     p.ctl(EN)
     assert p.trigger(2) == [] and p.status() & Status.MISSED_TRIGGER
     assert p.u32(r.IR_RESULT_ID) == 1 and p.status() & Status.RESULT_VALID
@@ -131,13 +139,13 @@ def test_unacknowledged_result_blocks_the_next_trigger() -> None:
 def test_intermediate_view_gives_view_done_not_a_result() -> None:
     p = Plc().ready()
     p.trigger(10, view=1)
-    p.m.measured(TriggerOutcome(0, views_done=1, final=False))
+    p.m.measured(answer(result_id=0, views_done=1, final=False))
     s = p.status()
     assert s & Status.VIEW_DONE and not s & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 0
     assert p.m.image[r.IR_VIEWS_DONE] == 1
     p.ctl(EN | Control.RESULT_ACK)
     p.trigger(11, view=2)
-    p.m.measured(TriggerOutcome(0, views_done=2))
+    p.m.measured(answer(views_done=2))
     assert p.status() & Status.RESULT_VALID and p.u32(r.IR_RESULT_ID) == 1
     assert p.m.stats.views == 1 and p.m.stats.results == 1
 
@@ -161,7 +169,7 @@ def test_watchdog_trips_and_needs_heartbeat_and_reset() -> None:
 def test_held_trigger_forces_reset_and_still_delivers_the_result() -> None:
     p = Plc(trigger_hold_s=0.3).ready()
     p.trigger(5)
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     p.m.tick(p.t + 0.2)
     assert p.status() & Status.TRIGGER_ACK
     p.m.tick(p.t + 0.4)
@@ -212,14 +220,14 @@ def test_command_while_busy_is_refused() -> None:
 @pytest.mark.parametrize(
     "outcome",
     [
-        TriggerOutcome(0, (1.0, 2.0, math.nan, 0, 0, 0)),
-        TriggerOutcome(0, (1.0, 2.0, 3.0)),
-        TriggerOutcome(0, (1e7, 0, 0, 0, 0, 0)),  # 10 km does not fit the int32 µm block
-        TriggerOutcome(70000),
-        TriggerOutcome(0, sigma_trans_mm=math.inf),
+        answer(0, (1.0, 2.0, math.nan, 0, 0, 0)),
+        answer(0, (1.0, 2.0, 3.0)),  # a fanuc offset has 6 values
+        answer(0, (1e7, 0, 0, 0, 0, 0)),  # 10 km does not fit the int32 µm block
+        answer(70000),
+        answer(0, sigma_trans_mm=math.inf),
     ],
 )
-def test_invalid_outcome_becomes_a_nok_result(outcome: TriggerOutcome) -> None:
+def test_invalid_outcome_becomes_a_nok_result(outcome: LinkOutcome) -> None:
     p = Plc().ready()
     p.trigger(1)
     p.m.measured(outcome)
@@ -247,7 +255,7 @@ def test_trigger_held_through_a_long_measurement_is_legal() -> None:
     p.trigger(6)
     p.m.tick(t0 + 0.5)  # still measuring, TRIGGER high: allowed
     assert p.m.error is ErrorCode.NONE
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     p.m.tick(t0 + 0.7)  # 0.2 s after the answer
     assert p.m.error is ErrorCode.NONE
     p.m.tick(t0 + 0.9)  # 0.4 s after the answer
@@ -257,7 +265,7 @@ def test_trigger_held_through_a_long_measurement_is_legal() -> None:
 def test_not_ready_while_trigger_stays_high() -> None:
     p = Plc().ready()
     p.trigger(1)
-    p.m.measured(TriggerOutcome(0))
+    p.m.measured(answer())
     p.ctl(EN | Control.TRIGGER | Control.RESULT_ACK)  # acknowledged, TRIGGER not yet dropped
     assert not p.status() & Status.READY and p.m.state is State.READY
     p.ctl(EN | Control.RESULT_ACK)
@@ -267,7 +275,7 @@ def test_not_ready_while_trigger_stays_high() -> None:
 def test_nok_view_ends_the_sequence_with_a_zero_offset_result() -> None:
     p = Plc().ready()
     p.trigger(1, view=1)
-    p.m.measured(TriggerOutcome(9, (5.0, 5.0, 5.0, 1.0, 1.0, 1.0), views_done=1, final=False))
+    p.m.measured(LinkOutcome(9, 1, (5.0, 5.0, 5.0, 1.0, 1.0, 1.0), views_done=1, final=False))
     s = p.status()
     assert s & Status.RESULT_VALID and not s & (Status.RESULT_OK | Status.VIEW_DONE)
     assert p.u32(r.IR_RESULT_ID) == 1 and p.m.image[r.IR_RESULT_CODE] == 9
@@ -280,9 +288,31 @@ def test_abb_full_quaternion_offset_is_sent_without_q1() -> None:
     p.ready()
     p.trigger(1)
     q = (-0.999, 0.01, -0.02, 0.03)  # q1 < 0: the same rotation is sent with q1 >= 0
-    p.m.measured(TriggerOutcome(0, (1.0, 2.0, 3.0, *q)))
+    p.m.measured(answer(0, (1.0, 2.0, 3.0, *q)))
     counts = c.decode_pose_int(p.m.image[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12], "abb", p.order)
     n = math.sqrt(sum(x * x for x in q))
     assert counts[:3] == (1.0, 2.0, 3.0)
     assert all(abs(a - (-b / n)) < 1e-6 for a, b in zip(counts[3:], q[1:], strict=True))
     assert p.status() & Status.RESULT_OK
+
+
+def test_abb_robot_pose_arrives_as_the_full_quaternion_and_a_bad_one_is_refused() -> None:
+    """The one conversion between the PLC form and the station's: q1 is restored on the way in,
+    and a vector part longer than 1 is refused (answered without a measurement)."""
+    p = Plc()
+    p.m.set_convention(4)  # ABB
+    p.ready()
+    pose = c.encode_pose_int((10.0, 20.0, 30.0, 0.6, 0.0, 0.0), "abb", p.order)
+    p.m.write(r.HR_ROBOT_POSE, pose, p.t)
+    (effect,) = p.trigger(1, extra=Control.ROBOT_POSE_VALID)
+    assert isinstance(effect, Measure) and effect.refused is None
+    assert effect.request.link == "modbus" and effect.request.robot_pose is not None
+    assert all(math.isclose(a, b, abs_tol=1e-9) for a, b in
+               zip(effect.request.robot_pose, (10.0, 20.0, 30.0, 0.8, 0.6, 0.0, 0.0),
+                   strict=True))
+    p.m.measured(answer())
+    p.ctl(EN | Control.ROBOT_POSE_VALID | Control.RESULT_ACK)
+    p.m.write(r.HR_ROBOT_POSE, c.encode_pose_int((0, 0, 0, 0.9, 0.9, 0.0), "abb", p.order), p.t)
+    (effect,) = p.trigger(2, extra=Control.ROBOT_POSE_VALID | Control.RESULT_ACK)
+    assert isinstance(effect, Measure) and effect.request.robot_pose is None
+    assert effect.refused is not None and "norm" in effect.refused

@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import time
 
@@ -23,19 +22,18 @@ from plc_peers import (  # noqa: F401
 )
 from pymodbus.client import AsyncModbusTcpClient
 
-from drivers.plc import (
+from drivers.links.base import LinkOutcome, LinkRequest
+from drivers.links.modbus import (
     Command,
     Control,
     ErrorCode,
     State,
     Status,
-    TriggerOutcome,
-    TriggerRequest,
     WordOrder,
 )
-from drivers.plc import codecs as c
-from drivers.plc import registers as r
-from drivers.plc.twin import PlcStatus, PlcTwin
+from drivers.links.modbus import codecs as c
+from drivers.links.modbus import registers as r
+from drivers.links.modbus.twin import PlcStatus, PlcTwin
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import (
     RobotConvention,
@@ -98,43 +96,39 @@ async def test_fixed_station_flow(plc: ServerFactory, order: WordOrder, mirror: 
     assert server.stats.handshake.results == 3 and server.stats.handshake.missed_triggers == 0
 
 
-class ViewHandler:
+class ViewHandler(ArithmeticHandler):
     """A robot-mounted rig's pipeline on real mvpose_core transforms: each view reports the part
-    pose seen from the flange pose the PLC sent; after the last view the offset is the mean
-    part displacement against the reference, written in the recipe's convention (ABB)."""
+    pose seen from the flange pose the PLC sent (ABB's full quaternion: the link restored q1);
+    after the last view the offset is the mean part displacement against the reference, in the
+    recipe's convention (ABB: 7 values; the link sends the PLC form)."""
 
     def __init__(self, T_rf_from_pf: np.ndarray, T_rf_from_pf0: np.ndarray, n_views: int) -> None:
+        super().__init__()
         self.T_rf_from_pf = T_rf_from_pf
         self.T_rf_from_pf0 = T_rf_from_pf0
         self.n_views = n_views
         self.seen: list[np.ndarray] = []
         self.resets = 0
 
-    async def measure(self, req: TriggerRequest) -> TriggerOutcome:
-        assert req.robot_pose is not None
-        T_rf_from_gf = from_robot(c.plc_to_pose(req.robot_pose, "abb"), "abb")
+    async def measure(self, req: LinkRequest) -> LinkOutcome:
+        assert req.robot_pose is not None and len(req.robot_pose) == 7
+        T_rf_from_gf = from_robot(req.robot_pose, "abb")
         T_gf_from_pf = compose(invert(T_rf_from_gf), self.T_rf_from_pf)  # what the rig "sees"
         self.seen.append(compose(T_rf_from_gf, T_gf_from_pf))
         if req.view_index < self.n_views:
-            return TriggerOutcome(0, views_done=len(self.seen), final=False)
+            return LinkOutcome(0, 0, views_done=len(self.seen), final=False)
         T_pf0_from_pf = compose(invert(self.T_rf_from_pf0), self.seen[-1])
-        offset = c.pose_to_plc(to_robot(T_pf0_from_pf, "abb"), "abb")
+        offset = tuple(to_robot(T_pf0_from_pf, "abb"))
         views = len(self.seen)
         self.seen = []
-        return TriggerOutcome(0, offset, 0.1, 0.01, 3.0, views_done=views)
-
-    async def select_recipe(self, recipe: int) -> int:
-        return 0
-
-    async def teach_reference(self) -> int:
-        return 0
+        return LinkOutcome(0, self.next_id(), offset, 0.1, 0.01, 3.0, views_done=views)
 
     async def reset(self) -> None:
         self.resets += 1
         self.seen = []
 
-    def convention_code(self) -> int:
-        return RobotConvention.ABB.code
+    def convention(self) -> RobotConvention:
+        return RobotConvention.ABB
 
 
 async def test_robot_mounted_flow_with_flange_poses(plc: ServerFactory) -> None:
@@ -302,23 +296,11 @@ async def test_heartbeat_task_ends_on_stop_without_a_cancel(plc: ServerFactory) 
 
 
 class RecordingHandler(ArithmeticHandler):
-    """Numbers its results like a store (from 500) and records the link's own failures."""
+    """Numbers its results like a store whose last record is 500."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.next_id = 500
-        self.failures: list[tuple[int, int, str]] = []
-
-    async def measure(self, request: TriggerRequest) -> TriggerOutcome:
-        out = await super().measure(request)
-        self.next_id += 1
-        return dataclasses.replace(out, result_id=self.next_id)
-
-    async def record_failure(self, request: TriggerRequest, code: int, message: str,
-                             processing_ms: float) -> int:
-        self.next_id += 1
-        self.failures.append((request.trigger_id, code, message))
-        return self.next_id
+        self.seq = 500
 
 
 async def test_the_result_id_is_the_handlers_and_link_failures_are_recorded(
@@ -379,17 +361,17 @@ class StartsWhenCalled(ArithmeticHandler):
 
     def __init__(self) -> None:
         super().__init__()
-        self.pending: list[asyncio.Future[TriggerOutcome]] = []
+        self.pending: list[asyncio.Future[LinkOutcome]] = []
         self.write: asyncio.Task[None] | None = None  # the PLC's TRIGGER write, when watched
         self.write_answered: list[bool] = []  # whether it was answered when measure() came
 
-    def measure(self, request: TriggerRequest) -> asyncio.Future[TriggerOutcome]:  # type: ignore[override]
+    def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:  # type: ignore[override]
         self.requests.append(request)
         if self.write is not None:
             self.write_answered.append(self.write.done())
         if self.fail:
             raise RuntimeError(f"trigger thread gone at trigger {request.trigger_id}")
-        fut: asyncio.Future[TriggerOutcome] = asyncio.get_running_loop().create_future()
+        fut: asyncio.Future[LinkOutcome] = asyncio.get_running_loop().create_future()
         self.pending.append(fut)
         return fut
 
@@ -404,7 +386,7 @@ async def test_a_trigger_starts_its_measurement_before_the_write_is_answered(
     await handler.write
     # measure() ran while the write was still waiting for its response, not passes later.
     assert handler.write_answered == [False] and len(handler.pending) == 1
-    handler.pending[0].set_result(expected_outcome(61))
+    handler.pending[0].set_result(expected_outcome(61, handler.next_id()))
     status = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), 2.0, "result")
     check_result(status, 61)
     await twin.set_control((twin.control & ~Control.TRIGGER) | Control.RESULT_ACK)

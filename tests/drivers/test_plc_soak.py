@@ -13,7 +13,7 @@ from plc_peers import (  # noqa: F401
     published_offset,
 )
 
-from drivers.plc import Control, Status, WordOrder
+from drivers.links.modbus import Control, Status, WordOrder
 
 N_HANDSHAKES = 10_000
 

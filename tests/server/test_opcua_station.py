@@ -22,10 +22,10 @@ from opcua_events import Events
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 from waiting import until
 
+from drivers.links.modbus.registers import Status
 from drivers.links.opcua import MV_URI, MVPOSE_URI
+from drivers.links.opcua.settings import hash_password
 from drivers.links.process import ProcessLink
-from drivers.plc.registers import Status
-from mvpose_core.linkconfig import hash_password
 from mvpose_core.reasons import Reason
 from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter

@@ -125,7 +125,7 @@ async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) ->
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline, only_one_plc),
                             tmp_path / "var")
     async with running_server(settings, runtime_options(), http_port=None) as rs:
-        reader, writer = await asyncio.open_connection("127.0.0.1", rs.runtime.plc_port)
+        reader, writer = await asyncio.open_connection("127.0.0.1", rs.runtime.link_port("modbus"))
         # A TEACH_REFERENCE command write (fc 16 at holding 2-3), from a host not on the list.
         writer.write(b"\x00\x01\x00\x00\x00\x0b\x01\x10\x00\x02\x00\x02\x04\x00\x02\x00\x00")
         await writer.drain()

@@ -22,7 +22,7 @@ from asyncua.crypto.security_policies import (
 from asyncua.server.user_managers import UserManager
 from asyncua.ua.ua_binary import struct_from_binary
 
-from mvpose_core.linkconfig import OpcUaLinkConfig, check_password
+from .settings import OpcUaLinkConfig, check_password
 
 log = logging.getLogger(__name__)
 _UA: Any = ua

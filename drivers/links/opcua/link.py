@@ -50,7 +50,6 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from mvpose_core.linkconfig import OpcUaLinkConfig
 from mvpose_core.reasons import Reason, reason_name
 
 from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
@@ -61,6 +60,7 @@ from .arguments import check_arguments
 from .events import standard_event_filters
 from .management import Management
 from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
+from .settings import OpcUaLinkConfig
 
 log = logging.getLogger(__name__)
 

@@ -3,8 +3,10 @@
 pymodbus calls the device ``action`` on every register access, before a write is committed: the
 action validates, copies the handshake's image into the registers being read, and hands writes to
 the Handshake at once, in the order they come. A TRIGGER write starts its measurement right there
-(``PlcHandler.measure`` is called before this request's response is sent; see ``_spawn``); only
-the wait for the outcome runs in a task of its own.
+(``StationHandler.measure`` is called before this request's response is sent; see ``_spawn``);
+only the wait for the outcome runs in a task of its own. Requests and outcomes are the seam's
+(:class:`~drivers.links.base.LinkRequest`, :class:`~drivers.links.base.LinkOutcome`); the
+handshake turns them into registers.
 """
 
 from __future__ import annotations
@@ -23,10 +25,12 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from mvpose_core.reasons import Reason
 
+from ...errors import DriverInitError
+from ..base import LinkOutcome, LinkRequest, StationHandler
 from . import registers as r
 from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
 from .registers import CONTROL_DEFINED, Command, State
-from .seam import PlcConfig, PlcHandler, TriggerOutcome, TriggerRequest
+from .settings import PlcConfig
 from .transport import ModbusTcpConnection
 
 log = logging.getLogger(__name__)
@@ -89,7 +93,7 @@ class PlcServer:
 
     def __init__(
         self,
-        handler: PlcHandler,
+        handler: StationHandler,
         config: PlcConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
         unit_id: int = 0,
@@ -112,20 +116,27 @@ class PlcServer:
         """Listen on ``host:port`` (0 = any free port, see ``.port``) and start the handshake."""
         if self._listener is not None:
             raise RuntimeError("PlcServer already started")
-        machine = Handshake(self.config, self.handler.convention_code(), self.clock())
+        machine = Handshake(self.config, self.handler.convention().code, self.clock())
         self._machine = machine
         self.stats.handshake = machine.stats
         if self.config.initial_recipe:
             rc = await self.handler.select_recipe(self.config.initial_recipe)
             if rc == 0:
                 machine.set_recipe(self.config.initial_recipe)
-                machine.set_convention(self.handler.convention_code())
+                machine.set_convention(self.handler.convention().code)
             else:
                 log.warning(
                     "PLC link: initial recipe %d refused (%d)", self.config.initial_recipe, rc
                 )
-        self._listener = _Listener(self, self._device(), host, port)
-        await self._listener.serve_forever(background=True)
+        listener = _Listener(self, self._device(), host, port)
+        try:
+            await listener.serve_forever(background=True)
+        except (OSError, RuntimeError) as err:  # pymodbus: "Could not start listen"
+            await listener.shutdown()
+            raise DriverInitError(
+                f"Modbus/TCP address {host}:{port} cannot be listened on (in use, or not an "
+                "address of this host)") from err
+        self._listener = listener
         self._workers = [asyncio.create_task(self._ticker(), name="plc-tick")]
 
     @property
@@ -251,11 +262,14 @@ class PlcServer:
         if isinstance(effect, Measure):
             # measure() is called here, not in the task: a handler that starts its work when
             # called (the station runtime does) starts it before the task's first step.
-            try:
-                pending: Awaitable[TriggerOutcome] | Exception = self.handler.measure(
-                    effect.request)
-            except Exception as err:  # noqa: BLE001 — reported as the measurement's failure
-                pending = err
+            pending: Awaitable[LinkOutcome] | Exception
+            if effect.refused is not None:
+                pending = ValueError(effect.refused)
+            else:
+                try:
+                    pending = self.handler.measure(effect.request)
+                except Exception as err:  # noqa: BLE001 — reported as the measurement's failure
+                    pending = err
             coro = self._measure(effect, pending, self.clock())
         elif isinstance(effect, RunCommand):
             coro = self._command(effect)
@@ -270,7 +284,7 @@ class PlcServer:
         self.stats.last_errors = [*self.stats.last_errors[-9:], text]
 
     async def _measure(
-        self, effect: Measure, pending: Awaitable[TriggerOutcome] | Exception, t0: float
+        self, effect: Measure, pending: Awaitable[LinkOutcome] | Exception, t0: float
     ) -> None:
         req = effect.request
         timeout = self.config.measure_timeout_s or None
@@ -281,8 +295,8 @@ class PlcServer:
             # one, a loop pass more between the work's end and the outcome's publication.
             async with asyncio.timeout(timeout):
                 outcome = await pending
-            if not isinstance(outcome, TriggerOutcome):
-                raise TypeError(f"measure() returned {type(outcome).__name__}, not TriggerOutcome")
+            if not isinstance(outcome, LinkOutcome):
+                raise TypeError(f"measure() returned {type(outcome).__name__}, not LinkOutcome")
         except TimeoutError:
             self.stats.timeouts += 1
             text = f"trigger {req.trigger_id}: measurement exceeded {timeout} s"
@@ -295,20 +309,18 @@ class PlcServer:
             outcome = await self._failed(req, Reason.HANDLER_FAILED, text, t0)
         self.machine.measured(outcome)
 
-    async def _failed(self, req: TriggerRequest, code: Reason, text: str,
-                      t0: float) -> TriggerOutcome:
+    async def _failed(self, req: LinkRequest, code: Reason, text: str,
+                      t0: float) -> LinkOutcome:
         # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.
         await self._reset(ResetPipeline())
         ms = (self.clock() - t0) * 1e3
-        result_id = None
-        record = getattr(self.handler, "record_failure", None)
-        if record is not None:  # the answer gets a record of its own, with the same code
-            try:
-                async with asyncio.timeout(self.config.command_timeout_s or None):
-                    result_id = int(await record(req, int(code), text, ms))
-            except Exception as err:  # noqa: BLE001 — the PLC still gets its answer
-                self._note(f"trigger {req.trigger_id}: recording {code.name} failed: {err!r}")
-        return TriggerOutcome(int(code), processing_ms=ms, views_done=0, result_id=result_id)
+        result_id = 0
+        try:  # the answer gets a record of its own, with the same code
+            async with asyncio.timeout(self.config.command_timeout_s or None):
+                result_id = int(await self.handler.record_failure(req, int(code), text, ms))
+        except Exception as err:  # noqa: BLE001 — the PLC still gets its answer
+            self._note(f"trigger {req.trigger_id}: recording {code.name} failed: {err!r}")
+        return LinkOutcome(int(code), result_id, processing_ms=ms, views_done=0)
 
     def recipe_selected(self, number: int, convention_code: int) -> None:
         """The station selected recipe ``number`` by another way than this link (REST, OPC UA)."""
@@ -322,14 +334,14 @@ class PlcServer:
             if effect.command is Command.SELECT_RECIPE:
                 result = await asyncio.wait_for(h.select_recipe(effect.argument), timeout)
             elif effect.command is Command.TEACH_REFERENCE:
-                result = await asyncio.wait_for(h.teach_reference(), timeout)
+                result = await asyncio.wait_for(h.teach_reference("plc"), timeout)
             else:
                 await asyncio.wait_for(h.reset(), timeout)
                 result = 0
             if not isinstance(result, int):
                 raise TypeError(f"{effect.command.name} returned {result!r}, not an int")
             if result == 0 and effect.command is Command.SELECT_RECIPE:
-                self.machine.set_convention(h.convention_code())
+                self.machine.set_convention(h.convention().code)
         except TimeoutError:
             self.stats.timeouts += 1
             self._note(f"command {effect.command.name} exceeded {timeout} s")

@@ -4,6 +4,11 @@ Inputs are PLC writes (``write``), clock ticks (``tick``) and completions (``mea
 ``command_done``); outputs are the input-register image (``image``, read by the PLC) and effects
 (``Measure``, ``RunCommand``, ``ResetPipeline``) that the caller runs. Every method updates the
 image in one synchronous step, so a reader never sees half of an update.
+
+This is the one place where poses cross between the station's terms and the registers: a robot
+pose written by the PLC becomes the :class:`~drivers.links.base.LinkRequest`'s full pose in the
+recipe's convention (``codecs.plc_to_pose``), an outcome's offset becomes the 6-value PLC form
+(``codecs.pose_to_plc``) before it is scaled into the result block.
 """
 
 from __future__ import annotations
@@ -14,15 +19,19 @@ from dataclasses import dataclass
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
 
+from ..base import LinkOutcome, LinkRequest
 from . import codecs
 from . import registers as r
 from .registers import Command, Control, ErrorCode, State, Status
-from .seam import PlcConfig, TriggerOutcome, TriggerRequest
+from .settings import PlcConfig
 
 
 @dataclass(frozen=True)
 class Measure:
-    request: TriggerRequest
+    request: LinkRequest
+    # why the PLC's robot pose cannot be read (an ABB quaternion longer than 1): the trigger is
+    # then answered HANDLER_FAILED without a measurement
+    refused: str | None = None
 
 
 @dataclass(frozen=True)
@@ -229,11 +238,17 @@ class Handshake:
         h = self.holding
         trigger_id = codecs.decode_uint32(h[r.HR_TRIGGER_ID : r.HR_TRIGGER_ID + 2], self.order)
         pose = None
+        refused = None
         if control & Control.ROBOT_POSE_VALID:
             pose_regs = h[r.HR_ROBOT_POSE : r.HR_ROBOT_POSE + 12]
-            pose = codecs.decode_pose_int(pose_regs, self._convention, self.order)
+            plc_form = codecs.decode_pose_int(pose_regs, self._convention, self.order)
+            try:
+                pose = codecs.plc_to_pose(plc_form, self._convention)
+            except ValueError as err:
+                refused = f"robot pose {plc_form}: {err}"
         part_id = codecs.decode_ascii(h[r.HR_PART_ID : r.HR_PART_ID + r.PART_ID_CHARS // 2])
-        request = TriggerRequest(trigger_id, h[r.HR_VIEW_INDEX], pose, part_id, self._recipe)
+        request = LinkRequest(link="modbus", trigger_id=trigger_id, view_index=h[r.HR_VIEW_INDEX],
+                              robot_pose=pose, part_id=part_id, recipe=self._recipe)
         self.stats.triggers += 1
         self._busy = True
         self._trigger_since = now
@@ -242,7 +257,7 @@ class Handshake:
         self.image[r.IR_TRIGGER_ID : r.IR_TRIGGER_ID + 2] = codecs.encode_uint32(
             trigger_id, self.order
         )
-        return [Measure(request)]
+        return [Measure(request, refused)]
 
     def tick(self, now: float) -> None:
         """Advance the server heartbeat and run the watchdog and the held-trigger watch."""
@@ -273,44 +288,46 @@ class Handshake:
                 self._error = ErrorCode.TRIGGER_HELD
         self._publish()
 
-    def measured(self, outcome: TriggerOutcome) -> None:
+    def measured(self, outcome: LinkOutcome) -> None:
         """Publish the answer to the running trigger: a result block or VIEW_DONE, in one step.
 
+        The offset (recipe convention, full precision; ABB's 7 values) goes out in the PLC form.
         A NOK answer always ends a sequence and carries a zero offset, so a PLC program that
-        forgets to test RESULT_OK still never moves the robot by a rejected measurement.
+        forgets to test RESULT_OK still never moves the robot by a rejected measurement; an
+        outcome that cannot be encoded is published as INVALID_OUTCOME.
         """
         img = self.image
         order = self.order
-        offset = tuple(outcome.offset)
         code = outcome.result_code
-        if len(offset) == 7 and self._convention is RobotConvention.ABB:
-            try:  # the full robtarget form: send it as X Y Z q2 q3 q4
-                offset = codecs.pose_to_plc(offset, self._convention)
+        final = outcome.final
+        offset: tuple[float, ...] = (0.0,) * 6
+        valid = True
+        if code == Reason.OK and outcome.offset is not None:
+            try:
+                offset = codecs.pose_to_plc(outcome.offset, self._convention)
             except ValueError:
-                offset = (math.nan,) * 6
-        numbers = (*offset, outcome.sigma_trans_mm, outcome.sigma_rot_deg, outcome.processing_ms)
+                valid = False
+        sigmas = (outcome.sigma_trans_mm, outcome.sigma_rot_deg, outcome.processing_ms)
         if (
-            len(offset) != 6
+            not valid
             or not 0 <= code <= 0xFFFF
-            or not all(math.isfinite(x) for x in numbers)
+            or not all(math.isfinite(x) for x in (*offset, *sigmas))
             or not codecs.fits_int32(offset, self._convention)
         ):
             self.stats.invalid_outcomes += 1
-            offset, code = (0.0,) * 6, int(Reason.INVALID_OUTCOME)
-            outcome = TriggerOutcome(code, offset, final=True, views_done=outcome.views_done,
-                                     result_id=outcome.result_id)
+            offset, code, final = (0.0,) * 6, int(Reason.INVALID_OUTCOME), True
+            sigmas = (0.0, 0.0, 0.0)
+        sigma_trans_mm, sigma_rot_deg, processing_ms = sigmas
         if code != Reason.OK:
             offset = (0.0,) * 6
         views = max(0, min(int(outcome.views_done), 0xFFFF))
         img[r.IR_VIEWS_DONE] = views
-        if outcome.final or code != Reason.OK:
-            if outcome.result_id is not None:  # the record's seq: durable across restarts
-                self._result_id = outcome.result_id & 0xFFFFFFFF
-            else:
-                self._result_id = self._result_id + 1 if self._result_id < 0xFFFFFFFF else 1
+        if final or code != Reason.OK:
+            # the record's seq: durable across restarts (0: the answer has no record)
+            self._result_id = outcome.result_id & 0xFFFFFFFF
             img[r.IR_RESULT_ID : r.IR_RESULT_ID + 2] = codecs.encode_uint32(self._result_id, order)
             img[r.IR_RESULT_CODE] = code
-            img[r.IR_PROCESSING_TIME] = min(round(max(outcome.processing_ms, 0.0) * 10), 0xFFFF)
+            img[r.IR_PROCESSING_TIME] = min(round(max(processing_ms, 0.0) * 10), 0xFFFF)
             img[r.IR_OFFSET_INT : r.IR_OFFSET_INT + 12] = codecs.encode_pose_int(
                 offset, self._convention, order
             )
@@ -318,10 +335,10 @@ class Handshake:
                 offset, order
             )
             img[r.IR_SIGMA_TRANS : r.IR_SIGMA_TRANS + 2] = codecs.encode_int32(
-                _clamp_int32(outcome.sigma_trans_mm * 1e3), order
+                _clamp_int32(sigma_trans_mm * 1e3), order
             )
             img[r.IR_SIGMA_ROT : r.IR_SIGMA_ROT + 2] = codecs.encode_int32(
-                _clamp_int32(outcome.sigma_rot_deg * 1e4), order
+                _clamp_int32(sigma_rot_deg * 1e4), order
             )
             self._flags |= Status.RESULT_VALID
             if code == Reason.OK:

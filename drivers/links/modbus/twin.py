@@ -1,7 +1,7 @@
 """The PLC twin: a Modbus/TCP client that runs the handshake the way the PLC program does.
 
-It encodes and decodes with pymodbus's own register converters, not with drivers.plc.codecs, so
-that a word-order or scaling mistake in the server cannot cancel itself out in tests.
+It encodes and decodes with pymodbus's own register converters, not with this folder's codecs,
+so that a word-order or scaling mistake in the server cannot cancel itself out in tests.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Literal
 
 from pymodbus.client import AsyncModbusTcpClient
 
-from ..errors import DriverOperationError
+from ...errors import DriverOperationError
 from . import registers as r
 from .registers import Control, State, Status, WordOrder
 
