@@ -104,3 +104,31 @@ def test_start_up_errors_are_one_line_and_a_failure(
                     "views: Field required")
     _one_line_error(in_process("serve", "--station", str(tmp_path / "none.yaml"), *data),
                     "none.yaml: cannot read station file")
+
+
+def test_a_busy_link_port_or_a_bad_links_block_is_one_line_and_a_failure(tmp_path: Path) -> None:
+    """The Modbus port already taken: `mvpose serve` and `mvpose station` end with one line
+    naming host:port (as the REST port does), not a traceback; a typo inside links.modbus and an
+    unknown backend stop start-up naming the file and the field."""
+    data = ["--data-dir", str(tmp_path / "var")]
+    station = ["--station", str(STATION1)]
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        for command in ("serve", "station"):
+            _one_line_error(_mvpose(command, *station, *data, "--port", "0", "--plc-port", port)
+                            if command == "serve" else
+                            _mvpose(command, *station, *data, env={"MVPOSE_PLC_PORT": port}),
+                            f"mvpose {command}: error:", f"127.0.0.1:{port} is not free",
+                            "modbus link", "--plc-port / set MVPOSE_PLC_PORT")
+    text = STATION1.read_text()
+    assert "\nlinks:" not in text  # station 1 runs the default links
+    for links, words in (("links:\n  modbus:\n    prot: 5020\n",
+                          ("links.modbus.prot", "Extra inputs are not permitted")),
+                         ("links:\n  modbus:\n    port: 70000\n", ("links.modbus.port", "70000")),
+                         ("links:\n  profibus: {}\n", ("links.profibus", "unknown link backend",
+                                                       "modbus, opcua"))):
+        bad = tmp_path / "links.yaml"
+        bad.write_text(text.rstrip() + "\n" + links)
+        _one_line_error(_mvpose("station", "--station", str(bad), *data), str(bad), *words)
