@@ -617,15 +617,17 @@ def parse_station(data: Any, source: str = "<memory>") -> StationConfig:
     try:
         return StationConfig.model_validate(data)
     except ValidationError as err:
-        lines = []
-        for e in err.errors():
-            where = _format_loc(tuple(e["loc"]), data)
-            value = e.get("input")
-            shown = repr(value) if not isinstance(value, dict) else "{…}"
-            if len(shown) > 80:
-                shown = shown[:77] + "..."
-            lines.append(f"{source}: {where}: {e['msg']} (value: {shown})")
+        lines = [problem_line(source, _format_loc(tuple(e["loc"]), data), e["msg"],
+                              e.get("input")) for e in err.errors()]
         raise StationFileError("\n".join(lines)) from None
+
+
+def problem_line(source: str, where: str, message: str, value: Any) -> str:
+    """One problem of a station file as StationFileError names it: file, field, what, value."""
+    shown = repr(value) if not isinstance(value, dict) else "{…}"
+    if len(shown) > 80:
+        shown = shown[:77] + "..."
+    return f"{source}: {where}: {message} (value: {shown})"
 
 
 def load_station(path: str | Path) -> StationConfig:

@@ -12,7 +12,7 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from drivers.links import LinkSettingsError, link_settings
-from mvpose_core.station import StationConfig, StationFileError
+from mvpose_core.station import StationConfig, StationFileError, problem_line
 from mvpose_core.station import load_station as _load_station
 
 
@@ -22,12 +22,7 @@ def check_links(station: StationConfig, source: str) -> dict[str, BaseModel]:
     try:
         return link_settings(station.links)
     except LinkSettingsError as err:
-        lines = []
-        for where, msg, value in err.problems:
-            shown = repr(value) if not isinstance(value, dict) else "{…}"
-            if len(shown) > 80:
-                shown = shown[:77] + "..."
-            lines.append(f"{source}: {where}: {msg} (value: {shown})")
+        lines = [problem_line(source, where, msg, value) for where, msg, value in err.problems]
         raise StationFileError("\n".join(lines)) from None
 
 
