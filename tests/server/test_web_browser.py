@@ -505,9 +505,9 @@ def test_the_trigger_form_says_the_stations_reason_and_message(
     path = stations.station_file(tmp_path, "station1", stations.relaxed_deadline)
     cfg = stations.settings_for(path, tmp_path / "var")
     station = load_station(path)
-    modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
-    station = station.model_copy(update={"links": station.links.model_copy(
-        update={"modbus": modbus})})
+    station = station.model_copy(update={"links": {
+        **station.links, "modbus": {**station.links.get("modbus", {}), "host": "127.0.0.1",
+                                    "port": 0}}})
     proc = StationProcess(cfg, station, stations.runtime_options())
     proc.start()
     stopped = False
