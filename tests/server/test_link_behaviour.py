@@ -361,8 +361,11 @@ class TestModbus(LinkBehaviour):
             "127.0.0.1", env.station.link_port("modbus"), local_addr=("127.0.0.2", 0))
         try:
             writer.write(b"\x00\x01\x00\x00\x00\x06\x01\x04\x00\x00\x00\x02")  # fc 4, 2 regs
-            await writer.drain()
-            assert await asyncio.wait_for(reader.read(100), 10) == b""
+            try:  # closed without an answer: an end of stream, or a reset (our request unread)
+                await writer.drain()
+                assert await asyncio.wait_for(reader.read(100), 10) == b""
+            except ConnectionResetError:
+                pass
         finally:
             writer.close()
         assert link.status()["rejected_connections"] == rejected + 1
