@@ -110,9 +110,9 @@ def main(argv: list[str] | None = None) -> int:
                             sqlite_synchronous="NORMAL")
         writer = open_services(settings)  # the station process's side: it writes the records
         station = load_station(STATION1)
-        modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
+        modbus = {**station.links.get("modbus", {}), "host": "127.0.0.1", "port": 0}
         proc = StationProcess(settings, station.model_copy(update={
-            "links": station.links.model_copy(update={"modbus": modbus})}))
+            "links": {**station.links, "modbus": modbus}}))
         try:
             line = populate(writer, end=datetime.now(UTC) - timedelta(seconds=20))
             newest = writer.store.measurements.summary_page(MeasurementFilter(), None, 1)[0]
