@@ -89,9 +89,9 @@ def line(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Line]:
     path = stations.station_file(tmp, "station1", stations.relaxed_deadline)
     cfg = stations.settings_for(path, tmp / "var")
     station = load_station(path)
-    modbus = station.links.modbus.model_copy(update={"host": "127.0.0.1", "port": 0})
-    station = station.model_copy(update={"links": station.links.model_copy(
-        update={"modbus": modbus})})
+    station = station.model_copy(update={"links": {
+        **station.links, "modbus": {**station.links.get("modbus", {}), "host": "127.0.0.1",
+                                    "port": 0}}})
     proc = StationProcess(cfg, station, stations.runtime_options())
     proc.start()
     reader = open_services(cfg, seed=False, bootstrap=False)
