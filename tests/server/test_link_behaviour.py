@@ -87,9 +87,10 @@ class Env:
 def _links(tmp: Path, opcua: bool) -> Callable[[dict[str, Any]], None]:
     def edit(data: dict[str, Any]) -> None:
         # only this host's own loopback address may be the PLC (a peer from 127.0.0.2 is not)
-        data["links"] = {"modbus": {"allowlist": ["127.0.0.1"]}}
+        links = data.setdefault("links", {})
+        links.setdefault("modbus", {})["allowlist"] = ["127.0.0.1"]
         if opcua:
-            data["links"]["opcua"] = {
+            links["opcua"] = {
                 "port": 0, "pki_dir": str(tmp / "pki"), "measure_timeout_s": 30.0,
                 "security": ["Basic256Sha256_SignAndEncrypt"], "query_spacing_s": 0.0,
                 "users": {"olga": {"role": "operator",
