@@ -58,7 +58,8 @@ async def test_every_operation_round_trips_through_its_models(tmp_path: Path) ->
             status = client.status()
             assert isinstance(status, StationStatus) and status.station == "station1"
             assert status.recipe is not None and status.recipe.name == recipe
-            assert status.links["modbus"]["port"] == rt.plc_port and not status.teach_armed
+            assert status.links["modbus"]["port"] == rt.link_port("modbus")
+            assert not status.teach_armed
             assert set(status.model_dump()) == set(rt.status())  # every part, no more
 
             assert client.readiness() == {"station": True, "cameras": True, "links": True,
