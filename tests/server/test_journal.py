@@ -3,6 +3,8 @@ tails, a journal that cannot be written (a real file-size limit), and the result
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import logging
 import sqlite3
@@ -18,6 +20,7 @@ import numpy as np
 import pytest
 from records import make_record
 
+from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
 from server.store import Store, open_store
 from server.store.chain import GENESIS, seal
@@ -417,9 +420,11 @@ async def test_rest_shows_result_id_and_filters_on_it(tmp_path: Path) -> None:
         r = await client.get(f"/api/v1/measurements/{item['id']}")
         assert r.json()["result_id"] == 2
         r = await client.get("/api/v1/measurements/export", params={"format": "csv"})
-        header, *rows = r.text.splitlines()
-        assert header.split(",")[-1] == "result_id"
-        assert [row.split(",")[-1] for row in rows] == ["1", "2", "3"]
+        cols, *rows = list(csv.reader(io.StringIO(r.text)))
+        # result_id, then the result event's shown fields (architecture.md)
+        at = cols.index("result_id")
+        assert cols[at + 1:] == [name for name, _ in ResultEvent.shown()]
+        assert [row[at] for row in rows] == ["1", "2", "3"]
         r = await client.get("/api/v1/measurements/export", params={"format": "json"})
         assert [m["result_id"] for m in r.json()] == [1, 2, 3]
         r = await client.get("/api/v1/measurements", params={"result_id": 0})
