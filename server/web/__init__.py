@@ -3,7 +3,7 @@ Recipes, Gauge.
 
 ``install(app)`` mounts its routes (outside the OpenAPI schema) and the offline ``/docs``;
 create_app calls it. The page reads the store as the REST API does and reaches the station only
-through ``app.state.runtime``; see docs/operations.md "The operator page".
+through ``app.state.runtime``; see docs/operator-page.md.
 """
 
 from __future__ import annotations

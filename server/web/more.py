@@ -33,7 +33,7 @@ NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
 #: newest records on the charts unless the page asks for another number
 TREND_POINTS = 2000
 #: most records a chart page reads (the SPC charts compute on all, draw at most spc.DRAWN per
-#: chart); 100,000 took minutes to read (docs/operations.md, "SPC")
+#: chart); 100,000 took minutes to read (docs/operator-page.md, "SPC")
 MAX_POINTS = 20_000
 Limit = Annotated[int, Query(ge=1, le=MAX_POINTS)]
 

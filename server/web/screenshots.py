@@ -1,4 +1,4 @@
-"""Screenshots of every page of the operator page, for docs/operations.md (and the browser tests'
+"""Screenshots of every page of the operator page, for docs/operator-page.md (and the browser tests'
 helpers: the app on a real socket, Debian's Chromium through Playwright).
 
     python -m server.web.screenshots --out docs/figures

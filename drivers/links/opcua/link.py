@@ -114,7 +114,7 @@ class OpcUaLink(Link):
     async def start(self) -> None:
         """Check at once what can fail (the NodeSets against their pinned hashes, the server
         certificate), then build and open the server in the background: importing the Machine
-        Vision NodeSet takes seconds (docs/integration.md), more than a station gives its links
+        Vision NodeSet takes seconds (docs/opcua.md), more than a station gives its links
         to start. Until the endpoint listens, ready() is False and status() says starting."""
         self._loop = asyncio.get_running_loop()
         self._t0 = time.monotonic()

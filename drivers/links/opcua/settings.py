@@ -1,4 +1,4 @@
-"""The OPC UA backend's settings: the station file's ``links.opcua`` block (docs/integration.md),
+"""The OPC UA backend's settings: the station file's ``links.opcua`` block (docs/opcua.md),
 and the hashed form its users' passwords are kept in."""
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ OpcUaSecurity = Literal["Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt", 
 
 
 class OpcUaLinkConfig(_Model):
-    """OPC UA server with the Machine Vision model, OPC 40100-1 (docs/integration.md)."""
+    """OPC UA server with the Machine Vision model, OPC 40100-1 (docs/opcua.md)."""
 
     enabled: bool = True
     host: str = Field("127.0.0.1", description="address to listen on (0.0.0.0: every interface)")
