@@ -19,6 +19,7 @@ from mvpose_core.uncertainty import (
     calibration_terms,
     covariance_in_frame,
     detector_scale,
+    detector_sigmas,
     sigma_figures,
 )
 
@@ -98,6 +99,8 @@ def measure(
         cameras = view_cameras(station, flange_poses)
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_rf_from_pf0 = recipe.T_rf_from_pf0.matrix
+    # each centre's own σ from its mark's size and contrast (the recipe's σ for a typical one)
+    observations = detector_sigmas(observations, recipe.detector_noise_px)
     robust = estimate_pose_robust(
         observations,
         cameras,

@@ -93,11 +93,22 @@ def observations_of(
     """The found detections of one view (camera id → detections) as observations, each with
     its mark's next candidates."""
     return [
-        Observation(view, cid, d.mark_id, d.uv, alternates=tuple(d.candidates()[1:]))
+        Observation(view, cid, d.mark_id, d.uv, alternates=tuple(d.candidates()[1:]),
+                    centre_variance=centre_variance(d.radius_px, d.contrast))
         for cid, dets in detections.items()
         for d in dets
         if d.found and d.uv is not None
     ]
+
+
+def centre_variance(radius_px: float, contrast: float) -> float | None:
+    """A found mark's relative centre variance: its edge points each carry noise ∝ 1/contrast,
+    and a rim of ∝ radius independent points averages it, so var ∝ 1 / (radius · contrast²).
+    None when either figure is missing."""
+    c = abs(contrast)
+    if not (radius_px > 0 and c > 0 and np.isfinite(radius_px) and np.isfinite(c)):
+        return None
+    return 1.0 / (radius_px * c * c)
 
 
 def estimate_pose_robust(

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dsyevd
 
-from mvpose_core.problem import pack_layout
+from mvpose_core.problem import Observation, pack_layout
 from mvpose_core.refine import Array, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import StationConfig
@@ -153,6 +153,25 @@ def detector_scale(weighted_sq_sum: float, dof: int, prior_dof: float) -> float:
     if not n > 0:
         return 1.0
     return float((prior_dof + weighted_sq_sum) / n)
+
+
+def detector_sigmas(observations: Sequence[Observation], sigma0: float) -> list[Observation]:
+    """The observations with each one's a-priori σ from its detection: ``σ0·√(v/v̄)``, ``v``
+    its :attr:`~mvpose_core.problem.Observation.centre_variance` and ``v̄`` their mean over the
+    trigger, so ``σ0`` stays the σ of the trigger's typical mark and :func:`detector_scale`
+    still scales them all. A small or faint mark's centre is noisier than a large one's
+    (rendered bonnet, 5-18 px radius: about ∝ 1/√radius); one σ for all would misweigh them in
+    the pose and misstate its covariance along the directions the small marks fix.
+    Observations with their own ``sigma_px`` keep it; when some lack a variance figure (e.g.
+    synthetic observations) they are returned as given."""
+    free = [o for o in observations if o.sigma_px is None]
+    v = np.array([o.centre_variance if o.centre_variance is not None else np.nan for o in free])
+    if not free or not np.all(np.isfinite(v) & (v > 0)):
+        return list(observations)
+    scale = sigma0 / float(np.sqrt(v.mean()))
+    return [o if o.sigma_px is not None or o.centre_variance is None
+            else replace(o, sigma_px=scale * float(np.sqrt(o.centre_variance)))
+            for o in observations]
 
 
 # ----------------------------------------------------------------------- calibration part

@@ -170,3 +170,66 @@ def floor(body_mm: float = 1700.0) -> StationConfig:
         )],
     }
     return parse_station(station, f"floor(body_mm={body_mm})")
+
+
+#: the steep camera of issue 26: 12 mm lens on 3.45 µm pixels, 2048 x 2048, mild barrel distortion
+STEEP_F_PX = 12.0 / 0.00345  # 3478 px
+STEEP_SIZE = 2048
+STEEP_DIST = [-0.11, 0.02, 0.0, 0.0, 0.0]
+
+
+def compact(body_mm: float = 0.0) -> StationConfig:
+    """A compact panel seen by four fixed cameras: three ordinary ones, and one tilted 35° with a
+    12 mm lens that sees a 14 mm mark (M2, ~25 px radius) near its lower frame edge (v ≈ 1620
+    of 2048), where the lens's distortion and the perspective are strongest."""
+    marks = {
+        "M1": ((-150.0, -90.0, -2.0), (-0.03, -0.02, 1.0), 10.0),
+        "M2": ((140.0, -85.0, 3.0), (0.03, -0.02, 1.0), 14.0),
+        "M3": ((-135.0, 95.0, 1.0), (-0.02, 0.03, 1.0), 12.0),
+        "M4": ((150.0, 80.0, -3.0), (0.02, 0.03, 1.0), 16.0),
+    }
+    T_rf_from_local0 = make_transform(zyx_to_matrix(90.0, 0.0, 180.0), [1300.0, 0.0, 150.0])
+    R0 = T_rf_from_local0[:3, :3]
+    centre = T_rf_from_local0[:3, 3]
+    normal, side, along = R0[:, 2], R0[:, 0], R0[:, 1]
+    cams = []
+    for cid, tilt, axis, dist in (("top", 8.0, side, 760.0), ("left", -18.0, side, 780.0),
+                                  ("right", 20.0, along, 760.0)):
+        a = np.radians(tilt)
+        eye = centre + dist * (np.cos(a) * normal + np.sin(a) * axis)
+        cams.append((cid, look_at(eye, centre, along if axis is side else side)))
+    # The steep camera: 35° off the normal (tilted across the panel's long side), ~0.92 m from
+    # M2, turned so that M2 comes out at v ≈ 1620.
+    m2 = apply(T_rf_from_local0, np.array([marks["M2"][0]]))[0]
+    a = np.radians(35.0)
+    eye = m2 + 920.0 * (np.cos(a) * normal - np.sin(a) * along)
+    T = look_at(eye, m2, side)
+    down = np.arctan2(1620.0 - (STEEP_SIZE - 1) / 2.0, STEEP_F_PX)
+    c, s = np.cos(down), np.sin(down)
+    cams.append(("steep", compose(T, make_transform(
+        np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]), [0.0, 0.0, 0.0]))))
+    T_rf_from_first = cams[0][1]
+    steep = camera("steep")
+    steep.update({
+        "image_size": [STEEP_SIZE, STEEP_SIZE],
+        "intrinsics": {"fx": STEEP_F_PX, "fy": STEEP_F_PX, "cx": (STEEP_SIZE - 1) / 2.0 - 4.0,
+                       "cy": (STEEP_SIZE - 1) / 2.0 + 3.0},
+        "distortion": STEEP_DIST,
+    })
+    station = {
+        "name": f"compact_{int(body_mm)}",
+        "cameras": [camera(cid) for cid, _ in cams[:3]] + [steep],
+        "rigs": [{
+            "id": "cell", "mount": "fixed", "T_rf_from_rig": pose(T_rf_from_first),
+            "cameras": [{"camera": cid, "T_rig_from_cf": pose(compose(invert(T_rf_from_first), T))}
+                        for cid, T in cams],
+        }],
+        "views": [{"id": 1, "rigs": ["cell"]}],
+        "recipes": [_recipe(
+            "compact", marks, T_rf_from_local0,
+            [{"view": 1, "camera": cid, "marks": list(marks)} for cid, _ in cams[:3]]
+            + [{"view": 1, "camera": "steep", "marks": ["M2"]}],
+            body_mm, make_transform(np.eye(3), [0.0, 0.0, 60.0]),
+        )],
+    }
+    return parse_station(station, f"compact(body_mm={body_mm})")
