@@ -43,9 +43,10 @@ class Observation:
     #: the mark's next candidates in this image (``[2]`` each, best first): the robust rule
     #: (mvpose_core.robust) tries them when ``uv`` disagrees with the rest
     alternates: tuple[np.ndarray, ...] = ()
-    #: the detection's relative centre variance, 1 / (radius_px · contrast²): a smaller or
-    #: fainter mark's centre is noisier. ``mvpose_core.measure`` turns it into ``sigma_px``
-    #: (docs/engine.md, "Uncertainty model"); None = no figure (synthetic observations)
+    #: the detection's relative centre variance, fit_residual_px² / radius_px: a smaller or
+    #: fainter mark's centre, or one whose rim is disturbed, is noisier. ``mvpose_core.measure``
+    #: turns it into ``sigma_px`` (docs/engine.md, "Uncertainty model"); None = no figure
+    #: (synthetic observations)
     centre_variance: float | None = None
 
     @property

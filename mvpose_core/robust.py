@@ -94,21 +94,22 @@ def observations_of(
     its mark's next candidates."""
     return [
         Observation(view, cid, d.mark_id, d.uv, alternates=tuple(d.candidates()[1:]),
-                    centre_variance=centre_variance(d.radius_px, d.contrast))
+                    centre_variance=centre_variance(d.radius_px, d.fit_residual_px))
         for cid, dets in detections.items()
         for d in dets
         if d.found and d.uv is not None
     ]
 
 
-def centre_variance(radius_px: float, contrast: float) -> float | None:
-    """A found mark's relative centre variance: its edge points each carry noise ∝ 1/contrast,
-    and a rim of ∝ radius independent points averages it, so var ∝ 1 / (radius · contrast²).
-    None when either figure is missing."""
-    c = abs(contrast)
-    if not (radius_px > 0 and c > 0 and np.isfinite(radius_px) and np.isfinite(c)):
+def centre_variance(radius_px: float, fit_residual_px: float) -> float | None:
+    """A found mark's relative centre variance, ``fit_residual_px² / radius_px``: the centre is
+    the fit of the rim's edge points, whose scatter about the ellipse (the image noise over the
+    edge's contrast, and whatever clutter or a partial occlusion adds) the fit's RMS residual
+    measures, averaged over a rim of ∝ radius independent points. None when a figure is missing."""
+    if not (np.isfinite(radius_px) and np.isfinite(fit_residual_px)
+            and radius_px > 0 and fit_residual_px > 0):
         return None
-    return 1.0 / (radius_px * c * c)
+    return float(fit_residual_px * fit_residual_px / radius_px)
 
 
 def estimate_pose_robust(

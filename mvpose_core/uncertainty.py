@@ -160,8 +160,10 @@ def detector_sigmas(observations: Sequence[Observation], sigma0: float) -> list[
     its :attr:`~mvpose_core.problem.Observation.centre_variance` and ``v̄`` their mean over the
     trigger, so ``σ0`` stays the σ of the trigger's typical mark and :func:`detector_scale`
     still scales them all. A small or faint mark's centre is noisier than a large one's
-    (rendered bonnet, 5-18 px radius: about ∝ 1/√radius); one σ for all would misweigh them in
-    the pose and misstate its covariance along the directions the small marks fix.
+    (rendered bonnet, 5-18 px radius: about ∝ 1/√radius), and so is one whose rim clutter
+    disturbs; one σ for all would misweigh them in the pose and misstate its covariance along
+    the directions the noisier centres fix (on a stereo pair: along the epipolar lines, where
+    the residuals cannot see them).
     Observations with their own ``sigma_px`` keep it; when some lack a variance figure (e.g.
     synthetic observations) they are returned as given."""
     free = [o for o in observations if o.sigma_px is None]
