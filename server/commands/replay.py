@@ -16,15 +16,13 @@ import csv
 import io
 import json
 from collections.abc import Iterator
-from datetime import UTC, datetime
 from pathlib import Path
 
 from tqdm import tqdm
 
-from drivers.cameras import DriverError, Frame
-from drivers.cameras.files import read_image
 from mvpose_core.station import RecipeConfig, StationConfig
 from server.cli import CliError, load_station_file
+from server.commands.archived import frames_of, open_data_dir, when
 from server.commands.measure import calibrated
 from server.commands.offline import (
     OfflineStation,
@@ -36,7 +34,7 @@ from server.commands.offline import (
 )
 from server.errors import NotFoundError
 from server.recipes import ActiveRecipe
-from server.store import Store, open_store
+from server.store import Store
 from server.store.schemas import MeasurementFilter, StoredMeasurement
 
 
@@ -52,18 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--database-url", help="store URL (default sqlite:///<data-dir>/mvpose.db)")
     parser.add_argument("--images-dir", type=Path, help="image archive (default <data-dir>/images)")
     parser.add_argument("--ids", help="measurement ids, comma-separated (default: all)")
-    parser.add_argument("--since", type=_when, help="triggered at or after (ISO time; UTC "
+    parser.add_argument("--since", type=when, help="triggered at or after (ISO time; UTC "
                         "unless it names its zone)")
-    parser.add_argument("--until", type=_when, help="triggered before (ISO time)")
+    parser.add_argument("--until", type=when, help="triggered before (ISO time)")
     parser.add_argument("--result", choices=["OK", "NOK"], help="only OK or only NOK records")
     parser.add_argument("--out", type=Path, default=Path("replay"),
                         help="folder for replay.csv and replay.json (default ./replay)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-
-
-def _when(text: str) -> datetime:
-    t = datetime.fromisoformat(text)
-    return t if t.tzinfo is not None else t.replace(tzinfo=UTC)
 
 
 def _records(store: Store, args: argparse.Namespace) -> Iterator[StoredMeasurement]:
@@ -118,27 +111,6 @@ class Replayer:
             s.close()
 
 
-def frames_of(store: Store, images: Path, m: StoredMeasurement) -> dict[tuple[int, str],
-                                                                        Frame | DriverError]:
-    """The archived frames of a measurement (a frame evicted or missing: that camera fails)."""
-    out: dict[tuple[int, str], Frame | DriverError] = {}
-    root = images.resolve()
-    for n, info in enumerate(store.images.for_measurement(m.id)):
-        path = (root / info.path).resolve()
-        if info.evicted_at is not None or not path.is_relative_to(root) or not path.is_file():
-            why = "evicted from the archive" if info.evicted_at is not None else "missing"
-            out[(info.view, info.camera_id)] = DriverError(
-                f"camera {info.camera_id!r}: archived frame {info.path!r} is {why}")
-            continue
-        try:
-            out[(info.view, info.camera_id)] = Frame(info.camera_id,
-                                                     read_image(path, info.camera_id), n,
-                                                     float("nan"), float("nan"))
-        except DriverError as err:
-            out[(info.view, info.camera_id)] = err
-    return out
-
-
 def write_side_by_side(out: Path, rows: list[tuple[StoredMeasurement, Outcome | None, str]],
                        recipe: RecipeConfig) -> tuple[Path, Path]:
     """``replay.csv``: per measurement the original figures (``orig_*``), the new ones under the
@@ -179,12 +151,8 @@ def write_side_by_side(out: Path, rows: list[tuple[StoredMeasurement, Outcome | 
 def run(args: argparse.Namespace) -> int:
     station = load_station_file(args.station)
     station, calib = calibrated(station, args.station, args.calibration)
-    url = args.database_url or f"sqlite:///{(args.data_dir / 'mvpose.db').as_posix()}"
-    if url.startswith("sqlite") and args.database_url is None and not (
-            args.data_dir / "mvpose.db").is_file():
-        raise CliError(f"{args.data_dir}: no store (mvpose.db); give --data-dir or --database-url")
+    store = open_data_dir(args.data_dir, args.database_url, station.name)
     images = args.images_dir or args.data_dir / "images"
-    store = open_store(url, station.name)
     replayer = Replayer(station, store, calib, args.recipe_version)
     rows: list[tuple[StoredMeasurement, Outcome | None, str]] = []
     try:
