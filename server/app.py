@@ -27,6 +27,7 @@ from server.station.messages import (
     RecipeAnswer,
     StationStatus,
     TriggerAnswer,
+    VerifyAnswer,
 )
 from server.web import install as install_web
 
@@ -49,6 +50,10 @@ class StationHandle(Protocol):
     def trigger(self, part_id: str | None = None, view_index: int = 0,
                 trigger_id: int | None = None) -> TriggerAnswer:
         """Measure now, as a link's trigger would (same thread, same record)."""
+        ...
+
+    def verify(self, by: str) -> VerifyAnswer:
+        """Measure the taught reference part now and judge it (the verify record)."""
         ...
 
     def arm_teach(self, by: str) -> ArmTeachAnswer:

@@ -31,7 +31,13 @@ from mvpose_core.residuals import camera_residuals, shift_response
 from mvpose_core.station import RecipeConfig, StationConfig
 from server.errors import ConflictError
 from server.store import Store
-from server.store.schemas import CameraResidual, MeasurementFilter, Offset, StoredMeasurement
+from server.store.schemas import (
+    CameraResidual,
+    MeasurementFilter,
+    MeasurementRecord,
+    Offset,
+    StoredMeasurement,
+)
 
 Status = Literal["learning", "ok", "warning", "alarm"]
 Response = dict[tuple[int, str], dict[tuple[int, str], np.ndarray]]
@@ -130,7 +136,9 @@ class DriftReport(BaseModel):
 class VerifyReport(BaseModel):
     """A measurement of the reference part against its taught pose."""
 
-    measurement_id: int
+    measurement_id: int | None = Field(description="the measurement's database id (null: not "
+                                       "committed yet; the result id is the key)")
+    result_id: int | None = Field(None, description="the measurement's result id (seq)")
     recipe: str
     recipe_version: int = Field(description="the active version, whose taught pose is checked")
     measured_with_version: int = Field(description="the recipe version of the measurement")
@@ -317,20 +325,28 @@ def _clock(t: datetime) -> str:
 
 
 def verify_reference(store: Store, measurement_id: int) -> VerifyReport:
-    """Judge a measurement of the taught reference part against the active recipe's taught pose.
+    """Judge a stored measurement of the taught reference part against the active recipe's
+    taught pose (:func:`judge_reference`)."""
+    stored = store.measurements.get(measurement_id)
+    info, content = store.versions.content("recipe", stored.record.recipe)
+    recipe = RecipeConfig.model_validate(content)
+    return judge_reference(stored.record, recipe, info.version, measurement_id, stored.seq)
+
+
+def judge_reference(rec: MeasurementRecord, recipe: RecipeConfig, version: int,
+                    measurement_id: int | None, result_id: int | None) -> VerifyReport:
+    """Judge a measurement of the taught reference part against ``recipe``'s taught pose.
 
     Passes when the implied offset at the grasp point is within the recipe's grasp tolerances
     (``translation_mm``, ``rotation_deg``): a re-measured reference part should be at ~zero.
     """
-    stored = store.measurements.get(measurement_id)
-    rec = stored.record
+    which = (f"measurement {measurement_id}" if measurement_id is not None
+             else f"result {result_id}")
     if rec.T_rf_from_pf is None:
         raise ConflictError(
-            f"measurement {measurement_id} has no pose ({rec.reason}: {rec.message or 'no pose'});"
+            f"{which} has no pose ({rec.reason}: {rec.message or 'no pose'});"
             " measure the reference part again"
         )
-    info, content = store.versions.content("recipe", rec.recipe)
-    recipe = RecipeConfig.model_validate(content)
     off = frame_offsets(np.asarray(rec.T_rf_from_pf), recipe.T_rf_from_pf0.matrix,
                         recipe.T_pf_from_grasp.matrix, recipe.robot_convention)
     tol = recipe.tolerances
@@ -338,7 +354,7 @@ def verify_reference(store: Store, measurement_id: int) -> VerifyReport:
     passed = mm <= tol.translation_mm and deg <= tol.rotation_deg
     verdict = "pass" if passed else "FAIL"
     message = (
-        f"reference part of {rec.recipe} (measurement {measurement_id}) lies {mm:.3f} mm and "
+        f"reference part of {rec.recipe} ({which}) lies {mm:.3f} mm and "
         f"{deg:.3f}° from its taught place (limits {tol.translation_mm:g} mm, "
         f"{tol.rotation_deg:g}°): {verdict}"
     )
@@ -348,8 +364,9 @@ def verify_reference(store: Store, measurement_id: int) -> VerifyReport:
         message += f" by {' and '.join(x for x in over if x)}"
     return VerifyReport(
         measurement_id=measurement_id,
+        result_id=result_id,
         recipe=rec.recipe,
-        recipe_version=info.version,
+        recipe_version=version,
         measured_with_version=rec.recipe_version,
         measurement_result=rec.result,
         measurement_reason=rec.reason,

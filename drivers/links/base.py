@@ -74,6 +74,22 @@ class LinkOutcome:
 
 
 @dataclass(frozen=True)
+class VerifyOutcome:
+    """The station's answer to a calibration verify: the taught reference part measured again
+    and its 6-DoF difference to the taught pose judged against the recipe's limits."""
+
+    result_code: int  # 0: measured and judged (``passed`` is the verdict); else why not
+    result_id: int  # the verify record's seq (0: nothing was recorded)
+    passed: bool = False
+    difference: tuple[float, ...] | None = None  # implied offset, recipe convention
+    displacement_mm: float = 0.0  # at the grasp point
+    rotation_deg: float = 0.0
+    limit_mm: float = 0.0
+    limit_deg: float = 0.0
+    message: str = ""
+
+
+@dataclass(frozen=True)
 class ResultQuery:
     """Which stored records a link asks for: every filter optional (None), oldest first from
     ``start`` (0-based), at most ``limit``."""
@@ -137,6 +153,11 @@ class StationHandler(Protocol):
 
     async def reset(self) -> None:
         """Drop a half-done multi-view sequence."""
+        ...
+
+    async def verify(self, link: str, by: str) -> VerifyOutcome:
+        """Measure the taught reference part now (a trigger recorded as the verify record) and
+        judge its difference to the taught pose."""
         ...
 
     def convention(self) -> RobotConvention:

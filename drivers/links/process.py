@@ -42,7 +42,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .base import Link, LinkOutcome, LinkRequest, StationHandler
+from .base import Link, LinkOutcome, LinkRequest, StationHandler, VerifyOutcome
 from .result import ResultEvent
 
 log = logging.getLogger(__name__)
@@ -57,6 +57,7 @@ _HEADER = struct.Struct("!I")
 _MAX_FRAME = 64 << 20
 # the StationHandler calls a child may make (its answers go back as replies)
 CALLS = frozenset({"measure", "record_failure", "select_recipe", "teach_reference", "reset",
+                   "verify",
                    "unselect_recipe", "recipes", "get_result", "find_results", "calibrations",
                    "activate_calibration"})
 
@@ -428,6 +429,10 @@ class RemoteHandler:
 
     async def reset(self) -> None:
         await self._ask("reset")
+
+    async def verify(self, link: str, by: str) -> VerifyOutcome:
+        result: VerifyOutcome = await self._ask("verify", link, by)
+        return result
 
     def convention(self) -> Any:
         return self._convention

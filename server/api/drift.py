@@ -9,8 +9,16 @@ from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
-from server.api.deps import IdInt, OperatorUser, ReadUser, ServicesDep, json_response
+from server.api.deps import (
+    IdInt,
+    OperatorUser,
+    ReadUser,
+    ServicesDep,
+    json_response,
+    need_station,
+)
 from server.drift import DriftReport, DriftService, VerifyReport, verify_reference
+from server.errors import ConflictError
 
 router = APIRouter(tags=["calibration"])
 
@@ -31,7 +39,9 @@ DriftDep = Annotated[DriftService, Depends(get_drift)]
 
 
 class VerifyRequest(BaseModel):
-    measurement_id: IdInt = Field(description="a measurement of the taught reference part")
+    measurement_id: IdInt | None = Field(
+        None, description="judge this stored measurement of the taught reference part; "
+        "omitted: measure the reference part now (the station's verify, recorded)")
 
 
 @router.get("/drift", response_model=DriftReport)
@@ -42,8 +52,14 @@ def drift(_: ReadUser, service: DriftDep) -> Response:
 
 @router.post("/calibration/verify", response_model=VerifyReport)
 def verify(
-    body: Annotated[VerifyRequest, Body()], _: OperatorUser, services: ServicesDep
+    request: Request, user: OperatorUser, services: ServicesDep,
+    body: Annotated[VerifyRequest | None, Body()] = None,
 ) -> VerifyReport:
-    """Check a measurement of the taught reference part: its implied offset must be ~zero."""
-    return verify_reference(services.store, body.measurement_id)
+    """Verify the calibration: the taught reference part's implied offset must be ~zero."""
+    if body is not None and body.measurement_id is not None:
+        return verify_reference(services.store, body.measurement_id)
+    out = need_station(request.app).verify(user.name)
+    if out.report is None:
+        raise ConflictError(out.message)
+    return out.report
 

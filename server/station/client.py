@@ -49,6 +49,8 @@ from server.station.messages import (
     TeachRequest,
     TriggerAnswer,
     TriggerRequest,
+    VerifyAnswer,
+    VerifyRequest,
 )
 
 A = TypeVar("A", bound=Message)
@@ -150,6 +152,9 @@ class StationClient:
         return self.ask(_build(TriggerRequest, part_id=part_id, view=view_index,
                                trigger_id=trigger_id),
                         TriggerAnswer, timeout_s=35.0)
+
+    def verify(self, by: str) -> VerifyAnswer:
+        return self.ask(_build(VerifyRequest, by=by), VerifyAnswer, timeout_s=35.0)
 
     def arm_teach(self, by: str) -> ArmTeachAnswer:
         return self.ask(_build(ArmTeachRequest, by=by), ArmTeachAnswer)

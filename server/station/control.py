@@ -60,6 +60,8 @@ from server.station.messages import (
     TeachRequest,
     TriggerAnswer,
     TriggerRequest,
+    VerifyAnswer,
+    VerifyRequest,
 )
 
 if TYPE_CHECKING:  # the API process imports this module for the framing, not the station
@@ -216,6 +218,12 @@ class ControlServer:
         """The operation ``request`` names, on the station; its answer model."""
         if isinstance(request, TriggerRequest):
             return await self._trigger(request)
+        if isinstance(request, VerifyRequest):
+            # on the station loop, as a link's command runs: the trigger is the station's own
+            out, report, _ = await asyncio.wait_for(
+                self.station.verify_report("rest", request.by), 30.0)
+            return VerifyAnswer(result_code=out.result_code, result_id=out.result_id,
+                                message=out.message, report=report)
         work = self._work(request)
         return await asyncio.to_thread(work)
 

@@ -28,11 +28,12 @@ from datetime import UTC, datetime
 from typing import Any
 
 from drivers.links import Link, LinkOutcome, LinkRequest
-from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery
+from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, VerifyOutcome
 from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
 from mvpose_core.station import StationConfig
 from mvpose_core.transforms import RobotConvention
+from server.drift import VerifyReport
 from server.pipeline import Pipeline
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
@@ -44,6 +45,7 @@ from server.station.recorder import Answer, Recorder
 from server.station.records import Provenance
 from server.station.sink import RecordSink, WriterSink
 from server.station.triggers import Triggers
+from server.station.verifying import verify_now
 
 log = logging.getLogger(__name__)
 
@@ -230,6 +232,14 @@ class Station:
 
     async def reset(self) -> None:
         await self.triggers.between_async(self.measuring.clear_sequence)
+
+    async def verify(self, link: str, by: str) -> VerifyOutcome:
+        return (await self.verify_report(link, by))[0]
+
+    async def verify_report(self, link: str, by: str
+                            ) -> tuple[VerifyOutcome, VerifyReport | None, Answer | None]:
+        """:meth:`verify` with the report and the trigger's answer (the control channel's)."""
+        return await verify_now(self, link, by)
 
     async def unselect_recipe(self) -> int:
         return await self._queries().unselect_recipe()

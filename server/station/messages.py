@@ -28,6 +28,7 @@ from pydantic import (
 )
 
 from drivers.links.result import ResultEvent
+from server.drift import VerifyReport
 from server.store.schemas import MeasurementRecord
 
 Name = Annotated[StrictStr, Field(min_length=1, max_length=200)]
@@ -136,6 +137,16 @@ class TriggerAnswer(Message):
     event: Event | None  # the recorded answer as every outlet shows it (None: not recorded)
 
 
+class VerifyAnswer(Message):
+    """A calibration verify as the station gave it: the code (0: judged, the report says how),
+    the verify record's result id, the message, and the report (None: no verdict)."""
+
+    result_code: int
+    result_id: int
+    message: str
+    report: VerifyReport | None
+
+
 class ArmTeachAnswer(Message):
     armed: bool
     recipe: str
@@ -214,6 +225,15 @@ class ArmTeachRequest(Request):
     by: Name
 
 
+class VerifyRequest(Request):
+    """Measure the taught reference part now and judge it (server.station.verifying)."""
+
+    op = "verify"
+    answer = VerifyAnswer
+
+    by: Name
+
+
 class TeachRequest(Request):
     op = "teach"
     answer = RecipeAnswer
@@ -255,11 +275,12 @@ class MovePartRequest(Request):
 #: every operation's request model, by its name
 REQUESTS: dict[str, type[Request]] = {r.op: r for r in (
     PingRequest, StatusRequest, ReadinessRequest, TriggerRequest, ArmTeachRequest, TeachRequest,
-    ActivateRecipeRequest, ReloadRecipesRequest, MetricsRequest, MovePartRequest)}
+    ActivateRecipeRequest, ReloadRecipesRequest, MetricsRequest, MovePartRequest,
+    VerifyRequest)}
 
 __all__ = ["REQUESTS", "ActivateRecipeRequest", "ArmTeachAnswer", "ArmTeachRequest",
            "CalibrationStatus", "ErrorBody", "Message", "MetricsAnswer", "MetricsRequest",
            "MovePartAnswer", "MovePartRequest", "PingAnswer", "PingRequest", "Readiness",
            "ReadinessRequest", "RecipeAnswer", "RecipeStatus", "ReloadAnswer",
            "ReloadRecipesRequest", "Request", "StationStatus", "StatusRequest",
-           "TeachRequest", "TriggerAnswer", "TriggerRequest"]
+           "TeachRequest", "TriggerAnswer", "TriggerRequest", "VerifyAnswer", "VerifyRequest"]

@@ -6,11 +6,19 @@ import math
 
 import pytest
 
-from drivers.links.base import LinkOutcome
+from drivers.links.base import LinkOutcome, VerifyOutcome
 from drivers.links.modbus import codecs as c
 from drivers.links.modbus import registers as r
 from drivers.links.modbus.machine import Handshake, Measure, ResetPipeline, RunCommand
-from drivers.links.modbus.registers import Command, Control, ErrorCode, State, Status, WordOrder
+from drivers.links.modbus.registers import (
+    Command,
+    Control,
+    ErrorCode,
+    State,
+    Status,
+    VerifyVerdict,
+    WordOrder,
+)
 from drivers.links.modbus.settings import PlcConfig
 from mvpose_core.reasons import Reason
 
@@ -206,6 +214,41 @@ def test_commands() -> None:
     p.ctl(EN | Control.EXECUTE_COMMAND)
     p.m.command_done(Command.TEACH_REFERENCE, 0, 12)
     assert p.status() & Status.COMMAND_FAILED and p.m.image[r.IR_COMMAND_RESULT] == 12
+
+
+@pytest.mark.parametrize("order", [WordOrder.ABCD, WordOrder.CDAB])
+def test_verify_publishes_its_block_before_the_command_ends(order: WordOrder) -> None:
+    p = Plc(order).ready()
+    verify = VerifyOutcome(0, 41, passed=False, difference=(0.3, -0.4, 0.0, 0.01, 0.0, -0.02),
+                           displacement_mm=0.5, rotation_deg=0.022, limit_mm=0.2,
+                           limit_deg=0.1)
+    p.m.write(r.HR_COMMAND, [Command.VERIFY, 0], p.t)
+    (effect,) = p.ctl(EN | Control.EXECUTE_COMMAND)
+    assert effect == RunCommand(Command.VERIFY, 0)
+    p.m.verified(verify)
+    p.m.command_done(Command.VERIFY, 0, verify.result_code)
+    img = p.m.image
+    assert p.status() & Status.COMMAND_DONE and img[r.IR_COMMAND_RESULT] == 0
+    assert p.u32(r.IR_VERIFY_RESULT_ID) == 41
+    assert img[r.IR_VERIFY_VERDICT] == VerifyVerdict.FAILED
+    diff = c.decode_pose_float(img[r.IR_VERIFY_DIFFERENCE : r.IR_VERIFY_DIFFERENCE + 12], order)
+    assert diff == pytest.approx(verify.difference, abs=1e-6)
+    assert c.decode_float32(img[r.IR_VERIFY_DISPLACEMENT : r.IR_VERIFY_DISPLACEMENT + 2],
+                            order) == pytest.approx(0.5)
+    assert c.decode_float32(img[r.IR_VERIFY_ROTATION : r.IR_VERIFY_ROTATION + 2],
+                            order) == pytest.approx(0.022)
+
+    # the next verify clears the verdict at its start; one without a verdict leaves it NONE,
+    # names its record and publishes zeros, and the command fails with the reason
+    p.ctl(EN)
+    p.ctl(EN | Control.EXECUTE_COMMAND)
+    assert img[r.IR_VERIFY_VERDICT] == VerifyVerdict.NONE
+    p.m.verified(VerifyOutcome(int(Reason.MARKS_MISSING), 42, message="no marks"))
+    p.m.command_done(Command.VERIFY, 0, Reason.MARKS_MISSING)
+    assert p.status() & Status.COMMAND_FAILED
+    assert img[r.IR_COMMAND_RESULT] == Reason.MARKS_MISSING
+    assert p.u32(r.IR_VERIFY_RESULT_ID) == 42 and img[r.IR_VERIFY_VERDICT] == 0
+    assert img[r.IR_VERIFY_DIFFERENCE : r.IR_COUNT] == [0] * 16
 
 
 def test_command_while_busy_is_refused() -> None:

@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
+from mvpose_core.reasons import Reason
 from mvpose_core.station import load_station
 from server.errors import InvalidInputError, StationFailedError
 from server.loopback import running_server
@@ -33,10 +34,11 @@ from server.station.messages import (
     StationStatus,
     StatusRequest,
     TriggerAnswer,
+    VerifyAnswer,
 )
 
 OPS = {"ping", "status", "readiness", "trigger", "arm_teach", "teach", "activate_recipe",
-       "reload_recipes", "metrics", "move_part"}
+       "reload_recipes", "metrics", "move_part", "verify"}
 
 
 async def test_every_operation_round_trips_through_its_models(tmp_path: Path) -> None:
@@ -86,9 +88,18 @@ async def test_every_operation_round_trips_through_its_models(tmp_path: Path) ->
             measurement_id = last["measurement_id"]
             assert measurement_id is not None
 
+            verified = client.verify("tester")  # the part is at its reference: passed
+            assert isinstance(verified, VerifyAnswer) and verified.result_code == 0
+            assert verified.report is not None and verified.report.passed, verified.message
+            assert verified.report.result_id == verified.result_id > event.result_id
+
             armed = client.arm_teach("tester")
             assert armed == ArmTeachAnswer(armed=True, recipe=recipe)
             assert client.status().teach_armed
+            # a verify now would become the reference: refused, naming the teach
+            refused = client.verify("tester")
+            assert (refused.result_code, refused.report) == (Reason.BUSY, None)
+            assert "teach" in refused.message
 
             before = rt.active.version if rt.active else 0
             taught = client.teach_from_measurement(measurement_id, "tester")

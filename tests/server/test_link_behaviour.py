@@ -33,7 +33,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
 from drivers.links.modbus.codecs import int_scales
-from drivers.links.modbus.registers import Command, Status
+from drivers.links.modbus.registers import Command, Status, VerifyVerdict
 from drivers.links.modbus.twin import PlcTwin
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
@@ -151,6 +151,18 @@ class Answer:
     offset: tuple[float, ...] | None  # the recipe's convention; None unless OK
 
 
+@dataclass
+class Verified:
+    """A calibration verify's answer as the client read it."""
+
+    code: int  # 0: measured and judged
+    result_id: int  # the verify record's result id
+    passed: bool
+    difference: tuple[float, ...] | None  # 6-DoF difference to the taught pose (PLC form)
+    displacement_mm: float
+    rotation_deg: float
+
+
 class LinkBehaviour:
     """What every link does; a subclass per backend says how its client speaks."""
 
@@ -183,6 +195,10 @@ class LinkBehaviour:
 
     async def refuse_stranger(self, env: Env) -> None:
         """A peer the link must not serve (allowlist, security, role) is refused."""
+        raise NotImplementedError
+
+    async def verify(self, s: Any, env: Env) -> Verified:
+        """Run a calibration verify: the reference part measured now and judged."""
         raise NotImplementedError
 
     # ------------------------------------------------------------------ the cases
@@ -271,6 +287,30 @@ class LinkBehaviour:
         deg, mm = transform_error(T, np.eye(4))
         assert mm < tol.translation_mm / 2 and deg < tol.rotation_deg / 2, (mm, deg)
 
+    async def test_verify_measures_the_reference_part_and_records_it(self, fixed: Env) -> None:
+        self.need("verify")
+        recipe = fixed.recipe  # the active version's taught pose (a teach may have moved it)
+        tol = recipe.tolerances
+        await fixed.place(recipe.T_rf_from_pf0.matrix)
+        async with self.session(fixed) as s:
+            good = await self.verify(s, fixed)
+            # the part 3 limits off its taught place along its X axis: FAIL, by that much
+            moved = np.eye(4)
+            moved[0, 3] = 3 * tol.translation_mm
+            await fixed.place(recipe.T_rf_from_pf0.matrix @ moved)
+            bad = await self.verify(s, fixed)
+        assert (good.code, good.passed) == (0, True) and good.result_id > 0, good
+        assert good.difference is not None and len(good.difference) == 6
+        assert good.displacement_mm < tol.translation_mm / 2, good
+        assert (bad.code, bad.passed) == (0, False) and bad.result_id > good.result_id, bad
+        assert bad.displacement_mm == pytest.approx(3 * tol.translation_mm, abs=0.05), bad
+        assert bad.difference is not None
+        assert float(np.linalg.norm(bad.difference[:3])) == pytest.approx(
+            3 * tol.translation_mm, abs=0.05)
+        for v in (good, bad):  # each verify is a record of the audit trail
+            rec = (await fixed.record(v.result_id)).record
+            assert (rec.part_id, rec.trigger_id) == ("VERIFY", 0), rec
+
     async def test_recipe_select_and_an_unknown_recipe_refused(self, fixed: Env) -> None:
         number = fixed.station.active.number
         async with self.session(fixed) as s:
@@ -354,6 +394,15 @@ class TestModbus(LinkBehaviour):
         done = await s.command(Command.TEACH_REFERENCE)
         assert done.has(Status.COMMAND_DONE), done
 
+    async def verify(self, s: PlcTwin, env: Env) -> Verified:
+        st = await s.command(Command.VERIFY, timeout=30.0)
+        judged = st.has(Status.COMMAND_DONE)
+        assert judged == (st.verify_verdict is not VerifyVerdict.NONE), st
+        return Verified(st.command_result, st.verify_result_id,
+                        st.verify_verdict is VerifyVerdict.PASSED,
+                        st.verify_difference if judged else None, st.verify_displacement_mm,
+                        st.verify_rotation_deg)
+
     async def refuse_stranger(self, env: Env) -> None:
         """The allowlist: a peer from 127.0.0.2 is closed without an answer."""
         link = env.station.link("modbus")
@@ -382,6 +431,8 @@ class TestOpcUa(LinkBehaviour):
                  "robot-mounted rig is triggered over the PLC's fieldbus)",
         "robot pose": "no method of the Machine Vision model carries the flange pose",
         "teach": "OPC 40100-1 has no teach method; the reference is taught over Modbus or REST",
+        "verify": "the mvpose namespace has no Verify method yet (issue 26 item 4: Modbus and "
+                  "REST have it)",
     }
 
     async def _client(self, env: Env, user: str, password: str) -> Client:
@@ -484,6 +535,13 @@ class TestRest(LinkBehaviour):
     async def teach(self, s: httpx.AsyncClient, env: Env) -> None:
         r = await s.post("/station/teach")
         assert r.status_code == 200 and r.json()["armed"], r.text
+
+    async def verify(self, s: httpx.AsyncClient, env: Env) -> Verified:
+        r = await s.post("/calibration/verify")
+        assert r.status_code == 200, r.text
+        out = r.json()
+        return Verified(0, out["result_id"], out["passed"], tuple(out["offset"]["values"]),
+                        out["grasp_displacement_mm"], out["rotation_deg"])
 
     async def refuse_stranger(self, env: Env) -> None:
         """The token's role: a read token may look, not trigger."""

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
 
-from ..base import LinkOutcome, LinkRequest
+from ..base import LinkOutcome, LinkRequest, VerifyOutcome
 from . import codecs
 from . import registers as r
-from .registers import Command, Control, ErrorCode, State, Status
+from .registers import Command, Control, ErrorCode, State, Status, VerifyVerdict
 from .settings import PlcConfig
 
 
@@ -222,6 +222,8 @@ class Handshake:
             return self._command_failed(Reason.BAD_ARGUMENT)
         self._command_busy = True
         self.image[r.IR_COMMAND_RESULT] = 0
+        if command is Command.VERIFY:  # the block's verdict is the running verify's, once done
+            self.image[r.IR_VERIFY_VERDICT] = int(VerifyVerdict.NONE)
         return [RunCommand(command, arg)]
 
     def _command_failed(self, code: Reason) -> list[Effect]:
@@ -365,6 +367,36 @@ class Handshake:
             self.stats.commands_failed += 1
             self._flags |= Status.COMMAND_FAILED
         self._publish()
+
+    def verified(self, outcome: VerifyOutcome) -> None:
+        """Publish a verify's block (registers 50-69); :meth:`command_done` follows with its
+        code. Without a verdict the block holds the record's id, NONE and zeros."""
+        img = self.image
+        order = self.order
+        difference: tuple[float, ...] = (0.0,) * 6
+        figures = (outcome.displacement_mm, outcome.rotation_deg)
+        judged = outcome.result_code == 0 and outcome.difference is not None
+        if judged and outcome.difference is not None:
+            try:
+                difference = codecs.pose_to_plc(outcome.difference, self._convention)
+            except ValueError:
+                judged = False
+        if not all(math.isfinite(x) for x in (*difference, *figures)):
+            judged = False
+        if not judged:
+            difference, figures = (0.0,) * 6, (0.0, 0.0)
+        verdict = VerifyVerdict.NONE
+        if judged:
+            verdict = VerifyVerdict.PASSED if outcome.passed else VerifyVerdict.FAILED
+        img[r.IR_VERIFY_RESULT_ID : r.IR_VERIFY_RESULT_ID + 2] = codecs.encode_uint32(
+            outcome.result_id & 0xFFFFFFFF, order)
+        img[r.IR_VERIFY_VERDICT] = int(verdict)
+        img[r.IR_VERIFY_DIFFERENCE : r.IR_VERIFY_DIFFERENCE + 12] = codecs.encode_pose_float(
+            difference, order)
+        img[r.IR_VERIFY_DISPLACEMENT : r.IR_VERIFY_DISPLACEMENT + 2] = codecs.encode_float32(
+            figures[0], order)
+        img[r.IR_VERIFY_ROTATION : r.IR_VERIFY_ROTATION + 2] = codecs.encode_float32(
+            figures[1], order)
 
     def pipeline_reset_failed(self) -> None:
         if not self._error:

@@ -49,7 +49,14 @@ IR_CONVENTION: Final = 44
 IR_WORD_ORDER: Final = 45  # 0 = ABCD, 1 = CDAB
 IR_TEST_FLOAT: Final = 46  # float32 123.45
 IR_TEST_INT: Final = 48  # int32 123456789
-IR_COUNT: Final = 50
+# the last calibration verify (command VERIFY), published before its COMMAND_DONE
+IR_VERIFY_RESULT_ID: Final = 50  # u32, the verify record's result id
+IR_VERIFY_VERDICT: Final = 52  # VerifyVerdict
+IR_VERIFY_RESERVED_53: Final = 53
+IR_VERIFY_DIFFERENCE: Final = 54  # 6 × float32: the difference to the taught pose (PLC form)
+IR_VERIFY_DISPLACEMENT: Final = 66  # float32 mm at the grasp point
+IR_VERIFY_ROTATION: Final = 68  # float32 deg
+IR_COUNT: Final = 70
 
 TEST_FLOAT: Final = 123.45
 TEST_INT: Final = 123456789
@@ -111,6 +118,15 @@ class Command(IntEnum):
     SELECT_RECIPE = 1  # argument: recipe number (1..65535)
     TEACH_REFERENCE = 2  # the next final result becomes the zero offset
     RESET = 3  # drop a half-done multi-view sequence
+    VERIFY = 4  # measure the taught reference part and judge it (registers 50-69)
+
+
+class VerifyVerdict(IntEnum):
+    """Register 52: the last verify's verdict."""
+
+    NONE = 0  # no verify yet, or the last one measured nothing to judge (see register 5)
+    PASSED = 1  # the reference part is within the limits of its taught pose
+    FAILED = 2  # it is not: the calibration or the cameras have moved
 
 
 class ErrorCode(IntEnum):

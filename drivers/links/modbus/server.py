@@ -335,6 +335,12 @@ class PlcServer:
                 result = await asyncio.wait_for(h.select_recipe(effect.argument), timeout)
             elif effect.command is Command.TEACH_REFERENCE:
                 result = await asyncio.wait_for(h.teach_reference("plc"), timeout)
+            elif effect.command is Command.VERIFY:
+                # a measurement: the measure timeout bounds it, as it bounds a trigger
+                limit = max(self.config.measure_timeout_s, timeout or 0.0) or None
+                verified = await asyncio.wait_for(h.verify("modbus", "plc"), limit)
+                self.machine.verified(verified)
+                result = verified.result_code
             else:
                 await asyncio.wait_for(h.reset(), timeout)
                 result = 0

@@ -17,7 +17,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from ...errors import DriverOperationError
 from . import registers as r
-from .registers import Control, State, Status, WordOrder
+from .registers import Control, State, Status, VerifyVerdict, WordOrder
 
 _DT = AsyncModbusTcpClient.DATATYPE
 
@@ -28,7 +28,7 @@ class PlcTwinError(DriverOperationError):
 
 @dataclass(frozen=True)
 class PlcStatus:
-    """The input block (registers 0..49) as the PLC reads it, decoded."""
+    """The input block (registers 0..69) as the PLC reads it, decoded."""
 
     regs: tuple[int, ...]
     word_order: WordOrder
@@ -115,6 +115,28 @@ class PlcStatus:
     @property
     def test_int(self) -> int:
         return int(self._conv(r.IR_TEST_INT, _DT.INT32))
+
+    @property
+    def verify_result_id(self) -> int:
+        return int(self._conv(r.IR_VERIFY_RESULT_ID, _DT.UINT32))
+
+    @property
+    def verify_verdict(self) -> VerifyVerdict:
+        return VerifyVerdict(self.regs[r.IR_VERIFY_VERDICT])
+
+    @property
+    def verify_difference(self) -> tuple[float, ...]:
+        """The last verify's 6-DoF difference to the taught pose (PLC form, float32)."""
+        return tuple(float(self._conv(r.IR_VERIFY_DIFFERENCE + 2 * i, _DT.FLOAT32))
+                     for i in range(6))
+
+    @property
+    def verify_displacement_mm(self) -> float:
+        return float(self._conv(r.IR_VERIFY_DISPLACEMENT, _DT.FLOAT32))
+
+    @property
+    def verify_rotation_deg(self) -> float:
+        return float(self._conv(r.IR_VERIFY_ROTATION, _DT.FLOAT32))
 
 
 class PlcTwin:
