@@ -16,6 +16,7 @@ from server.store.schemas import MeasurementFilter
 from server.web import html
 from server.web.context import (
     DRIFT_ENDPOINT,
+    VERIFY_ENDPOINT,
     deadline_ms,
     has_endpoint,
     in_thread,
@@ -155,9 +156,16 @@ async def calibration_page(request: Request) -> Html:
              f"this server (no GET {DRIFT_ENDPOINT}): the charts above show what the records "
              "hold. A steady mean residual that walks away from zero is a camera that moved."
              "</p></div>")
-    drift += ("<p>To check the calibration against the taught reference part: measure the "
-              "reference part, open its record in History and use <i>Verify with this "
-              "reference measurement</i> (operator).</p>")
+    drift += ("<p>To check the calibration against the taught reference part: put the "
+              "reference part at its taught place and verify (operator; the PLC runs the same "
+              "verify with command VERIFY), or open a stored measurement of it in History and "
+              "use <i>Verify with this reference measurement</i>.</p>")
+    if html.can(user, Role.OPERATOR) and has_endpoint(request.app, VERIFY_ENDPOINT, "post"):
+        up = await in_thread(station_up, request.app)
+        down = "" if up else " disabled title='station down'"
+        drift += (f'<button type="button" class="post" data-needs-station{down} '
+                  f'data-action="{VERIFY_ENDPOINT}">Measure the reference part and verify'
+                  '</button><p class="msg" role="status"></p>')
     extra = f"""<section class="panel"><h2>Drift warnings</h2>{drift}</section>
 <section class="panel"><h2>Calibration age</h2>{ages}</section>"""
     intro = ("<p>Per camera, the mean reprojection residual of each result (du, dv in px: the "

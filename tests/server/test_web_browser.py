@@ -436,6 +436,10 @@ def test_spc_and_calibration_draw_thousands_of_points(site: Site) -> None:
     assert page.locator("#drift .drift-status").inner_text().startswith("Drift watch: ")
     assert page.locator("#drift tr").count() == 1 + 4
     assert "station file" in page.inner_text("main")
+    # the verify measures the reference part now, through the station: offered, greyed out
+    # while the station is down
+    verify = page.locator("button", has_text="Measure the reference part and verify")
+    assert verify.count() == 1 and verify.is_disabled()
     site.shot(page, "calibration")
     page.context.close()
 
