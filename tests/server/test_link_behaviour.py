@@ -431,8 +431,6 @@ class TestOpcUa(LinkBehaviour):
                  "robot-mounted rig is triggered over the PLC's fieldbus)",
         "robot pose": "no method of the Machine Vision model carries the flange pose",
         "teach": "OPC 40100-1 has no teach method; the reference is taught over Modbus or REST",
-        "verify": "the mvpose namespace has no Verify method yet (issue 26 item 4: Modbus and "
-                  "REST have it)",
     }
 
     async def _client(self, env: Env, user: str, password: str) -> Client:
@@ -468,6 +466,12 @@ class TestOpcUa(LinkBehaviour):
             f"{own}:Measure", ua.Variant(part_id, ua.VariantType.String),
             ua.Variant(0, ua.VariantType.UInt16), ua.Variant(trigger_id, ua.VariantType.UInt32))
         return Answer(code, rid, True, 1, tuple(offset) if offset else None)
+
+    async def verify(self, s: Any, env: Env) -> Verified:
+        _, vs, _, own = s
+        rid, code, passed, difference, mm, deg, message = await vs.call_method(f"{own}:Verify")
+        assert isinstance(message, str) and message, message
+        return Verified(code, rid, passed, tuple(difference) if difference else None, mm, deg)
 
     async def _prepare(self, s: Any, number: int) -> int:
         _, vs, mv, _ = s

@@ -52,7 +52,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from mvpose_core.reasons import Reason, reason_name
 
-from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler
+from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler, VerifyOutcome
 from ..result import ResultEvent
 from . import values as v
 from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
@@ -319,6 +319,13 @@ class OpcUaLink(Link):
              v.arg("SigmaTranslationMm", ua.ObjectIds.Double),
              v.arg("SigmaRotationDeg", ua.ObjectIds.Double)])
         n["measure"] = measure
+        n["verify"] = await vs.add_method(
+            idx, "Verify", self._verify, [],
+            [v.arg("ResultId", ua.ObjectIds.UInt32), v.arg("ResultCode", ua.ObjectIds.Int32),
+             v.arg("Passed", ua.ObjectIds.Boolean),
+             v.arg("Difference", ua.ObjectIds.Double, rank=1),
+             v.arg("DisplacementMm", ua.ObjectIds.Double),
+             v.arg("RotationDeg", ua.ObjectIds.Double), v.arg("Message", ua.ObjectIds.String)])
         rre = await types.get_child(["0:BaseEventType", f"{mv}:ResultReadyEventType"])
         props = [(name, vt) for name, _, vt in self._result_fields()
                  if name not in ("PartId", "CreationTime")]
@@ -506,6 +513,30 @@ class OpcUaLink(Link):
                 ua.Variant(offset, ua.VariantType.Double),
                 ua.Variant(out.sigma_trans_mm, ua.VariantType.Double),
                 ua.Variant(out.sigma_rot_deg, ua.VariantType.Double)]
+
+    async def _verify(self, parent: ua.NodeId) -> list[ua.Variant]:
+        """mvpose's Verify: the taught reference part measured now and judged (ResultCode 0:
+        judged, Passed is the verdict; else why there is no verdict)."""
+        if self.state != "Operational":
+            out = VerifyOutcome(int(Reason.BUSY), 0, message=f"the vision system is {self.state}")
+        else:
+            limit = self.config.measure_timeout_s
+            try:  # shielded: a client that goes away mid-verify does not cancel the record
+                out = await asyncio.shield(self._spawn(asyncio.wait_for(
+                    self.handler.verify("opcua", "opcua"), limit)))
+            except TimeoutError:
+                out = VerifyOutcome(int(Reason.TIMEOUT), 0,
+                                    message=f"no verify within {limit} s (OPC UA link)")
+            except Exception as err:  # noqa: BLE001 - the caller gets the reason
+                log.exception("OPC UA verify failed")
+                out = VerifyOutcome(int(Reason.HANDLER_FAILED), 0,
+                                    message=f"{type(err).__name__}: {err}")
+        return [v.uint32(out.result_id), v.int32(out.result_code),
+                ua.Variant(out.passed, ua.VariantType.Boolean),
+                ua.Variant(list(out.difference or ()), ua.VariantType.Double),
+                ua.Variant(out.displacement_mm, ua.VariantType.Double),
+                ua.Variant(out.rotation_deg, ua.VariantType.Double),
+                ua.Variant(out.message, ua.VariantType.String)]
 
     def _next_trigger(self, wanted: str) -> int:
         if wanted.isdigit() and 0 < int(wanted) < 2**32:
