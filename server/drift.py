@@ -29,7 +29,7 @@ from mvpose_core.measure import Measurement
 from mvpose_core.offset import frame_offsets
 from mvpose_core.residuals import camera_residuals, shift_response
 from mvpose_core.station import RecipeConfig, StationConfig
-from server.errors import ConflictError
+from server.errors import ConflictError, NotFoundError
 from server.store import Store
 from server.store.schemas import (
     CameraResidual,
@@ -114,6 +114,17 @@ class CameraDriftReport(BaseModel):
     trend: list[DriftPoint] = Field(description="the last triggers, oldest first")
 
 
+class LastVerify(BaseModel):
+    """The newest calibration verify (its record has part id ``VERIFY``), judged now."""
+
+    measurement_id: int
+    result_id: int
+    triggered_at: datetime
+    passed: bool | None = Field(description="against the active taught pose and tolerances; "
+                                "null: the verify measured no pose")
+    message: str
+
+
 class DriftReport(BaseModel):
     """Calibration health of the station: the drift watch per camera."""
 
@@ -131,6 +142,9 @@ class DriftReport(BaseModel):
     messages: list[str] = Field(description="one line per camera in warning or alarm")
     rule: DriftRule
     cameras: list[CameraDriftReport]
+    last_verify: LastVerify | None = Field(
+        None, description="the newest calibration verify (POST /calibration/verify, Modbus "
+        "VERIFY, OPC UA Verify): a watch in alarm is confirmed or cleared by one")
 
 
 class VerifyReport(BaseModel):
@@ -268,9 +282,11 @@ class DriftService:
                          arl0_alarm=siegmund_arl(0.0, o.k, o.h_alarm))
         seg = self._current
         station = self.store.station
+        last_verify = self._last_verify()
         if seg is None:
             return DriftReport(station=station, status="learning", records=0, messages=[],
-                               rule=rule, cameras=[], last_id=self._last_id or None)
+                               rule=rule, cameras=[], last_id=self._last_id or None,
+                               last_verify=last_verify)
         cams = [self._camera(seg, d) for d in seg.watch.states()]
         status: Status = max((c.status for c in cams), key=_RANK.__getitem__, default="learning")
         return DriftReport(
@@ -285,7 +301,23 @@ class DriftService:
             messages=[c.message for c in cams if c.status in ("warning", "alarm")],
             rule=rule,
             cameras=cams,
+            last_verify=last_verify,
         )
+
+    def _last_verify(self) -> LastVerify | None:
+        found, _ = self.store.measurements.page(MeasurementFilter(part_id=VERIFY_PART_ID),
+                                                None, 1)
+        if not found:
+            return None
+        m = found[0]
+        passed: bool | None
+        try:
+            report = verify_reference(self.store, m.id)
+            passed, message = report.passed, report.message
+        except (ConflictError, NotFoundError) as err:
+            passed, message = None, str(err)
+        return LastVerify(measurement_id=m.id, result_id=m.seq,
+                          triggered_at=m.record.triggered_at, passed=passed, message=message)
 
     def _camera(self, seg: _Segment, d: CameraDrift) -> CameraDriftReport:
         since_id = since = None
@@ -322,6 +354,9 @@ def _clock(t: datetime) -> str:
 
 
 # ----------------------------------------------------------------------------- verify
+
+#: the part id of a calibration verify's record (server.station.verifying)
+VERIFY_PART_ID = "VERIFY"
 
 
 def verify_reference(store: Store, measurement_id: int) -> VerifyReport:

@@ -14,15 +14,12 @@ from typing import TYPE_CHECKING
 
 from drivers.links.base import LinkRequest, VerifyOutcome
 from mvpose_core.reasons import Reason
-from server.drift import VerifyReport, judge_reference
+from server.drift import VERIFY_PART_ID, VerifyReport, judge_reference
 from server.errors import ConflictError
 
 if TYPE_CHECKING:
     from server.station.core import Station
     from server.station.recorder import Answer
-
-#: the part id of a verify's record
-VERIFY_PART_ID = "VERIFY"
 
 
 async def verify_now(station: Station, link: str, by: str

@@ -168,6 +168,18 @@ async def test_drift_endpoint_and_verify_by_role(tmp_path: Path) -> None:
             r = await client.post(url, json={"measurement_id": value}, headers=op)
             assert r.status_code == 422, (value, r.text)
 
+        # the drift watch links to the newest verify (a record with part id VERIFY), judged
+        assert body["last_verify"] is None
+        verify = store.measurements.insert(moved.model_copy(
+            update={"part_id": "VERIFY", "trigger_id": 0}))
+        last = (await client.get("/api/v1/drift", headers=read)).json()["last_verify"]
+        assert (last["measurement_id"], last["result_id"], last["passed"]) == (
+            verify.id, verify.seq, False)
+        assert last["message"].endswith("FAIL by 0.500 mm")
+        # a verify that measures needs the station: this app has none
+        r = await client.post(url, headers=op)
+        assert r.status_code == 503, r.text
+
         spec = (await client.get("/openapi.json")).json()
         drift = spec["paths"]["/api/v1/drift"]["get"]
         assert drift["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith(

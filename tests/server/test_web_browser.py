@@ -435,6 +435,8 @@ def test_spc_and_calibration_draw_thousands_of_points(site: Site) -> None:
                            timeout=30000)
     assert page.locator("#drift .drift-status").inner_text().startswith("Drift watch: ")
     assert page.locator("#drift tr").count() == 1 + 4
+    assert page.locator("#drift .drift-verify").inner_text() == (
+        "No calibration verify recorded yet.")
     assert "station file" in page.inner_text("main")
     # the verify measures the reference part now, through the station: offered, greyed out
     # while the station is down

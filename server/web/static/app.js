@@ -375,6 +375,20 @@ function setupDrift() {
       table.appendChild(tr);
     });
     box.appendChild(table);
+    const v = d.last_verify;
+    const verify = document.createElement("p");
+    verify.className = "drift-verify";
+    if (v) {
+      const a = document.createElement("a");
+      a.href = "/history/" + v.measurement_id;
+      a.textContent = "record #" + v.measurement_id;
+      verify.append("Last verify (" + new Date(v.triggered_at).toISOString().replace("T", " ")
+                    .slice(0, 16) + " UTC, ", a, "): " + v.message);
+      if (v.passed === false) verify.classList.add("drift-warning");
+    } else {
+      verify.textContent = "No calibration verify recorded yet.";
+    }
+    box.appendChild(verify);
   }).catch((err) => { box.textContent = "drift watch: " + err.message; });
 }
 
