@@ -25,6 +25,7 @@ def api_router() -> APIRouter:
     # recipe, a busy station (server/api/openapi.py adds 401/403/422/503 and the rest).
     router.include_router(station.router, responses=problem_responses(404, 409))
     router.include_router(gauge.router, responses=problem_responses(404))
-    # Verify names a measurement that may not exist or have no pose.
+    # Verify names a measurement that may not exist or have no pose, or measures through the
+    # station (503 without one).
     router.include_router(drift.router, responses=problem_responses(404, 409))
     return router
