@@ -41,7 +41,11 @@ class ImageArchive:
         self.repo = repo
         self.ok_every = ok_every
         self.quota_bytes = quota_bytes
+        # The trigger thread plans under _lock, so it is never held across I/O; the byte tally
+        # and eviction read and write the database under _disk_lock (a frozen database then
+        # holds the archive thread, never a trigger).
         self._lock = threading.Lock()
+        self._disk_lock = threading.Lock()
         self.max_pending = max_pending
         self._ok_seen = 0
         self._pending = 0  # triggers whose frames are planned and not yet written or released
@@ -113,7 +117,7 @@ class ImageArchive:
     def _write(self, measurement_id: int, refs: Sequence[ImageRef], ok: bool,
                frames: Mapping[tuple[int, str], np.ndarray]) -> list[ImageInfo]:
         written = []
-        with self._lock:
+        with self._disk_lock:
             self._current()  # read the baseline before adding rows, so nothing counts twice
         for ref in refs:
             frame = frames.get((ref.view, ref.camera_id))
@@ -133,7 +137,7 @@ class ImageArchive:
             written.append(
                 self.repo.add(measurement_id, ref.view, ref.camera_id, ref.path, len(buf), ok)
             )
-            with self._lock:
+            with self._disk_lock:
                 self._stored = self._current() + len(buf)  # baseline read above
         self.enforce_quota()
         return written
@@ -141,7 +145,7 @@ class ImageArchive:
     def enforce_quota(self) -> list[ImageInfo]:
         """Delete frames, OK ones first and oldest first, until the archive fits its quota."""
         evicted: list[ImageInfo] = []
-        with self._lock:
+        with self._disk_lock:
             while self._current() > self.quota_bytes:
                 batch = self.repo.eviction_order(limit=64)
                 if not batch:
@@ -158,7 +162,7 @@ class ImageArchive:
         return evicted
 
     def stored_bytes(self) -> int:
-        with self._lock:
+        with self._disk_lock:
             return self._current()
 
     def resolve(self, rel: str) -> Path:
