@@ -119,10 +119,13 @@ class Station:
         return self.host.loop
 
     async def _watch_versions(self, period_s: float = 1.0) -> None:
-        """Pick up recipe versions activated through the API, between triggers."""
+        """Pick up recipe versions activated through the API, between triggers. The store is
+        asked on a thread of its own: a trigger never queues behind a frozen database."""
         while True:
             await asyncio.sleep(period_s)
             try:
+                if not await asyncio.to_thread(self.measuring.versions_changed):
+                    continue
                 changed = await self.triggers.between_async(self.measuring.reload_versions)
             except RuntimeError:
                 return  # the executor is shut down: the station stops

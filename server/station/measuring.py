@@ -160,6 +160,17 @@ class Measuring:
         assert self.book is not None
         return self.book.selected or next(iter(self.book.recipes.values()))
 
+    def versions_changed(self) -> bool:
+        """Off the trigger thread (a database read, which a frozen database holds): whether a
+        recipe or calibration version was activated elsewhere since the last reload."""
+        assert self.book is not None and self.services is not None
+        versions = self.services.store.versions
+        recipes = {s.name: s.active_version for s in versions.names("recipe")}
+        if any(recipes.get(n) != r.version for n, r in self.book.recipes.items()):
+            return True
+        calibrations = {s.name: s.active_version for s in versions.names("calibration")}
+        return calibrations.get(self.file_station.name) != self.calibration_version
+
     def reload_versions(self) -> bool:
         """On the trigger thread: recipe and calibration versions activated elsewhere; True
         when something changed."""
