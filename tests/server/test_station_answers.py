@@ -22,6 +22,8 @@ from mvpose_core.reasons import Reason
 from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter
 
+SLACK_S = 0.5  # what a loaded machine may add to a deadline; tells "at the deadline" from "hung"
+
 
 def _records(lb: Any) -> list[Any]:
     return list(lb.runtime.services.store.measurements.iterate(MeasurementFilter()))
@@ -144,8 +146,11 @@ async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) ->
 async def test_a_frozen_database_never_delays_the_answer(
     tmp_path: Path, postgres_cluster: Any
 ) -> None:
+    # The relaxed deadline: a trigger merely preempted on a loaded machine must not be taken for
+    # one that waited for the database (which, frozen until every trigger is answered, would
+    # never answer it; SLACK_S tells "within its deadline" from that).
     url = postgres_cluster.create_database()
-    path = station_file(tmp_path, "station1", _deadline_ms(250.0))
+    path = station_file(tmp_path, "station1", relaxed_deadline)
     settings = settings_for(path, tmp_path / "var", database_url=url)
     async with running_station(settings, runtime_options(), http_port=None) as lb:
         recipe = lb.runtime.active.config
@@ -166,7 +171,7 @@ async def test_a_frozen_database_never_delays_the_answer(
             _signal_all(postgres_cluster, signal.SIGCONT)
         for k, code, _rid, took in answers:
             assert code == 0, f"trigger {k}: code {code}"
-            assert took < 0.25 + 0.3, f"trigger {k} answered after {took:.3f} s"
+            assert took < 1.0 + SLACK_S, f"trigger {k} answered after {took:.3f} s"
         lb.runtime.wait_idle(30)
         stored = {r.seq: r.record for r in _records(lb)}
         for k, code, rid, _ in answers:
