@@ -27,7 +27,7 @@ MV_URI = "http://opcfoundation.org/UA/MachineVision"
 
 async def main(url: str, key: str, cert: str, user: str, password: str,
                result_id: str) -> dict[str, Any]:
-    client = Client(url, timeout=10)
+    client = Client(url, timeout=10, watchdog_intervall=10)
     client.application_uri = "urn:mvpose:test:client"
     await client.set_security(SecurityPolicyBasic256Sha256, certificate=cert, private_key=key,
                               mode=ua.MessageSecurityMode.SignAndEncrypt)

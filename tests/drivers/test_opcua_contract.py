@@ -56,7 +56,7 @@ class Served:
             "serverCert": str(self.pki / "server_cert.der"), "steps": steps})
 
     async def client(self, user: str = "olga") -> Client:
-        client = Client(self.url, timeout=10)
+        client = Client(self.url, timeout=10, watchdog_intervall=10)
         client.application_uri = PEER_URI
         await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(self.cert),
                                   private_key=str(self.key),

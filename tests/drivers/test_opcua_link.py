@@ -68,7 +68,7 @@ class Served:
 
     async def client(self, user: str | None = "olga", password: str | None = None,
                      cert: tuple[Path, Path] | None = None) -> Client:
-        client = Client(self.url, timeout=10)
+        client = Client(self.url, timeout=10, watchdog_intervall=10)
         client.application_uri = CLIENT_URI
         key, crt = cert or self.default_cert
         await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(crt),
@@ -346,7 +346,7 @@ async def test_a_client_gone_mid_measurement_still_gets_its_record_and_the_serve
 
 @MODULE_LOOP
 async def test_no_security_is_offered_only_when_the_station_file_says_so(served: Served) -> None:
-    client = Client(served.url, timeout=10)
+    client = Client(served.url, timeout=10, watchdog_intervall=10)
     endpoints = await client.connect_and_get_server_endpoints()
     modes = {(e.SecurityPolicyUri.rsplit("#", 1)[-1], e.SecurityMode.name) for e in endpoints}
     assert modes == {("Basic256Sha256", "Sign"), ("Basic256Sha256", "SignAndEncrypt")}
@@ -392,10 +392,10 @@ async def test_security_none_and_anonymous_readers_only_when_listed(tmp_path: Pa
         await link.wait_ready(120)
         assert not pki.exists()  # no certificate without a secured endpoint
         url = f"opc.tcp://127.0.0.1:{link.port}/mvpose"
-        probe = Client(url, timeout=10)
+        probe = Client(url, timeout=10, watchdog_intervall=10)
         endpoints = await probe.connect_and_get_server_endpoints()
         assert {e.SecurityMode for e in endpoints} == {ua.MessageSecurityMode.None_}
-        client = Client(url, timeout=10)  # no user, no certificate
+        client = Client(url, timeout=10, watchdog_intervall=10)  # no user, no certificate
         await client.connect()
         try:
             vs, mv, own = await _vision_system(client)

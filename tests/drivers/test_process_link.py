@@ -53,7 +53,8 @@ class Session:
 
     @classmethod
     async def open(cls, link: ProcessLink) -> Session:
-        client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=10)
+        client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=10,
+                        watchdog_intervall=10)
         client.set_user("olga")
         client.set_password(PASSWORDS["olga"])
         await client.connect()

@@ -436,7 +436,7 @@ class TestOpcUa(LinkBehaviour):
     async def _client(self, env: Env, user: str, password: str) -> Client:
         key, cert = env.cert
         port = env.station.link_port("opcua")
-        client = Client(f"opc.tcp://127.0.0.1:{port}/mvpose", timeout=15)
+        client = Client(f"opc.tcp://127.0.0.1:{port}/mvpose", timeout=15, watchdog_intervall=15)
         client.application_uri = CLIENT_URI
         await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
                                   private_key=str(key),

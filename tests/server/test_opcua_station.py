@@ -55,7 +55,8 @@ async def test_opcua_triggers_and_publishes_the_stations_records(tmp_path: Path)
         assert await asyncio.to_thread(link.started.wait, 120), link.status()
         assert {lk.name for lk in station.links} == {"modbus", "opcua"}
         assert station.status()["links"]["opcua"]["running"]
-        client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15)
+        client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15,
+                        watchdog_intervall=15)
         client.application_uri = CLIENT_URI
         await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
                                   private_key=str(key),
@@ -135,7 +136,7 @@ async def _trusted_certificate(tmp_path: Path) -> tuple[Path, Path]:
 
 async def _client(link: ProcessLink, tmp_path: Path, user: str) -> Client:
     key, cert = await _trusted_certificate(tmp_path)
-    client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15)
+    client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15, watchdog_intervall=15)
     client.application_uri = CLIENT_URI
     await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
                               private_key=str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
