@@ -6,6 +6,7 @@ import re
 from pathlib import Path
 
 import pytest
+from stations import relaxed_deadline, station_file
 
 from server.cli import main
 
@@ -62,9 +63,13 @@ def test_demo_writes_its_truth_file_and_keeps_serving_the_page_until_ctrl_c(
     truth = tmp_path / "truth.csv"
     log_path = tmp_path / "demo.log"
     env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=token, PYTHONUNBUFFERED="1")
+    # station 1 with the relaxed deadline: both triggers must be OK, and station 1's 50 ms
+    # turned a loaded machine's scheduling into DEADLINE_EXCEEDED
+    path = station_file(tmp_path, "station1", relaxed_deadline)
     with log_path.open("wb") as log:
         demo = subprocess.Popen(
-            [sys.executable, "-m", "server.cli", "demo", "--triggers", "2", "--keep-serving",
+            [sys.executable, "-m", "server.cli", "demo", str(path), "--triggers", "2",
+             "--keep-serving",
              "--truth-out", str(truth), "--port", "0", "--data-dir", str(tmp_path / "var"),
              "--seed", "4"], env=env, stdout=log, stderr=subprocess.STDOUT)
         try:
