@@ -159,8 +159,10 @@ async def test_lab_robot_mounted_two_views_through_the_plc(tmp_path: Path) -> No
                 actual = taught @ random_displacement(rng, 2.0, 0.2)
                 rt.scene.set_view(view, actual)
                 counts = [round(v * s) for v, s in zip(to_robot(actual, conv), scales, strict=True)]
+                # past the watchdog's TIMEOUT and the link's backstop (3 s with the relaxed
+                # deadline): the twin's 2 s default took a preempted trigger for a lost one
                 status = await lb.twin.cycle(tid, view, pose_counts=counts,
-                                             part_id=f"FLOOR-{part}")
+                                             part_id=f"FLOOR-{part}", timeout=5.0)
                 if view != views[-1]:
                     assert status.has(Status.VIEW_DONE) and not status.has(Status.RESULT_VALID)
                     assert status.views_done == 1
