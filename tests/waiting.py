@@ -1,5 +1,5 @@
-"""Waiting for a condition in an async test: poll it with a deadline, fail naming what did not
-happen."""
+"""Waiting for a condition in a test: poll it with a deadline, fail naming what did not happen
+(``until`` in an async test, ``until_sync`` in a plain one)."""
 
 from __future__ import annotations
 
@@ -16,3 +16,12 @@ async def until(check: Callable[[], Any], what: str = "the condition", timeout_s
     while not check():
         assert time.monotonic() < deadline, f"{what}: not within {timeout_s:g} s"
         await asyncio.sleep(every_s)
+
+
+def until_sync(check: Callable[[], Any], what: str = "the condition", timeout_s: float = 10.0,
+               every_s: float = 0.01) -> None:
+    """:func:`until` for a test without an event loop (the server runs in another thread)."""
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, f"{what}: not within {timeout_s:g} s"
+        time.sleep(every_s)
