@@ -155,8 +155,12 @@ def measure_folder(args: argparse.Namespace) -> Path:
     from server.commands import measure
 
     out = args.out / "measured"
-    measure.run(argparse.Namespace(station=args.station, images=args.images,
-                                   recipe=args.recipe, calibration=None, out=out, quiet=True))
+    # through measure's own parser, so its options' defaults come with it
+    parser = argparse.ArgumentParser(prog="mvpose measure")
+    measure.add_arguments(parser)
+    argv = ["--station", str(args.station), "--images", str(args.images), "--out", str(out),
+            "--quiet", *(["--recipe", args.recipe] if args.recipe else [])]
+    measure.run(parser.parse_args(argv))
     return out / "measurements.json"
 
 
