@@ -12,8 +12,9 @@ import numpy as np
 
 from bench.timing import Timing, check
 from drivers.links.base import LinkOutcome, LinkRequest
-from drivers.links.modbus import Control, PlcConfig, PlcServer, Status
-from drivers.links.modbus.twin import PlcStatus, PlcTwin
+from drivers.links.modbus import Control, HandshakeConfig, PlcServer, Status
+from drivers.links.modbus.twin import modbus_twin
+from drivers.links.twin import PlcStatus
 from mvpose_core.transforms import RobotConvention
 
 HANDSHAKE_P99_TARGET_MS = 2.0
@@ -55,9 +56,9 @@ def _toggled(before: bool) -> Callable[[PlcStatus], bool]:
 
 async def _run() -> tuple[Timing, Timing, Timing]:
     server = PlcServer(InstantPipeline(),  # type: ignore[arg-type]
-                       PlcConfig(initial_recipe=1, watchdog_s=0))
+                       HandshakeConfig(initial_recipe=1, watchdog_s=0))
     await server.start()
-    twin = PlcTwin("127.0.0.1", server.port)
+    twin = modbus_twin("127.0.0.1", server.port)
     await twin.connect()
     try:
         await twin.enable()

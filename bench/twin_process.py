@@ -23,8 +23,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from drivers.links.modbus.registers import Status
-from drivers.links.modbus.twin import PlcTwin
+from drivers.links.layout import Status
+from drivers.links.twin import PlcTwin
 from server.loopback import attach_twin, detach_twin
 
 ROOT = Path(__file__).resolve().parents[1]  # the child runs as `python -m bench.twin_process`

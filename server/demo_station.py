@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.links.modbus.registers import Status
+from drivers.links.layout import Status
 from mvpose_core.reasons import describe, reason_name
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention

@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import uvicorn
 
-from drivers.links.modbus.registers import Status
-from drivers.links.modbus.twin import PlcStatus, PlcTwin
+from drivers.links.layout import Status
+from drivers.links.modbus.twin import modbus_twin
+from drivers.links.twin import PlcStatus, PlcTwin
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array, compose, from_robot, invert, to_robot, transform_error
 from server.app import create_app
@@ -163,7 +164,7 @@ async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asynci
     An earlier PLC's disconnect may have left the station in ERROR (heartbeat watchdog): the
     twin resets it first, as a PLC program does after a restart.
     """
-    twin = PlcTwin("127.0.0.1", port, poll_s=poll_s)
+    twin = modbus_twin("127.0.0.1", port, poll_s=poll_s)
     await twin.connect()
     # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
     beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")

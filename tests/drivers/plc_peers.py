@@ -9,8 +9,9 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 import pytest_asyncio
 
 from drivers.links.base import LinkOutcome, LinkRequest
-from drivers.links.modbus import PlcConfig, PlcServer
-from drivers.links.modbus.twin import PlcTwin
+from drivers.links.modbus import HandshakeConfig, PlcServer
+from drivers.links.modbus.twin import modbus_twin
+from drivers.links.twin import PlcTwin
 from mvpose_core.transforms import RobotConvention
 
 NOK_MARKS_MISSING = 7  # a pipeline NOK reason, as the server would define one
@@ -93,9 +94,9 @@ class ArithmeticHandler:
         return self.recipe
 
 
-def cfg(**overrides: object) -> PlcConfig:
+def cfg(**overrides: object) -> HandshakeConfig:
     """Test settings: recipe 1 selected; a watchdog long enough for a loaded machine's stalls."""
-    return PlcConfig(**{"initial_recipe": 1, "watchdog_s": 10.0, **overrides})
+    return HandshakeConfig(**{"initial_recipe": 1, "watchdog_s": 10.0, **overrides})
 
 
 ServerFactory = Callable[..., Awaitable[tuple[PlcServer, PlcTwin]]]
@@ -111,7 +112,7 @@ async def plc() -> AsyncIterator[ServerFactory]:
 
     async def make(
         handler: object | None = None,
-        config: PlcConfig | None = None,
+        config: HandshakeConfig | None = None,
         connect: bool = True,
         unit_id: int = 0,
         **twin_kw: object,
@@ -121,7 +122,7 @@ async def plc() -> AsyncIterator[ServerFactory]:
         await server.start()
         servers.append(server)
         order = server.config.word_order
-        twin = PlcTwin("127.0.0.1", server.port, word_order=order, **twin_kw)
+        twin = modbus_twin("127.0.0.1", server.port, word_order=order, **twin_kw)
         if connect:
             await twin.connect()
             twins.append(twin)

@@ -9,8 +9,8 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 from pyModbusTCP import utils as mtcp
 
-from drivers.links.modbus import PlcConfig, WordOrder
-from drivers.links.modbus import codecs as c
+from drivers.links import codecs as c
+from drivers.links.modbus import HandshakeConfig, WordOrder
 from mvpose_core.transforms import (
     RobotConvention,
     from_robot,
@@ -124,11 +124,11 @@ def test_convention_codes() -> None:
 
 def test_config_validation_and_allowlist() -> None:
     with pytest.raises(ValueError, match="watchdog_s.*-1"):
-        PlcConfig(watchdog_s=-1)
+        HandshakeConfig(watchdog_s=-1)
     with pytest.raises(ValueError, match="'plc-1'"):
-        PlcConfig(allowlist=("plc-1",))
-    cfg = PlcConfig(allowlist=("10.1.2.0/24", "192.168.0.7"))
+        HandshakeConfig(allowlist=("plc-1",))
+    cfg = HandshakeConfig(allowlist=("10.1.2.0/24", "192.168.0.7"))
     assert cfg.allows("10.1.2.99") and cfg.allows("192.168.0.7")
     assert cfg.allows("::ffff:10.1.2.3")  # IPv4-mapped IPv6 peer of a dual-stack socket
     assert not cfg.allows("10.1.3.1") and not cfg.allows("127.0.0.1") and not cfg.allows("")
-    assert PlcConfig().allows("203.0.113.5")  # empty allowlist: anyone
+    assert HandshakeConfig().allows("203.0.113.5")  # empty allowlist: anyone

@@ -19,7 +19,8 @@ from plc_peers import ServerFactory, plc  # noqa: F401
 from pyModbusTCP.client import ModbusClient
 from system_packages import ensure_commands
 
-from drivers.links.modbus import registers as r
+from drivers.links import layout as r
+from drivers.links.modbus.server import HR_MIRROR
 from drivers.links.modbus.transport import FRAME_TIMEOUT_S, MAX_LENGTH, MAX_PENDING, MIN_LENGTH
 
 UNIT = 0x11  # not 0, 1 or 255, so an echo of the wrong byte shows
@@ -194,7 +195,7 @@ async def test_largest_legal_quantities_are_checked_against_the_map(plc: ServerF
          answer(0xFFFF, bytes([4]) + registers(0x42F6, 0xE666, 0x075B, 0xCD15), unit=0xFF)),
         (adu(0, read(4, r.IR_TEST_FLOAT, 4), unit=0),
          answer(0, bytes([4]) + registers(0x42F6, 0xE666, 0x075B, 0xCD15), unit=0)),
-        (adu(0x8001, read(3, r.HR_MIRROR + r.IR_TEST_FLOAT, 2), unit=0xFF),
+        (adu(0x8001, read(3, HR_MIRROR + r.IR_TEST_FLOAT, 2), unit=0xFF),
          answer(0x8001, bytes([3]) + registers(0x42F6, 0xE666), unit=0xFF)),
     ]
     try:
@@ -208,15 +209,15 @@ async def test_largest_legal_quantities_are_checked_against_the_map(plc: ServerF
 BAD_ADDRESS = {
     "fc3 after the writable block": read(3, r.HR_WRITABLE_COUNT, 1),
     "fc3 across the writable block's end": read(3, r.HR_WRITABLE_COUNT - 1, 2),
-    "fc3 after the mirror": read(3, r.HR_MIRROR + r.IR_COUNT, 1),
+    "fc3 after the mirror": read(3, HR_MIRROR + r.IR_COUNT, 1),
     "fc4 after the input registers": read(4, r.IR_COUNT, 1),
     "fc4 at the top of the address space": read(4, 0xFFFF, 1),
-    "fc6 to the read-only mirror": struct.pack(">BHH", 6, r.HR_MIRROR + 3, 1),
+    "fc6 to the read-only mirror": struct.pack(">BHH", 6, HR_MIRROR + 3, 1),
     "fc6 after the writable block": struct.pack(">BHH", 6, r.HR_WRITABLE_COUNT, 1),
     "fc16 across the writable block's end": write_multiple(r.HR_WRITABLE_COUNT - 1, [1, 2]),
     "fc23 write after the writable block": read_write(0, 1, r.HR_WRITABLE_COUNT, [1]),
-    "fc23 read after the mirror": read_write(r.HR_MIRROR + r.IR_COUNT, 1, 7, [0x0707]),
-    "fc23 write to the mirror": read_write(0, 1, r.HR_MIRROR, [1]),
+    "fc23 read after the mirror": read_write(HR_MIRROR + r.IR_COUNT, 1, 7, [0x0707]),
+    "fc23 write to the mirror": read_write(0, 1, HR_MIRROR, [1]),
 }
 
 

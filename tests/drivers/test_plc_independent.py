@@ -17,8 +17,9 @@ from plc_peers import ServerFactory, cfg, expected_outcome, plc, published_offse
 from pyModbusTCP import utils
 from pyModbusTCP.client import ModbusClient
 
+from drivers.links import layout as r
 from drivers.links.modbus import Control, WordOrder
-from drivers.links.modbus import registers as r
+from drivers.links.modbus.server import HR_MIRROR
 
 READY, TRIGGER_ACK, RESULT_VALID, RESULT_OK, DONE_TOGGLE = 1, 2, 8, 16, 512
 EN, TRIG, ACK = 16, 1, 2
@@ -130,7 +131,7 @@ async def test_exception_codes_seen_by_pymodbustcp(plc: ServerFactory) -> None:
                 c = prog.c
                 out = [
                     (c.write_single_register(r.HR_WRITABLE_COUNT, 1), c.last_except),
-                    (c.write_single_register(r.HR_MIRROR + 3, 1), c.last_except),
+                    (c.write_single_register(HR_MIRROR + 3, 1), c.last_except),
                     (c.write_single_register(r.HR_CONTROL, 0x0100 | EN), c.last_except),
                     (c.read_coils(0, 1) is not None, c.last_except),
                     (c.write_single_register(r.HR_CONTROL, int(Control.TRIGGER_ENABLE)), 0),

@@ -6,11 +6,11 @@ import math
 
 import pytest
 
+from drivers.links import codecs as c
+from drivers.links import layout as r
 from drivers.links.base import LinkOutcome, VerifyOutcome
-from drivers.links.modbus import codecs as c
-from drivers.links.modbus import registers as r
-from drivers.links.modbus.machine import Handshake, Measure, ResetPipeline, RunCommand
-from drivers.links.modbus.registers import (
+from drivers.links.handshake import Handshake, HandshakeConfig, Measure, ResetPipeline, RunCommand
+from drivers.links.layout import (
     Command,
     Control,
     ErrorCode,
@@ -19,7 +19,6 @@ from drivers.links.modbus.registers import (
     VerifyVerdict,
     WordOrder,
 )
-from drivers.links.modbus.settings import PlcConfig
 from mvpose_core.reasons import Reason
 
 EN = Control.TRIGGER_ENABLE
@@ -37,7 +36,7 @@ class Plc:
 
     def __init__(self, order: WordOrder = WordOrder.ABCD, **cfg: float) -> None:
         self.order = order
-        self.m = Handshake(PlcConfig(word_order=order, **cfg), convention_code=1, now=0.0)
+        self.m = Handshake(HandshakeConfig(word_order=order, **cfg), convention_code=1, now=0.0)
         self.beat = 0
         self.t = 0.0
 

@@ -22,6 +22,8 @@ from plc_peers import (  # noqa: F401
 )
 from pymodbus.client import AsyncModbusTcpClient
 
+from drivers.links import codecs as c
+from drivers.links import layout as r
 from drivers.links.base import LinkOutcome, LinkRequest
 from drivers.links.modbus import (
     Command,
@@ -31,9 +33,9 @@ from drivers.links.modbus import (
     Status,
     WordOrder,
 )
-from drivers.links.modbus import codecs as c
-from drivers.links.modbus import registers as r
-from drivers.links.modbus.twin import PlcStatus, PlcTwin
+from drivers.links.modbus.server import HR_MIRROR
+from drivers.links.modbus.twin import modbus_twin
+from drivers.links.twin import PlcStatus
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import (
     RobotConvention,
@@ -162,7 +164,7 @@ async def test_robot_mounted_flow_with_flange_poses(plc: ServerFactory) -> None:
 
 async def test_a_concurrent_reader_never_sees_a_torn_result_block(plc: ServerFactory) -> None:
     server, twin = await plc(config=cfg(word_order=WordOrder.CDAB))
-    spy = await PlcTwin("127.0.0.1", server.port, word_order=WordOrder.CDAB).connect()
+    spy = await modbus_twin("127.0.0.1", server.port, word_order=WordOrder.CDAB).connect()
     snapshots: list[PlcStatus] = []
     running = True
 
@@ -328,7 +330,7 @@ async def test_detaching_a_twin_leaves_no_request_unanswered(
     # the last frames (seen with the twin in a process of its own, bench/twin_process.py).
     server, _ = await plc()
     for _ in range(5):
-        twin = await PlcTwin("127.0.0.1", server.port).connect()
+        twin = await modbus_twin("127.0.0.1", server.port).connect()
         beat = asyncio.create_task(twin.keep_alive(0.0005))
         await until(lambda t=twin: t.heartbeat >= 3)
         await detach_twin(twin, beat)
@@ -410,7 +412,7 @@ async def test_disconnect_mid_handshake_loses_nothing(plc: ServerFactory) -> Non
     twin.abort()  # PLC stop / pulled cable in the middle of the measurement
     handler.gate.set()
     await until(lambda: server.machine.result_id == 1)
-    again = await PlcTwin("127.0.0.1", server.port).connect()
+    again = await modbus_twin("127.0.0.1", server.port).connect()
     try:
         again.control = Control.TRIGGER_ENABLE | Control.TRIGGER  # what the PLC still drives
         status = await again.read_status()
@@ -430,7 +432,7 @@ async def test_read_write_multiple_writes_control_and_reads_the_mirror(plc: Serv
     ids = c.encode_uint32(77, WordOrder.ABCD)
     trigger = [int(Control.TRIGGER_ENABLE | Control.TRIGGER), 500, 0, 0, *ids, 0]
     rr = await cl.readwrite_registers(
-        read_address=r.HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=trigger
+        read_address=HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=trigger
     )
     assert not rr.isError() and len(rr.registers) == r.IR_COUNT
     answer = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
@@ -439,7 +441,7 @@ async def test_read_write_multiple_writes_control_and_reads_the_mirror(plc: Serv
     deadline = time.monotonic() + 3
     while True:  # fc 23 as a combined "write control, poll status" step
         rr = await cl.readwrite_registers(
-            read_address=r.HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=release
+            read_address=HR_MIRROR, read_count=r.IR_COUNT, write_address=0, values=release
         )
         mirror = PlcStatus(tuple(rr.registers), WordOrder.ABCD)
         if mirror.has(Status.READY):
@@ -457,7 +459,7 @@ async def test_exception_codes_for_requests_outside_the_map(plc: ServerFactory) 
     cases = [
         (cl.write_registers(r.HR_WRITABLE_COUNT, [1]), 2),  # past the PLC area
         (cl.write_registers(38, [1, 2, 3]), 2),  # straddles the end
-        (cl.write_register(r.HR_MIRROR, 1), 2),  # the mirror is read-only
+        (cl.write_register(HR_MIRROR, 1), 2),  # the mirror is read-only
         (cl.read_input_registers(r.IR_COUNT, count=1), 2),
         (cl.read_holding_registers(60, count=2), 2),  # the gap between areas
         (cl.read_coils(0, count=1), 1),

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.modbus.codecs import int_scales
-from drivers.links.modbus.registers import Status
+from drivers.links.codecs import int_scales
+from drivers.links.layout import Status
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import to_robot
 from server.cli import main as cli_main

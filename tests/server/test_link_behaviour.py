@@ -32,11 +32,11 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.modbus.codecs import int_scales
-from drivers.links.modbus.registers import Command, Status, VerifyVerdict
-from drivers.links.modbus.twin import PlcTwin
+from drivers.links.codecs import int_scales
+from drivers.links.layout import Command, Status, VerifyVerdict
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
+from drivers.links.twin import PlcTwin
 from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention, from_robot, to_robot, transform_error

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.modbus.registers import Status
+from drivers.links.layout import Status
 from mvpose_core.synth import random_displacement
 from server.cli import main
 from server.loopback import move_part, running_station, trigger

@@ -22,7 +22,7 @@ from opcua_events import Events
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 from waiting import until
 
-from drivers.links.modbus.registers import Status
+from drivers.links.layout import Status
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
 from drivers.links.process import ProcessLink

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.modbus.registers import Command, Status
+from drivers.links.layout import Command, Status
 from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from server.loopback import move_part, running_station, trigger

@@ -1,27 +1,27 @@
-"""The Modbus/TCP backend of the link seam: the PLC handshake (docs/plc-interface.md).
+"""The Modbus/TCP backend of the link seam: the PLC handshake (docs/plc-interface.md) on
+registers, the fieldbus layout's words (drivers/links/layout.py).
 
-- :mod:`.registers`: the register map as data; :mod:`.codecs`: 32-bit values, text, scaled poses;
-- :mod:`.machine`: the handshake as a state machine over register images (no sockets);
-- :mod:`.transport`: Modbus/TCP framing; :mod:`.server`: pymodbus in the caller's loop;
+- :mod:`.transport`: Modbus/TCP framing; :mod:`.server`: pymodbus in the caller's loop, with the
+  handshake runner behind it (drivers/links/handshake);
 - :mod:`.link`: :class:`ModbusLink`; :mod:`.settings`: the station file's ``links.modbus``;
-- :mod:`.twin`: a PLC program on a Modbus client, for the tests, the demo and the benches.
+- :mod:`.twin`: the PLC twin's Modbus port, for the tests, the demo and the benches.
 """
 
+from ..handshake import Handshake, HandshakeConfig, HandshakeStats
+from ..layout import Command, Control, ErrorCode, State, Status, WordOrder
 from .link import ModbusLink
-from .machine import Handshake, HandshakeStats
-from .registers import Command, Control, ErrorCode, State, Status, WordOrder
 from .server import PlcServer, PlcStats
-from .settings import ModbusLinkConfig, PlcConfig
+from .settings import ModbusLinkConfig
 
 __all__ = [
     "Command",
     "Control",
     "ErrorCode",
     "Handshake",
+    "HandshakeConfig",
     "HandshakeStats",
     "ModbusLink",
     "ModbusLinkConfig",
-    "PlcConfig",
     "PlcServer",
     "PlcStats",
     "State",

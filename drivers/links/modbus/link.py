@@ -1,18 +1,18 @@
 """The Modbus/TCP backend of the link seam: :class:`ModbusLink`, the PLC handshake's server
 started with the station file's ``links.modbus`` settings.
 
-Everything of the wire format (registers, word order, scaling, the handshake's state machine, the
-PLC form of poses) stays inside this folder; the server speaks the seam's requests and outcomes.
+Registers are the fieldbus layout's words; the handshake is shared with the other cyclic links
+(drivers/links/handshake); Modbus framing and the register mirror stay inside this folder.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+from .. import layout as r
 from ..base import Link, StationHandler
-from . import registers as r
 from .server import PlcServer
-from .settings import ModbusLinkConfig, PlcConfig
+from .settings import ModbusLinkConfig
 
 
 class ModbusLink(Link):
@@ -26,7 +26,7 @@ class ModbusLink(Link):
         self.server: PlcServer | None = None
 
     async def start(self) -> None:
-        cfg = PlcConfig.of(self.config, self.handler.selected_recipe())
+        cfg = self.config.handshake(self.handler.selected_recipe())
         server = PlcServer(self.handler, cfg, unit_id=self.config.unit_id)
         await server.start(self.config.host, self.config.port)
         self.server = server

@@ -2,35 +2,31 @@
 
 pymodbus calls the device ``action`` on every register access, before a write is committed: the
 action validates, copies the handshake's image into the registers being read, and hands writes to
-the Handshake at once, in the order they come. A TRIGGER write starts its measurement right there
-(``StationHandler.measure`` is called before this request's response is sent; see ``_spawn``);
-only the wait for the outcome runs in a task of its own. Requests and outcomes are the seam's
-(:class:`~drivers.links.base.LinkRequest`, :class:`~drivers.links.base.LinkOutcome`); the
-handshake turns them into registers.
+the handshake runner at once, in the order they come. A TRIGGER write starts its measurement
+right there (``StationHandler.measure`` is called before this request's response is sent; see
+:class:`~drivers.links.handshake.HandshakeRunner`); only the wait for the outcome runs in a task
+of its own. Registers are the fieldbus layout's words (drivers/links/layout.py); the holding
+registers 100..169 mirror the input block for PLCs that cannot read input registers.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from mvpose_core.reasons import Reason
-
 from ...errors import DriverInitError
-from ..base import LinkOutcome, LinkRequest, StationHandler
-from . import registers as r
-from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
-from .registers import CONTROL_DEFINED, Command, State
-from .settings import PlcConfig
+from .. import layout as r
+from ..base import StationHandler
+from ..handshake import Handshake, HandshakeConfig, HandshakeRunner, LinkStats
+from ..layout import CONTROL_DEFINED, State
 from .transport import ModbusTcpConnection
 
 log = logging.getLogger(__name__)
@@ -40,18 +36,18 @@ _WRITE_FCS = frozenset({6, 16, 23})
 _READ_FCS = frozenset({3, 4, 6, 23})
 
 
-@dataclass
-class PlcStats:
-    """Counters of the PLC link (the handshake's own plus the transport's)."""
+#: Holding registers 100..169 mirror the input registers 0..69 (read-only) for PLCs that cannot
+#: read input registers (function code 4).
+HR_MIRROR = 100
 
-    handshake: HandshakeStats
+
+@dataclass
+class PlcStats(LinkStats):
+    """Counters of the PLC link (the handshake's and the runner's, plus the transport's)."""
+
     connections: int = 0
     rejected_connections: int = 0
     rejected_requests: int = 0
-    timeouts: int = 0
-    handler_errors: int = 0
-    writes: int = 0
-    last_errors: list[str] = field(default_factory=list)
 
 
 class _Listener(ModbusTcpServer):
@@ -85,7 +81,7 @@ class _Connection(ModbusTcpConnection):
         self.server.owner._reject(code)
 
     def malformed(self, why: str) -> None:
-        self.server.owner._note(f"connection from {self.peer()}: {why}; connection closed")
+        self.server.owner.runner.note(f"connection from {self.peer()}: {why}; connection closed")
 
 
 class PlcServer:
@@ -94,21 +90,19 @@ class PlcServer:
     def __init__(
         self,
         handler: StationHandler,
-        config: PlcConfig | None = None,
+        config: HandshakeConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
         unit_id: int = 0,
     ) -> None:
         """``unit_id``: the Modbus unit id answered; 0 answers every unit id (a PLC may address
         the server with 0, 1 or 255)."""
         self.handler = handler
-        self.config = config or PlcConfig()
+        self.config = config or HandshakeConfig()
         self.clock = clock
         self.unit_id = unit_id
-        self._machine: Handshake | None = None
+        self.stats = PlcStats()
+        self.runner = HandshakeRunner(handler, self.config, "modbus", clock, self.stats)
         self._listener: _Listener | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._workers: list[asyncio.Task[None]] = []
-        self.stats = PlcStats(HandshakeStats())
 
     # ------------------------------------------------------------------ life cycle
 
@@ -116,28 +110,17 @@ class PlcServer:
         """Listen on ``host:port`` (0 = any free port, see ``.port``) and start the handshake."""
         if self._listener is not None:
             raise RuntimeError("PlcServer already started")
-        machine = Handshake(self.config, self.handler.convention().code, self.clock())
-        self._machine = machine
-        self.stats.handshake = machine.stats
-        if self.config.initial_recipe:
-            rc = await self.handler.select_recipe(self.config.initial_recipe)
-            if rc == 0:
-                machine.set_recipe(self.config.initial_recipe)
-                machine.set_convention(self.handler.convention().code)
-            else:
-                log.warning(
-                    "PLC link: initial recipe %d refused (%d)", self.config.initial_recipe, rc
-                )
+        await self.runner.start()
         listener = _Listener(self, self._device(), host, port)
         try:
             await listener.serve_forever(background=True)
         except (OSError, RuntimeError) as err:  # pymodbus: "Could not start listen"
             await listener.shutdown()
+            await self.runner.stop()
             raise DriverInitError(
                 f"Modbus/TCP address {host}:{port} cannot be listened on (in use, or not an "
                 "address of this host)") from err
         self._listener = listener
-        self._workers = [asyncio.create_task(self._ticker(), name="plc-tick")]
 
     @property
     def port(self) -> int:
@@ -151,14 +134,7 @@ class PlcServer:
         if self._listener is not None:
             await self._listener.shutdown()
             self._listener = None
-        pending = [*self._workers, *self._tasks]
-        for task in pending:
-            task.cancel()
-        for task in pending:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        self._workers = []
-        self._tasks.clear()
+        await self.runner.stop()
 
     async def __aenter__(self) -> PlcServer:
         await self.start()
@@ -169,9 +145,7 @@ class PlcServer:
 
     @property
     def machine(self) -> Handshake:
-        if self._machine is None:
-            raise RuntimeError("PlcServer not started")
-        return self._machine
+        return self.runner.machine
 
     @property
     def state(self) -> State:
@@ -188,7 +162,7 @@ class PlcServer:
         holding = [
             SimData(0, count=r.HR_WRITABLE_COUNT, values=0, datatype=DataType.REGISTERS),
             SimData(
-                r.HR_MIRROR, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS, readonly=True
+                HR_MIRROR, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS, readonly=True
             ),
         ]
         inputs = [SimData(0, count=r.IR_COUNT, values=0, datatype=DataType.REGISTERS)]
@@ -213,9 +187,9 @@ class PlcServer:
             if fc == 4:
                 regs[address - start : address - start + count] = image[address : address + count]
             else:
-                lo, hi = max(address, r.HR_MIRROR), min(address + count, r.HR_MIRROR + r.IR_COUNT)
+                lo, hi = max(address, HR_MIRROR), min(address + count, HR_MIRROR + r.IR_COUNT)
                 if lo < hi:
-                    regs[lo - start : hi - start] = image[lo - r.HR_MIRROR : hi - r.HR_MIRROR]
+                    regs[lo - start : hi - start] = image[lo - HR_MIRROR : hi - HR_MIRROR]
             return None
         if fc not in _WRITE_FCS:
             return self._reject(ExcCodes.ILLEGAL_FUNCTION)
@@ -224,7 +198,7 @@ class PlcServer:
         words = [int(v) for v in values]
         if address == r.HR_CONTROL and words[0] & ~CONTROL_DEFINED:
             return self._reject(ExcCodes.ILLEGAL_VALUE)
-        self._write(address, words)
+        self.runner.write(address, words)
         return None
 
     def _reject(self, code: ExcCodes) -> ExcCodes:
@@ -235,133 +209,6 @@ class PlcServer:
         if connected:
             self.stats.connections += 1
 
-    # ------------------------------------------------------------------ workers
-
-    def _write(self, address: int, words: list[int]) -> None:
-        # In the action, not in a task fed by a queue: each loop pass between the TRIGGER write
-        # and the measurement's start is a chance for another thread of the process (the REST
-        # API's) to take the GIL for up to a switch interval (docs/performance.md).
-        self.stats.writes += 1
-        try:
-            effects = self.machine.write(address, words, self.clock())
-        except Exception as err:  # noqa: BLE001 — one bad write must not stop the link
-            self._note(f"write of {words} at {address} failed: {err!r}")
-            return
-        for effect in effects:
-            self._spawn(effect)
-
-    async def _ticker(self) -> None:
-        while True:
-            await asyncio.sleep(self.config.tick_s)
-            try:
-                self.machine.tick(self.clock())
-            except Exception as err:  # noqa: BLE001 — keep the heartbeat and watchdog running
-                self._note(f"tick failed: {err!r}")
-
-    def _spawn(self, effect: Effect) -> None:
-        if isinstance(effect, Measure):
-            # measure() is called here, not in the task: a handler that starts its work when
-            # called (the station runtime does) starts it before the task's first step.
-            pending: Awaitable[LinkOutcome] | Exception
-            if effect.refused is not None:
-                pending = ValueError(effect.refused)
-            else:
-                try:
-                    pending = self.handler.measure(effect.request)
-                except Exception as err:  # noqa: BLE001 — reported as the measurement's failure
-                    pending = err
-            coro = self._measure(effect, pending, self.clock())
-        elif isinstance(effect, RunCommand):
-            coro = self._command(effect)
-        else:
-            coro = self._reset(effect)
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
-    def _note(self, text: str) -> None:
-        log.warning("PLC link: %s", text)
-        self.stats.last_errors = [*self.stats.last_errors[-9:], text]
-
-    async def _measure(
-        self, effect: Measure, pending: Awaitable[LinkOutcome] | Exception, t0: float
-    ) -> None:
-        req = effect.request
-        timeout = self.config.measure_timeout_s or None
-        try:
-            if isinstance(pending, Exception):
-                raise pending
-            # asyncio.timeout awaits the handler in this task; wait_for would wrap it in another
-            # one, a loop pass more between the work's end and the outcome's publication.
-            async with asyncio.timeout(timeout):
-                outcome = await pending
-            if not isinstance(outcome, LinkOutcome):
-                raise TypeError(f"measure() returned {type(outcome).__name__}, not LinkOutcome")
-        except TimeoutError:
-            self.stats.timeouts += 1
-            text = f"trigger {req.trigger_id}: measurement exceeded {timeout} s"
-            self._note(text)
-            outcome = await self._failed(req, Reason.TIMEOUT, text, t0)
-        except Exception as err:  # noqa: BLE001 — any pipeline failure becomes a result code
-            self.stats.handler_errors += 1
-            text = f"trigger {req.trigger_id}: measurement raised {err!r}"
-            self._note(text)
-            outcome = await self._failed(req, Reason.HANDLER_FAILED, text, t0)
-        self.machine.measured(outcome)
-
-    async def _failed(self, req: LinkRequest, code: Reason, text: str,
-                      t0: float) -> LinkOutcome:
-        # A failed trigger ends any multi-view sequence, so the pipeline must forget its views.
-        await self._reset(ResetPipeline())
-        ms = (self.clock() - t0) * 1e3
-        result_id = 0
-        try:  # the answer gets a record of its own, with the same code
-            async with asyncio.timeout(self.config.command_timeout_s or None):
-                result_id = int(await self.handler.record_failure(req, int(code), text, ms))
-        except Exception as err:  # noqa: BLE001 — the PLC still gets its answer
-            self._note(f"trigger {req.trigger_id}: recording {code.name} failed: {err!r}")
-        return LinkOutcome(int(code), result_id, processing_ms=ms, views_done=0)
-
     def recipe_selected(self, number: int, convention_code: int) -> None:
         """The station selected recipe ``number`` by another way than this link (REST, OPC UA)."""
-        self.machine.set_recipe(number)
-        self.machine.set_convention(convention_code)
-
-    async def _command(self, effect: RunCommand) -> None:
-        timeout = self.config.command_timeout_s or None
-        h = self.handler
-        try:
-            if effect.command is Command.SELECT_RECIPE:
-                result = await asyncio.wait_for(h.select_recipe(effect.argument), timeout)
-            elif effect.command is Command.TEACH_REFERENCE:
-                result = await asyncio.wait_for(h.teach_reference("plc"), timeout)
-            elif effect.command is Command.VERIFY:
-                # a measurement: the measure timeout bounds it, as it bounds a trigger
-                limit = max(self.config.measure_timeout_s, timeout or 0.0) or None
-                verified = await asyncio.wait_for(h.verify("modbus", "plc"), limit)
-                self.machine.verified(verified)
-                result = verified.result_code
-            else:
-                await asyncio.wait_for(h.reset(), timeout)
-                result = 0
-            if not isinstance(result, int):
-                raise TypeError(f"{effect.command.name} returned {result!r}, not an int")
-            if result == 0 and effect.command is Command.SELECT_RECIPE:
-                self.machine.set_convention(h.convention().code)
-        except TimeoutError:
-            self.stats.timeouts += 1
-            self._note(f"command {effect.command.name} exceeded {timeout} s")
-            result = int(Reason.TIMEOUT)
-        except Exception as err:  # noqa: BLE001 — any handler failure becomes a command result
-            self.stats.handler_errors += 1
-            self._note(f"command {effect.command.name} raised {err!r}")
-            result = int(Reason.HANDLER_FAILED)
-        self.machine.command_done(effect.command, effect.argument, result)
-
-    async def _reset(self, _effect: ResetPipeline) -> None:
-        try:
-            await asyncio.wait_for(self.handler.reset(), self.config.command_timeout_s or None)
-        except Exception as err:  # noqa: BLE001
-            self.stats.handler_errors += 1
-            self._note(f"pipeline reset raised {err!r}")
-            self.machine.pipeline_reset_failed()
+        self.runner.recipe_selected(number, convention_code)

@@ -1,15 +1,15 @@
 """The Modbus backend's settings: the station file's ``links.modbus`` block
-(docs/plc-interface.md, "Settings"), and the handshake's own settings derived from it."""
+(docs/plc-interface.md, "Settings"), and the handshake's settings derived from it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ..allowlist import Allowlist, networks
-from .registers import WordOrder
+from ..allowlist import networks
+from ..handshake import HandshakeConfig
+from ..layout import WordOrder
 
 
 class ModbusLinkConfig(BaseModel):
@@ -38,52 +38,13 @@ class ModbusLinkConfig(BaseModel):
         networks(value)
         return value
 
-
-@dataclass(frozen=True)
-class PlcConfig:
-    """What the handshake and its server run with; times in seconds, 0 disables a watch.
-    Built from :class:`ModbusLinkConfig` (:meth:`of`); tests build it directly."""
-
-    word_order: WordOrder = WordOrder.ABCD
-    measure_timeout_s: float = 2.0  # a slower measurement becomes Reason.TIMEOUT
-    command_timeout_s: float = 5.0
-    watchdog_s: float = 1.0  # PLC heartbeat must change within this time once seen
-    trigger_hold_s: float = 1.0  # TRIGGER high this long after the answer → Error TRIGGER_HELD
-    tick_s: float = 0.05  # server heartbeat and watch period
-    allowlist: tuple[str, ...] = ()  # PLC addresses or networks ("10.1.2.0/24"); empty = any
-    initial_recipe: int = 0  # selected through the handler at start when not 0
-    peers: Allowlist = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "word_order", WordOrder(self.word_order))
-        for name in ("measure_timeout_s", "command_timeout_s", "watchdog_s", "trigger_hold_s"):
-            value = getattr(self, name)
-            if not value >= 0:
-                raise ValueError(f"PlcConfig.{name} must be >= 0 s, got {value!r}")
-        if not self.tick_s > 0:
-            raise ValueError(f"PlcConfig.tick_s must be > 0 s, got {self.tick_s!r}")
-        if not 0 <= self.initial_recipe <= 0xFFFF:
-            raise ValueError(
-                f"PlcConfig.initial_recipe must be 0..65535, got {self.initial_recipe}"
-            )
-        try:
-            peers = Allowlist(self.allowlist)
-        except ValueError as err:
-            raise ValueError(f"PlcConfig.allowlist: {err}") from None
-        object.__setattr__(self, "peers", peers)
-
-    @classmethod
-    def of(cls, settings: ModbusLinkConfig, initial_recipe: int) -> PlcConfig:
-        """The handshake's settings from the station file's ``links.modbus`` block."""
-        return cls(
-            word_order=WordOrder[settings.word_order],
-            measure_timeout_s=settings.measure_timeout_s or 0.0,
-            watchdog_s=settings.watchdog_s,
-            trigger_hold_s=settings.trigger_hold_s,
-            allowlist=tuple(settings.allowlist),
+    def handshake(self, initial_recipe: int) -> HandshakeConfig:
+        """The handshake's settings from this block."""
+        return HandshakeConfig(
+            word_order=WordOrder[self.word_order],
+            measure_timeout_s=self.measure_timeout_s or 0.0,
+            watchdog_s=self.watchdog_s,
+            trigger_hold_s=self.trigger_hold_s,
+            allowlist=tuple(self.allowlist),
             initial_recipe=initial_recipe,
         )
-
-    def allows(self, host: str) -> bool:
-        """Whether a PLC at ``host`` may connect (:class:`~drivers.links.allowlist.Allowlist`)."""
-        return self.peers.allows(host)

@@ -1,362 +1,71 @@
-"""The PLC twin: a Modbus/TCP client that runs the handshake the way the PLC program does.
-
-It encodes and decodes with pymodbus's own register converters, not with this folder's codecs,
-so that a word-order or scaling mistake in the server cannot cancel itself out in tests.
-"""
+"""The PLC twin's Modbus/TCP port: a pymodbus client reading the input registers (or their
+holding-register mirror) and writing the holding registers, as a PLC's Modbus client does."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Literal
-
 from pymodbus.client import AsyncModbusTcpClient
 
-from ...errors import DriverOperationError
-from . import registers as r
-from .registers import Control, State, Status, VerifyVerdict, WordOrder
-
-_DT = AsyncModbusTcpClient.DATATYPE
-
-
-class PlcTwinError(DriverOperationError):
-    """The twin saw something a PLC program would stop on (timeout, exception response)."""
+from .. import layout as r
+from ..layout import INPUT, OUTPUT, ByteOrder, WordOrder
+from ..twin import PlcTwin, PlcTwinError
+from .server import HR_MIRROR
 
 
-@dataclass(frozen=True)
-class PlcStatus:
-    """The input block (registers 0..69) as the PLC reads it, decoded."""
+class ModbusTwin(PlcTwin):
+    """A PLC twin on Modbus/TCP; ``client`` is its pymodbus client, for tests that send a
+    request the program itself does not."""
 
-    regs: tuple[int, ...]
-    word_order: WordOrder
-
-    def _conv(self, address: int, dt: AsyncModbusTcpClient.DATATYPE) -> float | int:
-        word: Literal["big", "little"] = "big" if self.word_order is WordOrder.ABCD else "little"
-        value = AsyncModbusTcpClient.convert_from_registers(
-            list(self.regs[address : address + 2]), dt, word_order=word
-        )
-        assert isinstance(value, int | float)  # a 2-register conversion is a scalar
-        return value
+    port: ModbusPort
 
     @property
-    def status(self) -> Status:
-        return Status(self.regs[r.IR_STATUS])
-
-    def has(self, flag: Status) -> bool:
-        return bool(self.regs[r.IR_STATUS] & flag)
-
-    @property
-    def state(self) -> State:
-        return State(self.regs[r.IR_STATE])
-
-    @property
-    def heartbeat(self) -> int:
-        return self.regs[r.IR_HEARTBEAT]
-
-    @property
-    def error_code(self) -> int:
-        return self.regs[r.IR_ERROR_CODE]
-
-    @property
-    def recipe(self) -> int:
-        return self.regs[r.IR_RECIPE]
-
-    @property
-    def command_result(self) -> int:
-        return self.regs[r.IR_COMMAND_RESULT]
-
-    @property
-    def trigger_id(self) -> int:
-        return int(self._conv(r.IR_TRIGGER_ID, _DT.UINT32))
-
-    @property
-    def result_id(self) -> int:
-        return int(self._conv(r.IR_RESULT_ID, _DT.UINT32))
-
-    @property
-    def result_code(self) -> int:
-        return self.regs[r.IR_RESULT_CODE]
-
-    @property
-    def processing_ms(self) -> float:
-        return self.regs[r.IR_PROCESSING_TIME] / 10.0
-
-    @property
-    def views_done(self) -> int:
-        return self.regs[r.IR_VIEWS_DONE]
-
-    @property
-    def offset_counts(self) -> tuple[int, ...]:
-        """The 6 raw int32 counts (µm, 1e-4 deg, ... see the register map)."""
-        return tuple(int(self._conv(r.IR_OFFSET_INT + 2 * i, _DT.INT32)) for i in range(6))
-
-    @property
-    def offset_float(self) -> tuple[float, ...]:
-        return tuple(float(self._conv(r.IR_OFFSET_FLOAT + 2 * i, _DT.FLOAT32)) for i in range(6))
-
-    @property
-    def sigma_counts(self) -> tuple[int, int]:
-        """1σ translation (µm) and rotation (1e-4 deg)."""
-        return int(self._conv(r.IR_SIGMA_TRANS, _DT.INT32)), int(
-            self._conv(r.IR_SIGMA_ROT, _DT.INT32)
-        )
-
-    @property
-    def convention_code(self) -> int:
-        return self.regs[r.IR_CONVENTION]
-
-    @property
-    def test_float(self) -> float:
-        return float(self._conv(r.IR_TEST_FLOAT, _DT.FLOAT32))
-
-    @property
-    def test_int(self) -> int:
-        return int(self._conv(r.IR_TEST_INT, _DT.INT32))
-
-    @property
-    def verify_result_id(self) -> int:
-        return int(self._conv(r.IR_VERIFY_RESULT_ID, _DT.UINT32))
-
-    @property
-    def verify_verdict(self) -> VerifyVerdict:
-        return VerifyVerdict(self.regs[r.IR_VERIFY_VERDICT])
-
-    @property
-    def verify_difference(self) -> tuple[float, ...]:
-        """The last verify's 6-DoF difference to the taught pose (PLC form, float32)."""
-        return tuple(float(self._conv(r.IR_VERIFY_DIFFERENCE + 2 * i, _DT.FLOAT32))
-                     for i in range(6))
-
-    @property
-    def verify_displacement_mm(self) -> float:
-        return float(self._conv(r.IR_VERIFY_DISPLACEMENT, _DT.FLOAT32))
-
-    @property
-    def verify_rotation_deg(self) -> float:
-        return float(self._conv(r.IR_VERIFY_ROTATION, _DT.FLOAT32))
+    def client(self) -> AsyncModbusTcpClient:
+        return self.port.client
 
 
-class PlcTwin:
-    """A PLC program on a Modbus/TCP client. Every wait polls the server with a deadline."""
+class ModbusPort:
+    """:class:`~drivers.links.twin.PlcPort` over Modbus/TCP (registers are big-endian words)."""
 
-    def __init__(
-        self,
-        host: str,
-        port: int,
-        *,
-        word_order: WordOrder = WordOrder.ABCD,
-        device_id: int = 1,
-        use_mirror: bool = False,
-        poll_s: float = 0.0,
-    ) -> None:
+    byte_order = ByteOrder.BIG
+
+    def __init__(self, host: str, port: int, *, word_order: WordOrder = WordOrder.ABCD,
+                 device_id: int = 1, use_mirror: bool = False) -> None:
         self.client = AsyncModbusTcpClient(host, port=port, timeout=2, retries=0, reconnect_delay=0)
         self.word_order = WordOrder(word_order)
         self.device_id = device_id
         self.use_mirror = use_mirror  # read the holding-register mirror (fc 3) instead of fc 4
-        self.poll_s = poll_s
-        self.control = Control(0)
-        self.heartbeat = 0
-        self._beating = False
-        self._beat_stop: asyncio.Event | None = None
-        #: seconds from writing the last cycle's TRIGGER to reading its answer (RESULT_VALID or
-        #: VIEW_DONE): the PLC's view of the latency, without the READY check before it and the
-        #: RESULT_ACK handshake after it
-        self.last_answer_s = float("nan")
 
-    async def connect(self) -> PlcTwin:
+    async def connect(self) -> None:
         if not await self.client.connect():
             raise PlcTwinError(f"PLC twin: cannot connect to {self.client.comm_params.host}")
-        return self
+
+    async def read_inputs(self) -> bytes:
+        if self.use_mirror:
+            rr = await self.client.read_holding_registers(
+                HR_MIRROR, count=r.IR_COUNT, device_id=self.device_id)
+        else:
+            rr = await self.client.read_input_registers(
+                0, count=r.IR_COUNT, device_id=self.device_id)
+        if rr.isError():
+            raise PlcTwinError(f"PLC twin: status read answered {rr}")
+        return INPUT.to_bytes(rr.registers, self.byte_order)
+
+    async def write_outputs(self, offset: int, data: bytes) -> None:
+        words = OUTPUT.to_words(data, self.byte_order, start=offset // 2)
+        rr = await self.client.write_registers(offset // 2, words, device_id=self.device_id)
+        if rr.isError():
+            raise PlcTwinError(f"PLC twin: write of {len(words)} at {offset // 2} answered {rr}")
 
     def close(self) -> None:
         self.client.close()
 
     def abort(self) -> None:
-        """Drop the TCP connection without a goodbye, like a pulled cable or a PLC stop."""
         transport = self.client.ctx.transport
         if transport is not None:
             transport.abort()  # type: ignore[attr-defined]
 
-    async def __aenter__(self) -> PlcTwin:
-        return await self.connect()
 
-    async def __aexit__(self, *exc: object) -> None:
-        self.close()
-
-    # ------------------------------------------------------------------ register access
-
-    def _regs32(self, value: int | float, dt: AsyncModbusTcpClient.DATATYPE) -> list[int]:
-        word: Literal["big", "little"] = "big" if self.word_order is WordOrder.ABCD else "little"
-        return AsyncModbusTcpClient.convert_to_registers(value, dt, word_order=word)
-
-    async def read_status(self) -> PlcStatus:
-        if self.use_mirror:
-            rr = await self.client.read_holding_registers(
-                r.HR_MIRROR, count=r.IR_COUNT, device_id=self.device_id
-            )
-        else:
-            rr = await self.client.read_input_registers(
-                0, count=r.IR_COUNT, device_id=self.device_id
-            )
-        if rr.isError():
-            raise PlcTwinError(f"PLC twin: status read answered {rr}")
-        return PlcStatus(tuple(rr.registers), self.word_order)
-
-    async def write(self, address: int, values: Sequence[int]) -> None:
-        rr = await self.client.write_registers(address, list(values), device_id=self.device_id)
-        if rr.isError():
-            raise PlcTwinError(f"PLC twin: write of {len(values)} at {address} answered {rr}")
-
-    async def set_control(self, control: Control, *, beat: bool = True) -> None:
-        """Write the control word together with the next heartbeat (registers 0-1)."""
-        self.control = Control(control)
-        if beat:
-            self.heartbeat = (self.heartbeat + 1) & 0xFFFF
-        await self.write(r.HR_CONTROL, [int(self.control), self.heartbeat])
-
-    async def beat(self) -> None:
-        await self.set_control(self.control)
-
-    async def keep_alive(self, period_s: float = 0.1) -> None:
-        """Change the heartbeat every ``period_s`` until :meth:`stop_keep_alive`, as the PLC's
-        cyclic task does; run it as a task next to the handshake (pymodbus serialises the
-        client's requests)."""
-        self._beating = True
-        self._beat_stop = asyncio.Event()
-        while self._beating:
-            await self.beat()
-            with contextlib.suppress(TimeoutError):  # a stop ends the wait, not the write
-                async with asyncio.timeout(period_s):
-                    await self._beat_stop.wait()
-
-    def stop_keep_alive(self) -> None:
-        """End :meth:`keep_alive` at its next cycle. Cancelling its task alone is not enough on
-        Python 3.11: ``asyncio.wait_for`` (pymodbus awaits every response with it) drops a
-        cancellation that arrives in the same loop pass as the response (CPython gh-86296),
-        and the heartbeat would then run for ever. A heartbeat write in flight is finished
-        first, so a twin that then disconnects leaves no request unanswered."""
-        self._beating = False
-        if self._beat_stop is not None:
-            self._beat_stop.set()
-
-    async def wait_for(
-        self, predicate: Callable[[PlcStatus], bool], timeout: float = 2.0, what: str = "condition"
-    ) -> PlcStatus:
-        deadline = time.monotonic() + timeout
-        while True:
-            status = await self.read_status()
-            if predicate(status):
-                return status
-            if time.monotonic() > deadline:
-                raise PlcTwinError(
-                    f"PLC twin: no {what} within {timeout} s (state {status.state.name}, "
-                    f"status {status.status!r}, error {status.error_code})"
-                )
-            await asyncio.sleep(self.poll_s)
-
-    # ------------------------------------------------------------------ PLC program steps
-
-    async def enable(self, on: bool = True) -> PlcStatus:
-        ctl = (
-            self.control | Control.TRIGGER_ENABLE if on else self.control & ~Control.TRIGGER_ENABLE
-        )
-        await self.set_control(ctl)
-        return await self.read_status()
-
-    async def write_trigger(
-        self,
-        trigger_id: int,
-        view_index: int = 0,
-        pose_counts: Sequence[int] | None = None,
-        part_id: str | None = None,
-    ) -> None:
-        """Write the trigger data and raise TRIGGER in one request (control word first)."""
-        ctl = (self.control | Control.TRIGGER | Control.TRIGGER_ENABLE) & ~Control.RESULT_ACK
-        ctl = (
-            ctl | Control.ROBOT_POSE_VALID
-            if pose_counts is not None
-            else ctl & ~Control.ROBOT_POSE_VALID
-        )
-        self.control = ctl
-        self.heartbeat = (self.heartbeat + 1) & 0xFFFF
-        regs = [
-            int(ctl),
-            self.heartbeat,
-            0,
-            0,
-            *self._regs32(trigger_id, _DT.UINT32),
-            view_index,
-            0,
-        ]
-        if pose_counts is not None or part_id is not None:
-            for count in pose_counts if pose_counts is not None else (0,) * 6:
-                regs += self._regs32(int(count), _DT.INT32)
-            text = (part_id or "").encode("ascii").ljust(r.PART_ID_CHARS, b"\0")
-            regs += [text[i] << 8 | text[i + 1] for i in range(0, r.PART_ID_CHARS, 2)]
-        await self.write(r.HR_CONTROL, regs)
-
-    async def cycle(
-        self,
-        trigger_id: int,
-        view_index: int = 0,
-        pose_counts: Sequence[int] | None = None,
-        part_id: str | None = None,
-        timeout: float = 2.0,
-    ) -> PlcStatus:
-        """One trigger → answer handshake; returns the status holding the answer (result or view).
-
-        READY → write data + TRIGGER → wait until the answer carries our trigger id → drop
-        TRIGGER and raise RESULT_ACK together → wait until RESULT_VALID/VIEW_DONE clear and READY.
-        """
-        await self.wait_for(lambda s: s.has(Status.READY), timeout, "READY")
-        before = await self.read_status()
-        toggle = before.has(Status.DONE_TOGGLE)
-        missed = before.has(Status.MISSED_TRIGGER)
-        t_trigger = time.perf_counter()
-        await self.write_trigger(trigger_id, view_index, pose_counts, part_id)
-        answer = await self.wait_for(
-            lambda s: (
-                s.has(Status.DONE_TOGGLE) != toggle or (s.has(Status.MISSED_TRIGGER) > missed)
-            ),
-            timeout,
-            f"answer to trigger {trigger_id}",
-        )
-        self.last_answer_s = time.perf_counter() - t_trigger
-        if answer.has(Status.DONE_TOGGLE) == toggle:
-            raise PlcTwinError(f"PLC twin: trigger {trigger_id} was missed")
-        if answer.trigger_id != trigger_id:
-            raise PlcTwinError(
-                f"PLC twin: answer echoes trigger {answer.trigger_id}, not {trigger_id}"
-            )
-        await self.set_control((self.control & ~Control.TRIGGER) | Control.RESULT_ACK)
-        await self.wait_for(
-            lambda s: not s.has(Status.RESULT_VALID | Status.VIEW_DONE | Status.TRIGGER_ACK),
-            timeout,
-            "acknowledgement",
-        )
-        return answer
-
-    async def command(self, code: int, argument: int = 0, timeout: float = 5.0) -> PlcStatus:
-        """Run a command; returns the status with COMMAND_DONE or COMMAND_FAILED set."""
-        await self.write(r.HR_COMMAND, [code, argument])
-        await self.set_control(self.control | Control.EXECUTE_COMMAND)
-        done = await self.wait_for(
-            lambda s: s.has(Status.COMMAND_DONE | Status.COMMAND_FAILED), timeout, "command end"
-        )
-        await self.set_control(self.control & ~Control.EXECUTE_COMMAND)
-        await self.wait_for(
-            lambda s: not s.has(Status.COMMAND_DONE | Status.COMMAND_FAILED),
-            timeout,
-            "command clear",
-        )
-        return done
-
-    async def reset_error(self, timeout: float = 2.0) -> PlcStatus:
-        await self.set_control(self.control & ~Control.ERROR_RESET)
-        await self.set_control(self.control | Control.ERROR_RESET)
-        status = await self.wait_for(lambda s: not s.has(Status.ERROR), timeout, "error cleared")
-        await self.set_control(self.control & ~Control.ERROR_RESET)
-        return status
+def modbus_twin(host: str, port: int, *, word_order: WordOrder = WordOrder.ABCD,
+                device_id: int = 1, use_mirror: bool = False, poll_s: float = 0.0) -> ModbusTwin:
+    """A PLC twin on Modbus/TCP."""
+    return ModbusTwin(ModbusPort(host, port, word_order=word_order, device_id=device_id,
+                              use_mirror=use_mirror), poll_s=poll_s)

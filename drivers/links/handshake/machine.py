@@ -1,11 +1,12 @@
-"""The trigger/result handshake as a state machine over register images, knowing nothing of sockets.
+"""The trigger/result handshake as a state machine over the fieldbus layout's words, knowing
+nothing of sockets or buses.
 
-Inputs are PLC writes (``write``), clock ticks (``tick``) and completions (``measured``,
-``command_done``); outputs are the input-register image (``image``, read by the PLC) and effects
-(``Measure``, ``RunCommand``, ``ResetPipeline``) that the caller runs. Every method updates the
-image in one synchronous step, so a reader never sees half of an update.
+Inputs are PLC writes to the output block (``write``), clock ticks (``tick``) and completions
+(``measured``, ``command_done``); outputs are the input block's words (``image``, read by the
+PLC) and effects (``Measure``, ``RunCommand``, ``ResetPipeline``) that the caller runs. Every
+method updates the image in one synchronous step, so a reader never sees half of an update.
 
-This is the one place where poses cross between the station's terms and the registers: a robot
+This is the one place where poses cross between the station's terms and the layout: a robot
 pose written by the PLC becomes the :class:`~drivers.links.base.LinkRequest`'s full pose in the
 recipe's convention (``codecs.plc_to_pose``), an outcome's offset becomes the 6-value PLC form
 (``codecs.pose_to_plc``) before it is scaled into the result block.
@@ -19,11 +20,11 @@ from dataclasses import dataclass
 from mvpose_core.reasons import Reason
 from mvpose_core.transforms import RobotConvention
 
+from .. import codecs
+from .. import layout as r
 from ..base import LinkOutcome, LinkRequest, VerifyOutcome
-from . import codecs
-from . import registers as r
-from .registers import Command, Control, ErrorCode, State, Status, VerifyVerdict
-from .settings import PlcConfig
+from ..layout import Command, Control, ErrorCode, State, Status, VerifyVerdict
+from .config import HandshakeConfig
 
 
 @dataclass(frozen=True)
@@ -62,10 +63,12 @@ class HandshakeStats:
 
 
 class Handshake:
-    """The server side of the PLC handshake (see docs/plc-interface.md for the timing)."""
+    """The device side of the PLC handshake (see docs/plc-interface.md for the timing)."""
 
-    def __init__(self, config: PlcConfig, convention_code: int, now: float) -> None:
+    def __init__(self, config: HandshakeConfig, convention_code: int, now: float,
+                 link: str = "modbus") -> None:
         self.config = config
+        self.link = link
         self.order = config.word_order
         self.image = [0] * r.IR_COUNT
         self.holding = [0] * r.HR_WRITABLE_COUNT
@@ -249,7 +252,7 @@ class Handshake:
             except ValueError as err:
                 refused = f"robot pose {plc_form}: {err}"
         part_id = codecs.decode_ascii(h[r.HR_PART_ID : r.HR_PART_ID + r.PART_ID_CHARS // 2])
-        request = LinkRequest(link="modbus", trigger_id=trigger_id, view_index=h[r.HR_VIEW_INDEX],
+        request = LinkRequest(link=self.link, trigger_id=trigger_id, view_index=h[r.HR_VIEW_INDEX],
                               robot_pose=pose, part_id=part_id, recipe=self._recipe)
         self.stats.triggers += 1
         self._busy = True

@@ -1,4 +1,5 @@
-"""Register codecs: 32-bit integers and floats in ABCD/CDAB word order, ASCII text, scaled poses."""
+"""Codecs of the layout's words: 32-bit integers and floats in ABCD/CDAB word order, ASCII text,
+scaled poses."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from collections.abc import Sequence
 
 from mvpose_core.transforms import RobotConvention
 
-from .registers import WordOrder
+from .layout import WordOrder
 
 _INT32_MIN = -(2**31)
 _INT32_MAX = 2**31 - 1
