@@ -450,6 +450,26 @@ class RecipeConfig(_Model):
 # ------------------------------------------------------------------------------- station
 
 
+#: the operator page logs out after this long without a user action (s): a quarter of an hour
+#: keeps a panel PC logged in through a part change or a short talk at the line, and a login
+#: left behind at a break does not outlast it
+IDLE_LOGOUT_S = 900.0
+
+
+class PageConfig(_Model):
+    """The operator page on this station's panel PCs."""
+
+    idle_logout_s: float = Field(
+        IDLE_LOGOUT_S, ge=1, le=86400,
+        description="a page session ends this long after its user's last action (a click, a "
+                    "key, a page opened); background refreshes do not count")
+    kiosk: bool = Field(
+        False, description="the line view (/line) and its NOK thumbnails are readable without "
+                           "a login, read-only (a panel PC beside the line); every other page "
+                           "still needs a login")
+
+
+
 class StationConfig(_Model):
     """The whole station."""
 
@@ -474,6 +494,7 @@ class StationConfig(_Model):
     )
     shifts: list[Shift] = Field(list(DEFAULT_SHIFTS), description="shift starts (line view)")
     time_zone: str = Field("UTC", description="the plant's IANA time zone (shift starts)")
+    page: PageConfig = Field(PageConfig(), description="the operator page: idle logout, kiosk")
 
     @model_validator(mode="after")
     def _check_shifts(self) -> StationConfig:

@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "commissioning validation against ground-truth offsets",
     ),
     "token": ("server.commands.token", "create, list and revoke API tokens in the store"),
+    "user": ("server.commands.user",
+             "the operator page's users: add, list, disable, enable, reset, their audit trail"),
     "measure": ("server.commands.measure", "measure saved images offline (no deadline)"),
     "gauge": (
         "server.commands.gauge",
@@ -108,6 +110,9 @@ def check_start_up(args: argparse.Namespace) -> None:
 
     if args.command not in SERVER_COMMANDS:
         return
+    if "MVPOSE_LINE_VIEW_PUBLIC" in os.environ:  # a security setting must not be ignored
+        raise CliError("MVPOSE_LINE_VIEW_PUBLIC is no longer read: the kiosk line view is the "
+                       "station file's `page: {kiosk: true}`; unset the variable")
     secret = os.environ.get("MVPOSE_BOOTSTRAP_TOKEN")
     if secret is not None:
         from server.auth import check_bootstrap_secret

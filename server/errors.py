@@ -73,3 +73,11 @@ class StationFailedError(DomainError):
     status = 502
     title = "Station failed"
     slug = "station-failed"
+
+
+class TooManyAttemptsError(DomainError):
+    """A login refused without checking the secret: too many wrong ones in a row just now."""
+
+    status = 429
+    title = "Too many attempts"
+    slug = "too-many-attempts"

@@ -40,9 +40,6 @@ class Settings(BaseSettings):
     software_version: str | None = Field(None, description="default: the installed mvpose version")
     control_socket: Path | None = Field(
         None, description="the station process's control channel; default <data_dir>/station.sock")
-    line_view_public: bool = Field(
-        False, description="the line view (/line) and its NOK thumbnails are readable without "
-        "a login (a kiosk panel PC); every other page still needs a token")
 
     @field_validator("database_url")
     @classmethod

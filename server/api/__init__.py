@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from server.api import drift, gauge, health, measurements, metrics, station, tokens, versions
+from server.api import (
+    drift,
+    gauge,
+    health,
+    measurements,
+    metrics,
+    station,
+    tokens,
+    users,
+    versions,
+)
 from server.api.openapi import problem_responses
 
 PREFIX = "/api/v1"
@@ -17,6 +27,7 @@ def api_router() -> APIRouter:
         versions.recipes_router,
         versions.calibrations_router,
         tokens.router,
+        users.router,
         health.router,
         metrics.router,
     ):

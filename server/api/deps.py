@@ -17,7 +17,7 @@ from server.errors import NotReadyError
 from server.state import Services
 from server.store import Store
 from server.store.schemas import MAX_ID
-from server.web.session import cookie_authorization
+from server.web.session import cookie_principal
 
 if TYPE_CHECKING:  # server.app imports this module
     from server.app import StationHandle
@@ -70,7 +70,9 @@ async def current_principal(
     # the threadpool, off the event loop.
     tokens, header = services.store.tokens, request.headers.get("authorization")
     if header is None:  # the operator page's session cookie (CSRF-checked there)
-        header = cookie_authorization(request)
+        from_cookie = await cookie_principal(request, services)
+        if from_cookie is not None:
+            return from_cookie
     principal = authenticate_recent(tokens, header)
     if principal is None:
         principal = await run_in_threadpool(authenticate, tokens, header)

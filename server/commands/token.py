@@ -23,14 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     # The store options belong to each action, so they go anywhere after it:
     # `mvpose token create NAME --role engineer --data-dir /srv/mvpose`.
     store = argparse.ArgumentParser(add_help=False)
-    store.add_argument("--station", type=Path,
-                       help="station YAML file, for the station's name in a shared database "
-                       "(default: $MVPOSE_STATION; tokens themselves are not per station)")
-    store.add_argument("--data-dir", type=Path,
-                       help="the server's data directory (default: $MVPOSE_DATA_DIR or ./var)")
-    store.add_argument("--database-url",
-                       help="SQLAlchemy URL (default: $MVPOSE_DATABASE_URL, else the SQLite "
-                       "database in the data directory)")
+    add_store_options(store)
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     create = sub.add_parser("create", parents=[store],
                             help="create a token and print its secret once")
@@ -42,6 +35,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     revoke = sub.add_parser("revoke", parents=[store],
                             help="revoke a token (not the last live engineer token)")
     revoke.add_argument("name")
+
+
+def add_store_options(parser: argparse.ArgumentParser) -> None:
+    """The options that find the server's store (``mvpose token`` and ``mvpose user``)."""
+    parser.add_argument("--station", type=Path,
+                        help="station YAML file, for the station's name in a shared database "
+                        "(default: $MVPOSE_STATION; tokens and users are not per station)")
+    parser.add_argument("--data-dir", type=Path,
+                        help="the server's data directory (default: $MVPOSE_DATA_DIR or ./var)")
+    parser.add_argument("--database-url",
+                        help="SQLAlchemy URL (default: $MVPOSE_DATABASE_URL, else the SQLite "
+                        "database in the data directory)")
+
+
+def open_cli_store(args: argparse.Namespace) -> tuple[Any, str]:
+    """The store the server uses, from the options and the environment; and its URL."""
+    from server.store import open_store
+
+    settings = _settings(args)
+    name = load_station_file(settings.station).name if settings.station else \
+        settings.station_name
+    url = settings.resolved_database_url
+    return open_store(url, name, settings.sqlite_synchronous), url
 
 
 def _settings(args: argparse.Namespace) -> Any:
@@ -65,12 +81,8 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from server.auth import Role, create_token
-    from server.store import open_store
 
-    settings = _settings(args)
-    name = load_station_file(settings.station).name if settings.station else \
-        settings.station_name
-    store = open_store(settings.resolved_database_url, name, settings.sqlite_synchronous)
+    store, url = open_cli_store(args)
     try:
         if args.action == "create":
             from server.api.tokens import TokenRequest
@@ -81,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                 raise CliError(f"token name {args.name!r}: {err.errors()[0]['msg']}") from None
             secret, info = create_token(store.tokens, args.name, Role(args.role))
             print(f"token {info.name!r} ({info.role}) created in "
-                  f"{settings.resolved_database_url}; its secret follows, shown only now:",
+                  f"{url}; its secret follows, shown only now:",
                   file=sys.stderr)
             print(secret, flush=True)
         elif args.action == "list":

@@ -11,6 +11,7 @@ from server.store.gauge import GaugeStudyRepository
 from server.store.measurements import MeasurementRepository
 from server.store.shifts import ShiftRepository
 from server.store.tokens import TokenRepository
+from server.store.users import UserRepository
 from server.store.versions import VersionRepository
 from server.store.writer import DurableWriter, Sealed, StoreFailedError, WriterStatus
 
@@ -19,8 +20,8 @@ __all__ = ["DurableWriter", "Sealed", "Store", "StoreFailedError", "WriterStatus
 
 class Store:
     """The station's database: ``measurements``, ``images``, ``versions``, ``tokens``,
-    ``gauge`` (the gauge studies) and ``shifts`` (the line view's figures over
-    ``measurements``).
+    ``gauge`` (the gauge studies), ``users`` (the operator page's people) and ``shifts`` (the
+    line view's figures over ``measurements``).
 
     Every method is blocking (SQLAlchemy Core on a pooled connection): call it from a worker
     thread, never on the event loop (FastAPI runs ``def`` endpoints in its threadpool).
@@ -35,6 +36,7 @@ class Store:
         self.shifts = ShiftRepository(engine, station)
         self.tokens = TokenRepository(engine)
         self.gauge = GaugeStudyRepository(engine, station)
+        self.users = UserRepository(engine, station)
 
     @property
     def dialect(self) -> str:

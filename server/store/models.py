@@ -175,3 +175,39 @@ class GaugeStudyRow(Base):
     body: Mapped[str] = mapped_column(Text)
     prev_hash: Mapped[str] = mapped_column(String(64))
     hash: Mapped[str] = mapped_column(String(64), unique=True)
+
+
+class UserRow(Base):
+    """A person who logs in on the operator page with a PIN or a password (server/users.py);
+    the secret is stored only as its scrypt hash with the user's own salt."""
+
+    __tablename__ = "users"
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    role: Mapped[str] = mapped_column(String(16))
+    secret_kind: Mapped[str] = mapped_column(String(8))  # "pin" or "password"
+    secret_hash: Mapped[str] = mapped_column(String(200))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    disabled_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    failed_count: Mapped[int] = mapped_column(Integer)  # wrong secrets since the last login
+    last_failed_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    locked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    # Bumped by a reset or a disable: a page session opened before it is over.
+    epoch: Mapped[int] = mapped_column(Integer)
+
+
+class UserEventRow(Base):
+    """The users' audit trail: logins, wrong secrets, lockouts and every change an engineer
+    made. Append-only (database triggers)."""
+
+    __tablename__ = "user_events"
+    __table_args__ = (Index("ix_user_events_user", "user_name", "id"),)
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime())
+    station: Mapped[str] = mapped_column(String(64))
+    user_name: Mapped[str] = mapped_column(String(64))
+    event: Mapped[str] = mapped_column(String(16))
+    actor: Mapped[str] = mapped_column(String(64))  # who did it: the user, an engineer, "cli"
+    detail: Mapped[str] = mapped_column(Text)

@@ -1,4 +1,5 @@
-"""Operator page: log in and out, and the actions (trigger, teach, activate) through the station.
+"""Operator page: log in and out (a user's PIN or password, or an API token), the session's
+idle time, and the actions (trigger, teach, activate) through the station.
 
 Actions go to the station handle (``app.state.runtime``: the station process's control channel)
 with the session's name as the author; activating a recipe version with the station down is
@@ -12,15 +13,25 @@ from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 from starlette.concurrency import run_in_threadpool
 
 from mvpose_core.reasons import reason_name
+from server import users
 from server.auth import Role, authenticate
 from server.errors import ForbiddenError, NotReadyError
+from server.users import NAME_PATTERN
 from server.web import html
 from server.web.context import in_thread, need, page_user, runtime_of, services_of
-from server.web.session import COOKIE, MAX_AGE_S, Sessions, same_origin, sessions_of
+from server.web.session import (
+    COOKIE,
+    MAX_AGE_S,
+    Sessions,
+    Who,
+    idle_logout_s,
+    same_origin,
+    sessions_of,
+)
 
 if TYPE_CHECKING:  # server.app imports this package
     from server.app import StationHandle
@@ -29,7 +40,19 @@ router = APIRouter(include_in_schema=False)
 
 
 class Login(BaseModel):
-    token: str = Field(min_length=1, max_length=200)
+    """A user's name and PIN or password, or (without a user) an API token."""
+
+    user: str | None = Field(None, min_length=1, max_length=64, pattern=NAME_PATTERN)
+    secret: str | None = Field(None, min_length=1, max_length=200)
+    token: str | None = Field(None, min_length=1, max_length=200)
+
+    @model_validator(mode="after")
+    def _one_way(self) -> Login:
+        if (self.token is None) == (self.user is None and self.secret is None):
+            raise ValueError("send either user and secret (a PIN or password), or token")
+        if self.token is None and (self.user is None or self.secret is None):
+            raise ValueError("a user's login needs both user and secret (a PIN or password)")
+        return self
 
 
 class TriggerBody(BaseModel):
@@ -54,32 +77,57 @@ def _safe_next(target: str) -> str:
 
 @router.get("/login")
 async def login_page(request: Request,
-                     next: Annotated[str, Query(max_length=200)] = "/") -> Response:  # noqa: A002
+                     next: Annotated[str, Query(max_length=200)] = "/",  # noqa: A002
+                     idle: Annotated[int, Query(ge=0, le=1)] = 0) -> Response:
     if await page_user(request) is not None:
         return RedirectResponse(_safe_next(next), status_code=303)
-    body = f"""<section class="panel login"><h2>Log in</h2>
-<p>Paste your API token (ask an engineer for one: <code>POST /api/v1/tokens</code>). It is
- kept in this server's memory for {MAX_AGE_S // 3600} h; the browser only holds a session
- cookie.</p><form id="login-form" data-next="{html.esc(_safe_next(next))}">
-<label>token <input name="token" type="password" autocomplete="current-password" required
- maxlength="200"></label><button type="submit">Log in</button></form>
-<p class="msg" role="alert"></p></section>"""
+    target = html.esc(_safe_next(next))
+    why = ('<p class="msg done" role="status" id="idle-note">You were logged out: nothing was '
+           'done on the page for a while.</p>' if idle else "")
+    body = f"""<section class="panel login"><h2>Log in</h2>{why}
+<form id="login-form" data-next="{target}">
+<label>user <input name="user" autocomplete="username" required maxlength="64"
+ autocapitalize="none" spellcheck="false"></label>
+<label>PIN or password <input name="secret" type="password" autocomplete="current-password"
+ required maxlength="200"></label><button type="submit">Log in</button></form>
+<p class="msg" role="alert"></p>
+<details><summary>Log in with an API token (engineers)</summary>
+<form id="token-form" data-next="{target}">
+<label>token <input name="token" type="password" autocomplete="off" required
+ maxlength="200"></label><button type="submit">Log in with the token</button></form>
+<p class="msg" role="alert"></p></details>
+<p>The page logs out after some time without a click or a key; the browser only holds a session
+ cookie.</p></section>"""
     return HTMLResponse(html.layout("Log in", None, body))
+
+
+def _source(request: Request) -> str:
+    return request.client.host if request.client else "?"
 
 
 @router.post("/web/login")
 async def login(request: Request, body: Annotated[Login, Body()]) -> Response:
-    """Check the token like a bearer token; on success set the session cookie."""
+    """Check a user's PIN or password (or an API token, like a bearer token); on success set
+    the session cookie."""
     if not same_origin(request):
         raise ForbiddenError("log in from the operator page itself (Origin is not this host)")
     sessions = sessions_of(request)
     if sessions is None:
         raise NotReadyError("sessions are not set up in this app")
     services = services_of(request)
-    principal = await run_in_threadpool(authenticate, services.store.tokens,
-                                        f"Bearer {body.token.strip()}")
-    sid = sessions.open(body.token.strip())
-    resp = JSONResponse({"name": principal.name, "role": principal.role.value})
+    if body.token is not None:
+        token = body.token.strip()
+        principal = await run_in_threadpool(authenticate, services.store.tokens,
+                                            f"Bearer {token}")
+        who = Who(token=token)
+    else:
+        name = body.user or ""  # both are there: the model checked it
+        done = await run_in_threadpool(users.login, services.store.users, name,
+                                       body.secret or "", f"page {_source(request)}")
+        principal, who = done.principal, Who(user=name, epoch=done.epoch)
+    sid = sessions.open(who)
+    resp = JSONResponse({"name": principal.name, "role": principal.role.value,
+                         "idle_logout_s": idle_logout_s(services)})
     resp.set_cookie(COOKIE, sid, max_age=MAX_AGE_S, httponly=True, samesite="strict",
                     secure=request.url.scheme == "https", path="/")
     return resp
@@ -95,6 +143,27 @@ async def logout(request: Request) -> Response:
     resp = JSONResponse({"logged_out": True})
     resp.delete_cookie(COOKIE, path="/", httponly=True, samesite="strict")
     return resp
+
+
+async def _session_answer(request: Request) -> dict[str, Any]:
+    user = await need(request, Role.READ)
+    sessions, sid = sessions_of(request), request.cookies.get(COOKIE, "")
+    idle = idle_logout_s(services_of(request))
+    return {"name": user.name, "role": user.role.value, "idle_logout_s": idle,
+            "idle_left_s": sessions.idle_left_s(sid, idle) if sessions else 0.0}
+
+
+@router.get("/web/session")
+async def session(request: Request) -> dict[str, Any]:
+    """Who is logged in and how long the session has before the idle logout (a look, not a
+    user action: it does not restart the idle time). 401 once the session is over."""
+    return await _session_answer(request)
+
+
+@router.post("/web/session/activity")
+async def activity(request: Request) -> dict[str, Any]:
+    """The page reports a click or a key: the idle time starts again."""
+    return await _session_answer(request)
 
 
 def _station(request: Request) -> StationHandle:

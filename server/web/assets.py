@@ -29,7 +29,7 @@ VENDOR: dict[str, str] = {
     "swagger-ui.css": "swagger-ui-dist/swagger-ui.css",
     "favicon-32x32.png": "swagger-ui-dist/favicon-32x32.png",
 }
-OWN = {"app.js", "app.css"}
+OWN = {"app.js", "app.css", "session.js"}
 _MEDIA = {".js": "text/javascript", ".css": "text/css", ".png": "image/png"}
 # Our files change with the code: a short cache. Vendor files are pinned by the lock file.
 _OWN_CACHE = "no-cache"

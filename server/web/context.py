@@ -7,16 +7,15 @@ from typing import TYPE_CHECKING, Any
 
 import anyio.to_thread
 from fastapi import Request
-from starlette.concurrency import run_in_threadpool
 
 from mvpose_core.station import RecipeConfig
-from server.auth import Principal, Role, authenticate, authenticate_recent
+from server.auth import Principal, Role
 from server.errors import ForbiddenError, UnauthenticatedError
 from server.state import Services
 from server.web import html
 from server.web.live import LiveFeed
 from server.web.reader import Reader, RecordView, age_words
-from server.web.session import cookie_authorization
+from server.web.session import cookie_principal
 
 if TYPE_CHECKING:  # server.app imports this package
     from server.app import StationHandle
@@ -29,15 +28,7 @@ VERIFY_ENDPOINT = "/api/v1/calibration/verify"
 
 async def page_user(request: Request) -> Principal | None:
     """The logged-in principal of the page's session cookie, or None (log in first)."""
-    header = cookie_authorization(request)
-    if header is None:
-        return None
-    tokens = request.state.services.store.tokens
-    try:
-        return authenticate_recent(tokens, header) or await run_in_threadpool(
-            authenticate, tokens, header)
-    except UnauthenticatedError:
-        return None
+    return await cookie_principal(request, request.state.services)
 
 
 async def need(request: Request, role: Role) -> Principal:

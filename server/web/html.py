@@ -72,6 +72,8 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
     who = (f'<span class="who">{esc(user.name)} · <b data-role="{esc(user.role.value)}">'
            f'{esc(user.role.value)}</b></span>'
            f'<button class="link" id="logout" type="button">log out</button>') if user else ""
+    # A logged-in page reports its user's actions and leaves when the session ends.
+    scripts = [*scripts, "/static/session.js"] if user else list(scripts)
     extra = "".join(f'<script src="{esc(s)}" defer></script>' for s in scripts)
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><link rel="icon" href="/favicon.ico">

@@ -6,7 +6,8 @@ survive restarts and reset at each shift start of the station file), the last NO
 thumbnail, the reason in words and what to check, and a warning after the recipe's
 ``nok_streak_warning`` NOKs in a row. The page polls one fragment (htmx, every
 :data:`POLL_S`); everything it reads comes from the store and the station's status, so it never
-delays a trigger. With ``Settings.line_view_public`` it is readable without a login (a kiosk).
+delays a trigger. With the station file's ``page: {kiosk: true}`` it is readable without a login,
+read-only (a kiosk).
 """
 
 from __future__ import annotations
@@ -77,10 +78,16 @@ def read_figures(reader: Reader, app: Any) -> LineFigures:
                        store.shifts.nok_streak(), limit, active[0] if active else None, strip)
 
 
+def kiosk(request: Request) -> bool:
+    """Whether the line view is public (the station file's ``page: {kiosk: true}``)."""
+    station = request.state.services.station
+    return bool(station is not None and station.page.kiosk)
+
+
 async def line_user(request: Request) -> Principal | None:
     """The logged-in user, or None on a public (kiosk) line view; 401 otherwise."""
     user = await page_user(request)
-    if user is None and not request.state.services.settings.line_view_public:
+    if user is None and not kiosk(request):
         raise UnauthenticatedError("log in on the operator page first (session expired?)")
     return user
 
@@ -89,7 +96,7 @@ async def line_user(request: Request) -> Principal | None:
 async def line_page(request: Request) -> Html:
     """The line view: a whole screen for a panel PC."""
     user = await page_user(request)
-    if user is None and not request.state.services.settings.line_view_public:
+    if user is None and not kiosk(request):
         return to_login(request)
     reader = reader_of(request)
     figures = await in_thread(read_figures, reader, request.app)

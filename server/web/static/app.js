@@ -13,20 +13,25 @@ function postJSON(url, body) {
 }
 
 function say(el, text, ok) {
-  const msg = el && (el.closest("section, dialog")?.querySelector(".msg") || document.querySelector(".msg"));
+  const msg = el && (el.closest("details, section, dialog")?.querySelector(".msg") || document.querySelector(".msg"));
   if (!msg) return;
   msg.textContent = text;
   msg.className = "msg " + (ok ? "done" : "error");
 }
 
+// A user's name and PIN or password (#login-form), or an API token (#token-form).
 function setupLogin() {
-  const form = document.getElementById("login-form");
-  if (!form) return;
-  form.addEventListener("submit", (ev) => {
-    ev.preventDefault();
-    postJSON("/web/login", {token: form.token.value})
-      .then(() => { window.location.assign(form.dataset.next || "/"); })
-      .catch((err) => say(form, err.message, false));
+  const forms = {"login-form": (f) => ({user: f.user.value.trim(), secret: f.secret.value}),
+                 "token-form": (f) => ({token: f.token.value})};
+  Object.entries(forms).forEach(([id, body]) => {
+    const form = document.getElementById(id);
+    if (!form) return;
+    form.addEventListener("submit", (ev) => {
+      ev.preventDefault();
+      postJSON("/web/login", body(form))
+        .then(() => { window.location.assign(form.dataset.next || "/"); })
+        .catch((err) => say(form, err.message, false));
+    });
   });
 }
 
