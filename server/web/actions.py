@@ -91,7 +91,7 @@ async def login_page(request: Request,
 <label>PIN or password <input name="secret" type="password" autocomplete="current-password"
  required maxlength="200"></label><button type="submit">Log in</button></form>
 <p class="msg" role="alert"></p>
-<details><summary>Log in with an API token (engineers)</summary>
+<details id="token-login"><summary>Log in with an API token (engineers)</summary>
 <form id="token-form" data-next="{target}">
 <label>token <input name="token" type="password" autocomplete="off" required
  maxlength="200"></label><button type="submit">Log in with the token</button></form>

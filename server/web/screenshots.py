@@ -66,8 +66,19 @@ def launch(playwright: Any) -> Any:
 
 
 def login(page: Any, base: str, token: str) -> None:
+    """Log in with an API token (the login page's "with an API token" part)."""
     page.goto(f"{base}/login")
+    page.click("#token-login summary")
     page.fill("input[name=token]", token)
+    page.click("#token-form button[type=submit]")
+    page.wait_for_url(f"{base}/")
+
+
+def login_user(page: Any, base: str, user: str, secret: str) -> None:
+    """Log in with a user's name and PIN or password; waits for the Live page."""
+    page.goto(f"{base}/login")
+    page.fill("input[name=user]", user)
+    page.fill("input[name=secret]", secret)
     page.click("#login-form button[type=submit]")
     page.wait_for_url(f"{base}/")
 

@@ -1,4 +1,5 @@
-"""Runs every curl example of docs/rest-api.md against a real app and checks status and keys."""
+"""Runs every curl example of docs/rest-api.md (and docs/users.md) against a real app and checks
+status and keys."""
 
 from __future__ import annotations
 
@@ -18,10 +19,10 @@ DOC = ROOT / "docs" / "rest-api.md"
 BLOCK = re.compile(r"```(sh|json)\n(.*?)```", re.S)
 
 
-def examples() -> list[tuple[int, list[str], Any]]:
+def examples(doc: Path = DOC) -> list[tuple[int, list[str], Any]]:
     """(expected status, curl argv, documented response or None) per curl line, in order."""
     out: list[tuple[int, list[str], Any]] = []
-    for kind, text in BLOCK.findall(DOC.read_text()):
+    for kind, text in BLOCK.findall(doc.read_text()):
         if kind == "json":
             assert out, "a response example before any request"
             status, argv, _ = out[-1]
@@ -89,6 +90,20 @@ async def test_every_documented_example_runs(tmp_path: Path) -> None:
                               headers={"Authorization": f"Bearer {ENGINEER}"})
         env = {"MVPOSE": "http://station", "ENGINEER_TOKEN": ENGINEER,
                "MES_TOKEN": r.json()["token"]}
+        for expected, argv, documented in cases:
+            method, url, headers, data = request_of(argv, env)
+            r = await client.request(method, url, headers=headers,
+                                     content=data.encode() if data else None)
+            assert r.status_code == expected, (method, url, r.text[:300])
+            if documented is not None:
+                assert_keys(documented, r.json(), url)
+
+
+async def test_every_example_of_the_users_page_runs(tmp_path: Path) -> None:
+    cases = examples(ROOT / "docs" / "users.md")
+    assert len(cases) >= 9
+    async with running(create_app(settings(tmp_path))) as (client, _):
+        env = {"MVPOSE": "http://station", "ENGINEER_TOKEN": ENGINEER}
         for expected, argv, documented in cases:
             method, url, headers, data = request_of(argv, env)
             r = await client.request(method, url, headers=headers,

@@ -68,7 +68,7 @@ async def test_login_sets_a_strict_http_only_session_that_the_rest_api_accepts(
         assert r.status_code == 403, "a login form on another site must not log in here"
         r = await client.post("/web/login", json={"token": ENGINEER}, headers=ORIGIN)
         cookie = r.headers["set-cookie"]
-        assert r.json() == {"name": "bootstrap", "role": "engineer"}
+        assert r.json() == {"name": "bootstrap", "role": "engineer", "idle_logout_s": 900.0}
         assert "HttpOnly" in cookie and "SameSite=strict" in cookie and "Path=/" in cookie
         assert ENGINEER not in cookie, "the cookie holds a session id, never the token"
         assert (await client.get("/")).status_code == 200

@@ -39,7 +39,7 @@ MIN_CAP_PX = 35
 @dataclass
 class Line:
     base: str
-    kiosk: str  # the same store and station, served with line_view_public
+    kiosk: str  # the same store and station, served with the station file's page.kiosk
     browser: Any
     proc: StationProcess
     client: StationClient
@@ -99,7 +99,10 @@ def line(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Line]:
     try:
         token = create_token(reader.store.tokens, "line-read", Role.READ)[0]
         client = StationClient(cfg.resolved_control_socket)
-        public = cfg.model_copy(update={"line_view_public": True})
+        (tmp / "kiosk").mkdir()
+        kiosk_file = stations.station_file(tmp / "kiosk", "station1", stations.relaxed_deadline,
+                                           lambda data: data.update(page={"kiosk": True}))
+        public = cfg.model_copy(update={"station": kiosk_file})
         with serve(create_app(cfg, client)) as base, \
                 serve(create_app(public, StationClient(cfg.resolved_control_socket))) as kiosk, \
                 sync_playwright() as pw:
@@ -234,7 +237,7 @@ def test_a_kiosk_shows_the_line_view_and_nothing_else_without_a_login(line: Line
     assert page.request.get(ok_thumb).status == 404  # only NOKs' frames, never an OK's
     page.context.close()
 
-    # without the flag the line view needs a login like every other page
+    # without the setting the line view needs a login like every other page
     page = line.page(line.base, logged_in=False)
     assert page.url.startswith(f"{line.base}/login")
     assert page.request.get(f"{line.base}/web/line/fragment").status == 401
