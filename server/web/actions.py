@@ -96,9 +96,13 @@ async def login_page(request: Request,
 <label>token <input name="token" type="password" autocomplete="off" required
  maxlength="200"></label><button type="submit">Log in with the token</button></form>
 <p class="msg" role="alert"></p></details>
-<p>The page logs out after some time without a click or a key; the browser only holds a session
- cookie.</p></section>"""
+<p>The page logs out after {_duration(idle_logout_s(services_of(request)))} without a click or
+ a key; the browser only holds a session cookie.</p></section>"""
     return HTMLResponse(html.layout("Log in", None, body))
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds / 60:g} min" if seconds >= 120 else f"{seconds:g} s"
 
 
 def _source(request: Request) -> str:

@@ -118,6 +118,7 @@ def test_a_user_logs_in_with_a_pin(users: Users) -> None:
     page = users.page()
     page.goto(f"{users.base}/line")
     assert page.url == f"{users.base}/login?next=/line"
+    assert "logs out after 15 min without a click" in page.locator("main").inner_text()
     assert page.locator("input[name=secret]").get_attribute("type") == "password"
     assert not page.locator("input[name=token]").is_visible(), "the token login is folded"
     assert_accessible(page, "/login")
@@ -192,10 +193,15 @@ def test_an_idle_page_logs_out_and_an_active_one_does_not(users: Users) -> None:
     active.context.close()
 
 
-def test_a_disabled_users_open_page_logs_out(users: Users) -> None:
+def test_a_role_change_and_a_disable_reach_the_users_open_page(users: Users) -> None:
     users.add("emil", Role.OPERATOR, "9753")
     page = users.page()
     login_user(page, users.base, "emil", "9753")
+    assert page.locator("#trigger-form").count() == 1  # an operator's action
+    _in_thread(lambda: users.services.store.users.set_role("emil", "read", "test"))
+    page.wait_for_selector("header .who b[data-role=read]", timeout=20000)
+    assert page.locator("#trigger-form").count() == 0, "a read user is offered no action"
+    assert page.url == f"{users.base}/"
     _in_thread(lambda: users.services.store.users.disable("emil", "test"))
     page.wait_for_url(f"{users.base}/login?next=%2F", timeout=20000)
     said = _try(page, users.base, "emil", "9753")

@@ -1,7 +1,8 @@
 // The idle logout of a logged-in page (server/web/session.py): the server ends a session
 // idle_logout_s after its user's last action; this script reports the user's clicks, keys and
 // scrolling (never the page's own refreshes) and leaves for the login page when the session
-// has ended, for want of use or because an engineer disabled or reset the user.
+// has ended, for want of use or because an engineer disabled or reset the user; a page whose
+// user's role changed is drawn again.
 "use strict";
 
 (function () {
@@ -24,6 +25,9 @@
     if (r.status === 401) { leave(deadline !== null && Date.now() >= deadline); return null; }
     if (!r.ok) return null;
     return r.json().then((d) => {
+      // A role changed by an engineer applies at once: the page is drawn again for the new one.
+      const shown = document.querySelector("header .who b[data-role]");
+      if (shown && d.role !== shown.dataset.role) { window.location.reload(); return; }
       idleS = d.idle_logout_s;
       deadline = Date.now() + d.idle_left_s * 1000;
       document.body.dataset.idleLogoutS = String(idleS);
