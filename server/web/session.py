@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
+from mvpose_core.station import IDLE_LOGOUT_S
 from server.auth import Principal, authenticate, authenticate_recent
 from server.errors import ForbiddenError, UnauthenticatedError
 from server.state import Services
@@ -118,8 +119,6 @@ def same_origin(conn: HTTPConnection) -> bool:
 
 def idle_logout_s(services: Services) -> float:
     """The station file's idle logout (``page: {idle_logout_s}``); its default without one."""
-    from mvpose_core.station import IDLE_LOGOUT_S
-
     return services.station.page.idle_logout_s if services.station else IDLE_LOGOUT_S
 
 
