@@ -7,7 +7,7 @@ A test keeps the page equal to this output, so the page cannot drift from the co
 
 from __future__ import annotations
 
-from . import layout as L
+from . import layout
 
 _INTRO = """\
 # The fieldbus layout
@@ -35,7 +35,7 @@ submodules (docs/integration.md). This page is written from `drivers/links/layou
 """
 
 
-def _table(block: L.Block) -> list[str]:
+def _table(block: layout.Block) -> list[str]:
     rows = ["| byte | type | name | unit | meaning |", "|---:|---|---|---|---|"]
     for f in block.fields:
         kind = f.type if f.count == 1 else f"{f.type}[{f.count}]"
@@ -46,9 +46,10 @@ def _table(block: L.Block) -> list[str]:
 
 def render() -> str:
     """The page's Markdown."""
-    lines = [_INTRO.format(out=L.OUTPUT_SIZE, inp=L.INPUT_SIZE, tf=L.TEST_FLOAT, ti=L.TEST_INT)]
-    lines += ["## Output block (PLC → mvpose)", "", *_table(L.OUTPUT), ""]
-    lines += ["## Input block (mvpose → PLC)", "", *_table(L.INPUT), ""]
+    lines = [_INTRO.format(out=layout.OUTPUT_SIZE, inp=layout.INPUT_SIZE,
+                           tf=layout.TEST_FLOAT, ti=layout.TEST_INT)]
+    lines += ["## Output block (PLC → mvpose)", "", *_table(layout.OUTPUT), ""]
+    lines += ["## Input block (mvpose → PLC)", "", *_table(layout.INPUT), ""]
     return "\n".join(lines)
 
 

@@ -10,7 +10,7 @@ import struct
 
 import pytest
 
-from drivers.links import layout as L
+from drivers.links import layout
 from drivers.links.handshake import HandshakeConfig, HandshakeRunner
 from drivers.links.layout import INPUT, OUTPUT, ByteOrder, Status
 from drivers.links.twin import PlcTwin
@@ -18,7 +18,7 @@ from tests.drivers.plc_peers import ArithmeticHandler, published_offset
 
 
 @pytest.mark.parametrize("block", [OUTPUT, INPUT], ids=["output", "input"])
-def test_fields_tile_the_block_without_gaps(block: L.Block) -> None:
+def test_fields_tile_the_block_without_gaps(block: layout.Block) -> None:
     end = 0
     for f in block.fields:
         assert f.offset == end, f"{f.name} starts at {f.offset}, the previous field ends at {end}"
@@ -28,17 +28,19 @@ def test_fields_tile_the_block_without_gaps(block: L.Block) -> None:
 
 
 def test_sizes_are_the_modbus_map_in_bytes() -> None:
-    assert (OUTPUT.size, INPUT.size) == (2 * L.HR_WRITABLE_COUNT, 2 * L.IR_COUNT) == (80, 140)
+    want = (2 * layout.HR_WRITABLE_COUNT, 2 * layout.IR_COUNT)
+    assert (OUTPUT.size, INPUT.size) == want == (80, 140)
 
 
 def test_little_endian_values_and_text_in_order() -> None:
     words = [0] * (OUTPUT.size // 2)
-    words[L.HR_TRIGGER_ID : L.HR_TRIGGER_ID + 2] = [0x0001, 0xE240]  # CDAB: 0xE2400001
-    words[L.HR_PART_ID] = ord("V") << 8 | ord("W")
+    tid = layout.HR_TRIGGER_ID
+    words[tid : tid + 2] = [0x0001, 0xE240]  # CDAB: 0xE2400001
+    words[layout.HR_PART_ID] = ord("V") << 8 | ord("W")
     data = OUTPUT.to_bytes(words, ByteOrder.LITTLE)
-    off = L.HR_TRIGGER_ID * 2
+    off = layout.HR_TRIGGER_ID * 2
     assert struct.unpack_from("<I", data, off)[0] == 0xE2400001
-    assert data[L.HR_PART_ID * 2 : L.HR_PART_ID * 2 + 2] == b"VW"
+    assert data[layout.HR_PART_ID * 2 : layout.HR_PART_ID * 2 + 2] == b"VW"
     assert OUTPUT.to_words(data, ByteOrder.LITTLE) == words
     assert OUTPUT.to_words(OUTPUT.to_bytes(words, ByteOrder.BIG), ByteOrder.BIG) == words
 
@@ -86,8 +88,8 @@ async def test_the_handshake_over_whole_images(order: ByteOrder) -> None:
         twin = PlcTwin(MemoryPort(runner, order))
         await twin.connect()
         ready = await twin.enable()
-        assert ready.test_float == pytest.approx(L.TEST_FLOAT, abs=1e-4)
-        assert ready.test_int == L.TEST_INT
+        assert ready.test_float == pytest.approx(layout.TEST_FLOAT, abs=1e-4)
+        assert ready.test_int == layout.TEST_INT
         for trigger_id in (70001, 70005):  # 70005 = 13 × 5385: a NOK of the arithmetic handler
             answer = await twin.cycle(trigger_id, part_id="WVWZZZ1KZ-ÄX".encode(
                 "ascii", "replace").decode())
