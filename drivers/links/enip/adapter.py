@@ -1,0 +1,578 @@
+"""The EtherNet/IP adapter as a sans-I/O protocol core: bytes in, replies and events out.
+
+The caller owns the sockets and the clock (h11's shape, STYLE.md): it feeds each TCP
+connection's bytes to its :class:`TcpSession` (``receive_data``), each UDP datagram to
+:meth:`Adapter.receive_io` or :meth:`Adapter.receive_udp_encapsulation`, calls
+:meth:`Adapter.produce` and :meth:`Adapter.tick` on its timer, and drains
+:meth:`Adapter.events` (:class:`OutputImage`, :class:`ConnectionOpened`,
+:class:`ConnectionClosed`, :class:`Refused`).
+
+The Connection Manager (Vol 1, 3-5) lives here: Forward Open / Large Forward Open / Forward
+Close for class 1 I/O on the assemblies and class 3 explicit connections to the Message Router,
+the connection table with its documented limit, the inactivity timeout (O→T RPI × multiplier)
+and the producer's sequence counts (Vol 2, 3-2.1).
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+from dataclasses import dataclass, field
+
+from .codec import (
+    Command,
+    EncapStatus,
+    Encapsulation,
+    ExtendedStatus,
+    ForwardClose,
+    ForwardOpen,
+    ForwardOpenReply,
+    FrameError,
+    GeneralStatus,
+    Identity,
+    IoFrame,
+    Item,
+    ItemType,
+    Request,
+    Response,
+    SendData,
+    Service,
+    SocketAddress,
+    UnconnectedSend,
+    forward_close_reply,
+    list_services_item,
+    newer,
+    pack_items,
+)
+from .objects import ASSEMBLY, CONNECTION_MANAGER, MESSAGE_ROUTER, Assemblies, ObjectModel
+
+MAX_MESSAGE = 4096  # encapsulation data longer than this is refused (INVALID_LENGTH)
+UDP_IO_PORT = 2222
+
+
+# ---------------------------------------------------------------------------- events
+
+
+@dataclass(frozen=True)
+class OutputImage:
+    """The PLC's output image (the layout's OUTPUT block) as the adapter now holds it: a new
+    class 1 image in run mode, zeros when the scanner went idle, or an explicit Set."""
+
+    data: bytes
+    peer: str
+    how: str  # "io", "idle", "set"
+
+
+@dataclass(frozen=True)
+class ConnectionOpened:
+    peer: str
+    transport_class: int
+    connection_id: int  # ours (O→T)
+    rpi_ms: float
+
+
+@dataclass(frozen=True)
+class ConnectionClosed:
+    peer: str
+    transport_class: int
+    connection_id: int
+    why: str  # "forward close", "timed out", "session closed"
+
+
+@dataclass(frozen=True)
+class Refused:
+    """Bad input answered with the protocol's status; nothing reached the handshake."""
+
+    peer: str
+    what: str
+    status: str  # e.g. "encapsulation status 0x0064", "CIP 0x01/0x0127"
+
+
+Event = OutputImage | ConnectionOpened | ConnectionClosed | Refused
+
+
+# ---------------------------------------------------------------------------- connections
+
+
+@dataclass
+class Connection:
+    """One open connection of the table."""
+
+    peer: str
+    request: ForwardOpen
+    o_t_id: int  # ours: what the originator's packets carry
+    t_o_id: int  # what our packets carry
+    timeout_s: float
+    last_rx: float
+    session: TcpSession | None = None  # class 3: the session it was opened through
+    destination: tuple[str, int] | None = None  # class 1: where T→O datagrams go
+    api_s: float = 0.0
+    next_tx: float = 0.0
+    encap_sequence: int = 0
+    sequence_count: int = 0
+    last_count: int | None = None
+    running: bool = False
+
+    @property
+    def transport_class(self) -> int:
+        return self.request.transport_class
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What the adapter accepts (docs/integration.md, "EtherNet/IP")."""
+
+    max_sessions: int = 16
+    max_connections: int = 8  # class 1 + class 3 connections open at once
+    min_rpi_us: int = 2000
+    max_rpi_us: int = 10_000_000
+
+
+class Adapter:
+    """One EtherNet/IP adapter: the connection table and the CIP objects."""
+
+    def __init__(self, identity: Identity, assemblies: Assemblies | None = None,
+                 limits: Limits | None = None, host: str = "127.0.0.1",
+                 udp_port: int = UDP_IO_PORT) -> None:
+        self.identity = identity
+        self.assemblies = assemblies or Assemblies()
+        self.limits = limits or Limits()
+        self.host = host
+        self.udp_port = udp_port
+        self.inputs = bytes(self.assemblies.input_size)
+        self.outputs = bytes(self.assemblies.output_size)
+        self.connections: dict[int, Connection] = {}  # by our O→T id
+        self.sessions: dict[int, TcpSession] = {}
+        self._events: list[Event] = []
+        self._ids = itertools.count(0x4D56_0001)  # "MV"...
+        self._handles = itertools.count(1)
+        self.objects = ObjectModel(identity, self.assemblies, host, lambda: self.inputs,
+                                   lambda: self.outputs, self.owned)
+
+    # --------------------------------------------------------------------- state
+
+    def events(self) -> list[Event]:
+        """Every event since the last call, oldest first."""
+        out, self._events = self._events, []
+        return out
+
+    def owned(self) -> bool:
+        """A class 1 exclusive owner holds the output assembly."""
+        return any(c.transport_class == 1 for c in self.connections.values())
+
+    def io_connections(self) -> list[Connection]:
+        return [c for c in self.connections.values() if c.transport_class == 1]
+
+    def session(self, peer: str) -> TcpSession:
+        """A new TCP connection from ``peer``."""
+        return TcpSession(self, peer)
+
+    def refuse(self, peer: str, what: str, status: str) -> None:
+        self._events.append(Refused(peer, what, status))
+
+    # --------------------------------------------------------------------- UDP
+
+    def receive_udp_encapsulation(self, datagram: bytes, peer: str) -> bytes | None:
+        """ListIdentity (and ListServices) on UDP 44818 (Vol 2, 2-4.2): the reply, or None
+        when the datagram is not one (nothing is answered on UDP for anything else)."""
+        try:
+            msg = Encapsulation.unpack(datagram)
+        except FrameError as err:
+            self.refuse(peer, f"UDP encapsulation: {err}", f"dropped ({err.status:#06x})")
+            return None
+        if msg.command == Command.LIST_IDENTITY:
+            return msg.reply(self.list_identity()).pack()
+        if msg.command == Command.LIST_SERVICES:
+            return msg.reply(pack_items([list_services_item()])).pack()
+        self.refuse(peer, f"UDP encapsulation command 0x{msg.command:04X}", "dropped")
+        return None
+
+    def list_identity(self) -> bytes:
+        host = self.host if self.host not in ("", "0.0.0.0") else "0.0.0.0"
+        address = int.from_bytes(bytes(int(p) for p in host.split(".")), "big") \
+            if host.count(".") == 3 else 0
+        return pack_items([self.identity.list_identity_item(SocketAddress(44818, address))])
+
+    def receive_io(self, datagram: bytes, peer: str, now: float) -> None:
+        """A class 1 datagram from ``peer`` (Vol 2, 3-2.1). Unknown connections and wrong
+        sizes are dropped (I/O has no answer) and reported as :class:`Refused`."""
+        try:
+            frame = IoFrame.unpack(datagram)
+        except FrameError as err:
+            self.refuse(peer, f"I/O datagram: {err}", "dropped")
+            return
+        conn = self.connections.get(frame.connection_id)
+        if conn is None or conn.transport_class != 1 or conn.peer != peer:
+            self.refuse(peer, f"I/O datagram for unknown connection 0x{frame.connection_id:08X}",
+                        "dropped")
+            return
+        want = conn.request.o_t_parameters.size - 2
+        if len(frame.data) != want:
+            self.refuse(peer, f"I/O datagram of {len(frame.data) + 2} bytes on connection "
+                              f"0x{conn.o_t_id:08X}, opened for {want + 2}", "dropped")
+            return
+        conn.last_rx = now
+        if conn.last_count is not None and not newer(frame.sequence_count, conn.last_count):
+            return  # a repeat or an older packet: not new data (Vol 1, 3-4.4.5)
+        conn.last_count = frame.sequence_count
+        (header,) = struct.unpack_from("<I", frame.data)
+        data = frame.data[4:]
+        if header & 1:
+            conn.running = True
+            self._set_outputs(data, peer, "io")
+        elif conn.running or self.outputs != bytes(len(self.outputs)):
+            # run → idle: the outputs go to their idle state, as a real adapter's do
+            conn.running = False
+            self._set_outputs(bytes(self.assemblies.output_size), peer, "idle")
+
+    def _set_outputs(self, data: bytes, peer: str, how: str) -> None:
+        self.outputs = bytes(data)
+        self._events.append(OutputImage(self.outputs, peer, how))
+
+    def produce(self, now: float, image: bytes) -> list[tuple[bytes, tuple[str, int]]]:
+        """The T→O datagrams due at ``now`` with input image ``image`` (the layout's INPUT
+        block), and where each goes."""
+        self.inputs = bytes(image)
+        out = []
+        for conn in self.io_connections():
+            if conn.destination is None or now < conn.next_tx:
+                continue
+            conn.encap_sequence = (conn.encap_sequence + 1) & 0xFFFF_FFFF
+            conn.sequence_count = (conn.sequence_count + 1) & 0xFFFF
+            frame = IoFrame(conn.t_o_id, conn.encap_sequence, conn.sequence_count, self.inputs)
+            out.append((frame.pack(), conn.destination))
+            conn.next_tx += conn.api_s
+            if conn.next_tx <= now:  # late by more than a period: keep the pace from now
+                conn.next_tx = now + conn.api_s
+        return out
+
+    def next_due(self) -> float | None:
+        """When the next T→O datagram is due (None: no class 1 connection)."""
+        times = [c.next_tx for c in self.io_connections() if c.destination is not None]
+        return min(times) if times else None
+
+    def tick(self, now: float) -> None:
+        """Close every connection whose consumer has been silent past its timeout."""
+        for conn in list(self.connections.values()):
+            if now - conn.last_rx > conn.timeout_s:
+                self._close(conn, "timed out")
+
+    def _close(self, conn: Connection, why: str) -> None:
+        if self.connections.pop(conn.o_t_id, None) is not None:
+            self._events.append(ConnectionClosed(conn.peer, conn.transport_class, conn.o_t_id,
+                                                 why))
+
+    # --------------------------------------------------------------------- explicit
+
+    def route(self, req: Request, peer: str, now: float, session: TcpSession,
+              items: list[Item]) -> tuple[Response, list[Item]]:
+        """One Message Router request from ``peer``: the response and any extra CPF items."""
+        if req.path.class_id == CONNECTION_MANAGER and req.path.instance == 1:
+            if req.service in (Service.FORWARD_OPEN, Service.LARGE_FORWARD_OPEN):
+                return self._forward_open(req, peer, now, session, items)
+            if req.service == Service.FORWARD_CLOSE:
+                return self._forward_close(req, peer), []
+            if req.service == Service.UNCONNECTED_SEND:
+                try:
+                    send = UnconnectedSend.unpack(req.data)
+                    inner = Request.unpack(send.request)
+                except FrameError as err:
+                    self.refuse(peer, f"Unconnected Send: {err}", f"CIP 0x{err.status:02X}")
+                    return Response(req.service, err.status), []
+                # we are the end of the route: the embedded request is for us
+                return self.route(inner, peer, now, session, items)
+            return Response(req.service, GeneralStatus.SERVICE_NOT_SUPPORTED), []
+        response, change = self.objects.handle(req)
+        if response.status:
+            self.refuse(peer, f"service 0x{req.service:02X} on class 0x{req.path.class_id or 0:02X}"
+                              f" instance {req.path.instance} attribute {req.path.attribute}",
+                        f"CIP 0x{response.status:02X}")
+        if change is not None:
+            self._set_outputs(change.data, peer, "set")
+        return response, []
+
+    def _cm_error(self, req: Request, peer: str, what: str, ext: ExtendedStatus,
+                  *more: int, general: int = GeneralStatus.CONNECTION_FAILURE) -> Response:
+        self.refuse(peer, what, f"CIP 0x{general:02X}/0x{ext:04X}")
+        # Forward Open's failure reply carries the connection triple (Vol 1, 3-5.5.2.4)
+        data = b""
+        if req.service in (Service.FORWARD_OPEN, Service.LARGE_FORWARD_OPEN,
+                           Service.FORWARD_CLOSE):
+            try:
+                triple = (ForwardClose.unpack(_close_view(req.data, req.service)).triple)
+                data = struct.pack("<HHIBB", *triple, 0, 0)
+            except FrameError:
+                data = b""
+        return Response(req.service, general, (int(ext), *more), data)
+
+    def _forward_open(self, req: Request, peer: str, now: float, session: TcpSession,
+                      items: list[Item]) -> tuple[Response, list[Item]]:
+        large = req.service == Service.LARGE_FORWARD_OPEN
+        try:
+            fo = ForwardOpen.unpack(req.data, large)
+        except FrameError as err:
+            self.refuse(peer, f"Forward Open: {err}", f"CIP 0x{err.status:02X}")
+            return Response(req.service, err.status), []
+        a, lim = self.assemblies, self.limits
+        if any(c.request.triple == fo.triple for c in self.connections.values()):
+            return self._cm_error(req, peer, "Forward Open: a connection with this serial is "
+                                  "open already", ExtendedStatus.DUPLICATE_FORWARD_OPEN), []
+        if fo.transport_class not in (1, 3):
+            return self._cm_error(req, peer, "Forward Open: transport "
+                                  f"0x{fo.transport_type_trigger:02X} (class 1 cyclic and "
+                                  "class 3 are supported)",
+                                  ExtendedStatus.TRANSPORT_NOT_SUPPORTED), []
+        if len(self.connections) >= lim.max_connections:
+            return self._cm_error(req, peer, f"Forward Open: {len(self.connections)} connections "
+                                  f"open, the limit is {lim.max_connections}",
+                                  ExtendedStatus.OUT_OF_CONNECTIONS), []
+        key = fo.path.key
+        idt = self.identity
+        if key is not None:
+            vendor, dtype, product, major, minor = key
+            if vendor and vendor != idt.vendor_id or product and product != idt.product_code:
+                return self._cm_error(req, peer, f"Forward Open: electronic key vendor {vendor} "
+                                      f"product {product}",
+                                      ExtendedStatus.VENDOR_OR_PRODUCT_MISMATCH), []
+            if dtype and dtype != idt.device_type:
+                return self._cm_error(req, peer, f"Forward Open: electronic key device type "
+                                      f"{dtype}", ExtendedStatus.DEVICE_TYPE_MISMATCH), []
+            compatible = fo.path.compatibility and minor <= idt.revision[1]
+            if major and major != idt.revision[0] or minor and minor != idt.revision[1] \
+                    and not compatible:
+                return self._cm_error(req, peer, f"Forward Open: electronic key revision "
+                                      f"{major}.{minor}", ExtendedStatus.REVISION_MISMATCH), []
+        for name, rpi in (("O→T", fo.o_t_rpi_us), ("T→O", fo.t_o_rpi_us)):
+            if fo.transport_class == 1 and not lim.min_rpi_us <= rpi <= lim.max_rpi_us:
+                return self._cm_error(req, peer, f"Forward Open: {name} RPI {rpi} µs outside "
+                                      f"{lim.min_rpi_us}..{lim.max_rpi_us} µs",
+                                      ExtendedStatus.RPI_NOT_SUPPORTED), []
+        if fo.transport_class == 3:
+            if fo.path.class_id != MESSAGE_ROUTER or fo.path.instance != 1:
+                return self._cm_error(req, peer, "Forward Open: a class 3 connection goes to "
+                                      "the Message Router (class 2 instance 1)",
+                                      ExtendedStatus.INVALID_APPLICATION_PATH), []
+            conn = Connection(peer, fo, next(self._ids), fo.t_o_connection_id, fo.timeout_s(),
+                              now, session=session)
+        else:
+            p = fo.path
+            if p.class_id != ASSEMBLY or p.points != (a.output_instance, a.input_instance) \
+                    or p.instance not in (None, a.config_instance):
+                return self._cm_error(req, peer, f"Forward Open: connection path class "
+                                      f"{p.class_id} config {p.instance} points {p.points}; this "
+                                      f"adapter has class 4 config {a.config_instance} points "
+                                      f"({a.output_instance}, {a.input_instance})",
+                                      ExtendedStatus.INVALID_APPLICATION_PATH), []
+            if p.data:
+                return self._cm_error(req, peer, f"Forward Open: {len(p.data)} bytes of "
+                                      "configuration data; the configuration assembly holds 0",
+                                      ExtendedStatus.INVALID_CONFIGURATION_SIZE, 0), []
+            if fo.o_t_parameters.connection_type != 2 or fo.t_o_parameters.connection_type != 2:
+                return self._cm_error(req, peer, "Forward Open: only point-to-point class 1 "
+                                      "connections are supported (no multicast)",
+                                      ExtendedStatus.INVALID_CONNECTION_TYPE), []
+            o_t, t_o = a.output_size + 6, a.input_size + 2
+            if fo.o_t_parameters.size != o_t:
+                return self._cm_error(req, peer, f"Forward Open: O→T size "
+                                      f"{fo.o_t_parameters.size}, this adapter consumes {o_t} "
+                                      "(sequence count, run/idle header, output assembly)",
+                                      ExtendedStatus.INVALID_O_T_SIZE, o_t), []
+            if fo.t_o_parameters.size != t_o:
+                return self._cm_error(req, peer, f"Forward Open: T→O size "
+                                      f"{fo.t_o_parameters.size}, this adapter produces {t_o} "
+                                      "(sequence count, input assembly)",
+                                      ExtendedStatus.INVALID_T_O_SIZE, t_o), []
+            if self.owned():
+                return self._cm_error(req, peer, "Forward Open: an exclusive owner holds the "
+                                      "output assembly", ExtendedStatus.OWNERSHIP_CONFLICT), []
+            dest = (peer, UDP_IO_PORT)
+            for item in items:
+                if item.type_id == ItemType.SOCKADDR_T_O:
+                    try:
+                        sa = SocketAddress.unpack(item.data)
+                    except FrameError as err:
+                        self.refuse(peer, f"Forward Open: {err}", "encapsulation status 0x0003")
+                        return Response(req.service, GeneralStatus.INVALID_PARAMETER), []
+                    dest = (peer, sa.port)  # unicast: the originator's own address
+            api = fo.t_o_rpi_us / 1e6
+            conn = Connection(peer, fo, next(self._ids), fo.t_o_connection_id, fo.timeout_s(),
+                              now, destination=dest, api_s=api, next_tx=now)
+        self.connections[conn.o_t_id] = conn
+        self._events.append(ConnectionOpened(peer, fo.transport_class, conn.o_t_id,
+                                             fo.t_o_rpi_us / 1e3))
+        reply = ForwardOpenReply(conn.o_t_id, conn.t_o_id, fo.connection_serial,
+                                 fo.originator_vendor_id, fo.originator_serial,
+                                 fo.o_t_rpi_us, fo.t_o_rpi_us)
+        extra = [Item(ItemType.SOCKADDR_O_T, SocketAddress(self.udp_port).pack())] \
+            if fo.transport_class == 1 else []
+        return Response(req.service, data=reply.pack()), extra
+
+    def _forward_close(self, req: Request, peer: str) -> Response:
+        try:
+            fc = ForwardClose.unpack(req.data)
+        except FrameError as err:
+            self.refuse(peer, f"Forward Close: {err}", f"CIP 0x{err.status:02X}")
+            return Response(req.service, err.status)
+        for conn in list(self.connections.values()):
+            if conn.request.triple == fc.triple:
+                self._close(conn, "forward close")
+                return Response(req.service, data=forward_close_reply(fc))
+        return self._cm_error(req, peer, f"Forward Close: no connection with serial "
+                              f"{fc.connection_serial} vendor {fc.originator_vendor_id} "
+                              f"originator {fc.originator_serial}",
+                              ExtendedStatus.CONNECTION_NOT_FOUND)
+
+    def session_closed(self, session: TcpSession) -> None:
+        """A TCP connection ended: its session and its class 3 connections go (class 1
+        connections are not tied to the TCP connection, Vol 2, 3-3.3)."""
+        self.sessions.pop(session.handle, None)
+        for conn in list(self.connections.values()):
+            if conn.session is session:
+                self._close(conn, "session closed")
+
+    def new_handle(self) -> int:
+        return next(self._handles) | 0x1000_0000
+
+
+def _close_view(data: bytes, service: int) -> bytes:
+    """The connection triple of a Forward Open / Forward Close request in Forward Close form
+    (what a failure reply echoes)."""
+    if service == Service.FORWARD_CLOSE:
+        return data
+    if len(data) < 20:
+        raise FrameError("too short to carry the connection triple")
+    return data[0:2] + data[10:18] + b"\x00\x00"
+
+
+# ---------------------------------------------------------------------------- TCP sessions
+
+
+@dataclass
+class TcpSession:
+    """One TCP connection's encapsulation state (Vol 2, 2-2)."""
+
+    adapter: Adapter
+    peer: str
+    handle: int = 0
+    closed: bool = False
+    _buffer: bytearray = field(default_factory=bytearray)
+
+    def receive_data(self, data: bytes, now: float) -> list[bytes]:
+        """Bytes from the peer: the replies to send, in order. After a message that ends the
+        session (UnRegisterSession, a length past the limit), ``closed`` is True and the
+        caller closes the TCP connection."""
+        self._buffer += data
+        out: list[bytes] = []
+        while not self.closed and len(self._buffer) >= 24:
+            length = Encapsulation.length_of(bytes(self._buffer[:24]))
+            if length - 24 > MAX_MESSAGE:
+                command = int.from_bytes(self._buffer[0:2], "little")
+                ctx = bytes(self._buffer[12:20])
+                self.adapter.refuse(self.peer, f"encapsulation of {length - 24} bytes (limit "
+                                    f"{MAX_MESSAGE})", "encapsulation status 0x0065")
+                out.append(Encapsulation(command, 0, EncapStatus.INVALID_LENGTH, ctx).pack())
+                self.close()
+                break
+            if len(self._buffer) < length:
+                break
+            raw = bytes(self._buffer[:length])
+            del self._buffer[:length]
+            reply = self._message(Encapsulation.unpack(raw), now)
+            if reply is not None:
+                out.append(reply.pack())
+        return out
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.adapter.session_closed(self)
+
+    def _status(self, msg: Encapsulation, status: EncapStatus, what: str) -> Encapsulation:
+        self.adapter.refuse(self.peer, what, f"encapsulation status 0x{status:04X}")
+        return msg.reply(status=status)
+
+    def _message(self, msg: Encapsulation, now: float) -> Encapsulation | None:
+        a = self.adapter
+        if msg.command == Command.NOP:
+            return None
+        if msg.command == Command.LIST_IDENTITY:
+            return msg.reply(a.list_identity())
+        if msg.command == Command.LIST_SERVICES:
+            return msg.reply(pack_items([list_services_item()]))
+        if msg.command == Command.LIST_INTERFACES:
+            return msg.reply(struct.pack("<H", 0))
+        if msg.command == Command.REGISTER_SESSION:
+            return self._register(msg)
+        if msg.command in (Command.UNREGISTER_SESSION, Command.SEND_RR_DATA,
+                           Command.SEND_UNIT_DATA):
+            if not self.handle or msg.session_handle != self.handle:
+                return self._status(msg, EncapStatus.INVALID_SESSION,
+                                    f"command 0x{msg.command:04X} with session handle "
+                                    f"0x{msg.session_handle:08X}, not this connection's")
+            if msg.command == Command.UNREGISTER_SESSION:
+                self.close()
+                return None
+            try:
+                send = SendData.unpack(msg.data)
+                if msg.command == Command.SEND_RR_DATA:
+                    return msg.reply(self._unconnected(send, now).pack())
+                return msg.reply(self._connected(send, now).pack())
+            except FrameError as err:
+                return self._status(msg, EncapStatus.INCORRECT_DATA,
+                                    f"command 0x{msg.command:04X}: {err}")
+        return self._status(msg, EncapStatus.INVALID_COMMAND,
+                            f"unknown encapsulation command 0x{msg.command:04X}")
+
+    def _register(self, msg: Encapsulation) -> Encapsulation:
+        a = self.adapter
+        if len(msg.data) != 4:
+            return self._status(msg, EncapStatus.INVALID_LENGTH,
+                                f"RegisterSession with {len(msg.data)} bytes of data, need 4")
+        version, options = struct.unpack("<HH", msg.data)
+        if version != 1 or options:
+            a.refuse(self.peer, f"RegisterSession protocol version {version} options {options}",
+                     "encapsulation status 0x0069")
+            return msg.reply(struct.pack("<HH", 1, 0), EncapStatus.UNSUPPORTED_PROTOCOL)
+        if self.handle:
+            return self._status(msg, EncapStatus.INVALID_COMMAND,
+                                "RegisterSession on a connection that has a session")
+        if len(a.sessions) >= a.limits.max_sessions:
+            return self._status(msg, EncapStatus.INSUFFICIENT_MEMORY,
+                                f"RegisterSession: {len(a.sessions)} sessions open, the limit "
+                                f"is {a.limits.max_sessions}")
+        self.handle = a.new_handle()
+        a.sessions[self.handle] = self
+        return msg.reply(msg.data, session=self.handle)
+
+    def _unconnected(self, send: SendData, now: float) -> SendData:
+        items = send.items
+        if len(items) < 2 or items[0].type_id != ItemType.NULL_ADDRESS \
+                or items[1].type_id != ItemType.UNCONNECTED_DATA:
+            raise FrameError("SendRRData needs a null address item and an unconnected data item")
+        req = Request.unpack(items[1].data)
+        response, extra = self.adapter.route(req, self.peer, now, self, items[2:])
+        return SendData([Item(ItemType.NULL_ADDRESS), Item(ItemType.UNCONNECTED_DATA,
+                                                            response.pack()), *extra])
+
+    def _connected(self, send: SendData, now: float) -> SendData:
+        items = send.items
+        if len(items) != 2 or items[0].type_id != ItemType.CONNECTED_ADDRESS \
+                or items[1].type_id != ItemType.CONNECTED_DATA or len(items[0].data) != 4 \
+                or len(items[1].data) < 2:
+            raise FrameError("SendUnitData needs a connected address item and a connected "
+                             "data item")
+        (conn_id,) = struct.unpack("<I", items[0].data)
+        conn = self.adapter.connections.get(conn_id)
+        if conn is None or conn.transport_class != 3 or conn.session is not self:
+            raise FrameError(f"SendUnitData for connection 0x{conn_id:08X}, not a class 3 "
+                             "connection of this session")
+        conn.last_rx = now
+        count, body = items[1].data[:2], items[1].data[2:]
+        try:
+            req = Request.unpack(body)
+            response, _ = self.adapter.route(req, self.peer, now, self, [])
+        except FrameError as err:
+            self.adapter.refuse(self.peer, f"class 3 request: {err}", f"CIP 0x{err.status:02X}")
+            response = Response(body[0] if body else 0, err.status)
+        return SendData([Item(ItemType.CONNECTED_ADDRESS, struct.pack("<I", conn.t_o_id)),
+                         Item(ItemType.CONNECTED_DATA, count + response.pack())])
