@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from .. import layout
 from ..allowlist import networks
+from ..handshake import HandshakeConfig
+from ..layout import ByteOrder
 from .adapter import Limits
 from .codec import Identity
 from .objects import Assemblies
@@ -59,7 +62,19 @@ class EnipLinkConfig(BaseModel):
                       min_rpi_us=round(self.min_rpi_ms * 1000))
 
     def assemblies(self) -> Assemblies:
-        return Assemblies()
+        """Input and output assemblies the size of the layout's blocks."""
+        return Assemblies(input_size=layout.INPUT_SIZE, output_size=layout.OUTPUT_SIZE)
+
+    def handshake(self, initial_recipe: int) -> HandshakeConfig:
+        """The handshake's settings from this block: 32-bit values little-endian (CDAB)."""
+        return HandshakeConfig(
+            word_order=ByteOrder.LITTLE.word_order,
+            measure_timeout_s=self.measure_timeout_s or 0.0,
+            watchdog_s=self.watchdog_s,
+            trigger_hold_s=self.trigger_hold_s,
+            allowlist=tuple(self.allowlist),
+            initial_recipe=initial_recipe,
+        )
 
 
 REVISION = (1, 1)  # the adapter's major.minor revision (Identity attribute 4, the EDS)

@@ -1,0 +1,148 @@
+"""The EtherNet/IP link with the handshake: the PLC twin over class 1 I/O (its EtherNet/IP port)
+against :class:`~drivers.links.enip.EnipLink` with the arithmetic pipeline; what the station
+shows when the scanner stops or goes idle; the shipped EDS."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from plc_peers import ArithmeticHandler, expected_outcome
+from test_plc_server import check_result
+
+import drivers.links.enip as enip_pkg
+from drivers.links import layout as r
+from drivers.links import link_settings
+from drivers.links.enip import EnipLink
+from drivers.links.enip.codec import IoFrame
+from drivers.links.enip.eds import eds_text, main
+from drivers.links.enip.settings import EnipLinkConfig
+from drivers.links.enip.twin import EnipPort, EnipPortError, enip_twin
+from drivers.links.layout import ErrorCode, State, Status
+from drivers.links.twin import PlcTwin
+from tests.waiting import until
+
+
+def config(**kw: object) -> EnipLinkConfig:
+    return EnipLinkConfig.model_validate({"port": 0, "io_port": 0, "watchdog_s": 10.0, **kw})
+
+
+@pytest.fixture
+async def link() -> AsyncIterator[tuple[EnipLink, ArithmeticHandler]]:
+    handler = ArithmeticHandler()
+    handler.recipe = 1
+    lk = EnipLink(config(watchdog_s=0.3), handler)  # type: ignore[arg-type]
+    await lk.start()
+    yield lk, handler
+    await lk.stop()
+
+
+async def attached(lk: EnipLink, rpi_ms: float = 4.0) -> PlcTwin:
+    twin = await enip_twin("127.0.0.1", lk.port, rpi_ms=rpi_ms).connect()
+    await twin.enable()
+    return twin
+
+
+async def test_triggers_over_class1_io(link: tuple[EnipLink, ArithmeticHandler]) -> None:
+    lk, handler = link
+    twin = await attached(lk)
+    beat = asyncio.create_task(twin.keep_alive(0.05))
+    try:
+        status = await twin.read_status()
+        assert status.state is State.READY and status.recipe == 1
+        # CIP is little-endian: the test values decode with the CDAB word order the port says
+        assert status.test_float == pytest.approx(r.TEST_FLOAT, abs=1e-5)
+        assert status.test_int == r.TEST_INT
+        for n, tid in enumerate([7, 26, 0xFFFF_FFFE], start=1):
+            answer = await twin.cycle(tid, part_id=f"VIN{tid}", timeout=10.0)
+            check_result(answer, tid)
+            assert answer.result_id == n
+        assert [q.part_id for q in handler.requests] == ["VIN7", "VIN26", f"VIN{0xFFFF_FFFE}"]
+        st = lk.status()
+        assert st["running"] and st["plc_online"] and len(st["io_connections"]) == 1
+        assert lk.line_state() == "READY"
+    finally:
+        twin.stop_keep_alive()
+        await beat
+        twin.close()
+    await until(lambda: not lk.status()["io_connections"], "the Forward Close")
+
+
+async def test_a_scanner_that_stops_is_reported_as_a_lost_plc(
+        link: tuple[EnipLink, ArithmeticHandler]) -> None:
+    lk, handler = link
+    twin = await attached(lk, rpi_ms=10.0)
+    check_result(await twin.cycle(3, timeout=10.0), 3)
+    twin.abort()  # no Forward Close: the connection times out (10 ms × 8)
+    await until(lambda: lk.server is not None and lk.server.stats.timeouts == 1,
+                "the connection timed out")
+    await until(lambda: lk.line_state() == "ERROR", "the watchdog")
+    assert lk.runner is not None and lk.runner.machine.error is ErrorCode.WATCHDOG
+    assert not lk.status()["plc_online"]
+    assert any("timed out" in e and "127.0.0.1" in e for e in lk.status()["last_errors"])
+    # a new connection and the PLC's error reset bring it back
+    twin = await attached(lk)
+    try:
+        await twin.reset_error()
+        check_result(await twin.cycle(4, timeout=10.0), 4)
+        assert handler.resets >= 1
+    finally:
+        twin.close()
+
+
+async def test_idle_header_clears_the_outputs(link: tuple[EnipLink, ArithmeticHandler]) -> None:
+    lk, _ = link
+    port = EnipPort("127.0.0.1", lk.port)
+    twin = PlcTwin(port)
+    await twin.connect()
+    try:
+        await twin.enable()
+        await twin.wait_for(lambda s: s.state is State.READY, 5.0, "READY")
+        # the scanner goes to program mode: the run/idle header says idle
+        assert port._udp is not None and lk.server is not None
+        port._producer.cancel()  # type: ignore[union-attr]
+        idle = IoFrame(port._o_t_id, 99_999, 99, struct.pack("<I", 0) + bytes(80))
+        port._udp.sendto(idle.pack(), port._dest)
+        await until(lambda: lk.line_state() == "HALTED", "HALTED after idle")
+        assert lk.server.adapter is not None and lk.server.adapter.outputs == bytes(80)
+    finally:
+        twin.close()
+
+
+async def test_wrong_rpi_is_refused_with_its_code() -> None:
+    handler = ArithmeticHandler()
+    lk = EnipLink(config(min_rpi_ms=8.0), handler)  # type: ignore[arg-type]
+    await lk.start()
+    try:
+        with pytest.raises(EnipPortError, match="0x0111"):
+            await EnipPort("127.0.0.1", lk.port, rpi_ms=4.0).connect()
+        assert handler.requests == [] and lk.status()["refused"] == 1
+    finally:
+        await lk.stop()
+
+
+def test_settings_forbid_unknown_keys_and_name_the_field() -> None:
+    with pytest.raises(ValueError, match=r"links\.enip\.rpi"):
+        link_settings({"enip": {"rpi": 4}})
+    with pytest.raises(ValueError, match=r"links\.enip\.min_rpi_ms"):
+        link_settings({"enip": {"min_rpi_ms": 1.0}})
+    assert isinstance(link_settings({"enip": {}})["enip"], EnipLinkConfig)
+
+
+def test_the_shipped_eds_is_the_generated_one(capsys: pytest.CaptureFixture[str]) -> None:
+    shipped = Path(enip_pkg.__file__).with_name("mvpose.eds").read_text()
+    assert shipped == eds_text(config().identity(), config().assemblies())
+    assert main([]) == 0 and capsys.readouterr().out == shipped
+    assert "Assem100" in shipped and "\n                140," in shipped
+    assert '"20 04 24 97 2C 96 2C 64"' in shipped
+    # every field of the layout is a parameter, in order
+    for f in (*r.INPUT_FIELDS, *r.OUTPUT_FIELDS):
+        assert f'"{f.name}"' in shipped
+
+
+def test_outcome_helper_is_what_the_twin_checks() -> None:
+    assert expected_outcome(26).result_code != 0  # the suite above covers a NOK answer
+    assert Status.RESULT_OK not in Status(0)
