@@ -286,6 +286,21 @@ def test_forward_open_io_produce_consume_and_forward_close() -> None:
     assert (r.status, r.extended) == (0x01, (0x0107,))
 
 
+def test_change_of_state_produces_on_a_change_and_every_rpi() -> None:
+    a = adapter()
+    s = registered(a)
+    opened(a, s, transport=0x11)  # class 1, production trigger change of state
+    assert a.watches_changes()
+    assert len(a.produce(0.0, bytes(140))) == 1  # the first one is due at once
+    assert a.produce(0.001, bytes(140)) == []  # nothing changed, not due
+    (changed,) = a.produce(0.002, bytes([1]) + bytes(139))  # a change leaves at once
+    assert IoFrame.unpack(changed[0]).sequence_count == 2
+    assert a.produce(0.005, bytes([1]) + bytes(139)) == []  # the RPI counts from the change
+    assert len(a.produce(0.006, bytes([1]) + bytes(139))) == 1
+    r = answer(rr(s, cm(0x54, forward_open(serial=8, transport=0x21))))
+    assert r.extended == (0x0103,)  # application triggered: not supported
+
+
 def test_run_to_idle_clears_the_outputs() -> None:
     a = adapter()
     s = registered(a)
@@ -348,6 +363,7 @@ def test_unknown_or_short_io_datagrams_are_dropped() -> None:
     ot_id = opened(a, s)
     a.events()
     a.receive_io(io(ot_id + 1, 1, bytes(80)), "10.0.0.5", 0.0)
+    a.receive_io(io(ot_id + 1, 2, bytes(80)), "10.0.0.5", 0.0)  # reported once, not per packet
     a.receive_io(io(ot_id, 1, bytes(70)), "10.0.0.5", 0.0)
     a.receive_io(b"\x02\x00", "10.0.0.5", 0.0)
     a.receive_io(io(ot_id, 1, bytes(80)), "10.0.0.66", 0.0)  # another host

@@ -112,6 +112,13 @@ class Connection:
     sequence_count: int = 0
     last_count: int | None = None
     running: bool = False
+    last_image: bytes | None = None  # what the last T→O datagram carried
+
+    @property
+    def change_of_state(self) -> bool:
+        """The target produces on a change of its data too, RPI being the background rate
+        (the production trigger of the transport type/trigger byte, Vol 1, 3-4.4.3)."""
+        return (self.request.transport_type_trigger >> 4) & 7 == 1
 
     @property
     def transport_class(self) -> int:
@@ -144,6 +151,7 @@ class Adapter:
         self.connections: dict[int, Connection] = {}  # by our O→T id
         self.sessions: dict[int, TcpSession] = {}
         self._events: list[Event] = []
+        self._unknown: set[tuple[str, int]] = set()  # (peer, connection id) reported dropped
         self._ids = itertools.count(0x4D56_0001)  # "MV"...
         self._handles = itertools.count(1)
         self.objects = ObjectModel(identity, self.assemblies, host, lambda: self.inputs,
@@ -203,8 +211,13 @@ class Adapter:
             return
         conn = self.connections.get(frame.connection_id)
         if conn is None or conn.transport_class != 1 or conn.peer != peer:
-            self.refuse(peer, f"I/O datagram for unknown connection 0x{frame.connection_id:08X}",
-                        "dropped")
+            # a scanner sends on until it notices its connection gone: say so once per id
+            if (peer, frame.connection_id) not in self._unknown:
+                if len(self._unknown) >= 64:
+                    self._unknown.clear()
+                self._unknown.add((peer, frame.connection_id))
+                self.refuse(peer, "I/O datagram for unknown connection "
+                                  f"0x{frame.connection_id:08X} (reported once)", "dropped")
             return
         want = conn.request.o_t_parameters.size - 2
         if len(frame.data) != want:
@@ -231,20 +244,29 @@ class Adapter:
 
     def produce(self, now: float, image: bytes) -> list[tuple[bytes, tuple[str, int]]]:
         """The T→O datagrams due at ``now`` with input image ``image`` (the layout's INPUT
-        block), and where each goes."""
+        block), and where each goes: every RPI, and on a change connection also when the image
+        changed (the RPI then counts from that datagram)."""
         self.inputs = bytes(image)
         out = []
         for conn in self.io_connections():
-            if conn.destination is None or now < conn.next_tx:
+            if conn.destination is None:
+                continue
+            due = now >= conn.next_tx
+            if not due and not (conn.change_of_state and self.inputs != conn.last_image):
                 continue
             conn.encap_sequence = (conn.encap_sequence + 1) & 0xFFFF_FFFF
             conn.sequence_count = (conn.sequence_count + 1) & 0xFFFF
             frame = IoFrame(conn.t_o_id, conn.encap_sequence, conn.sequence_count, self.inputs)
             out.append((frame.pack(), conn.destination))
-            conn.next_tx += conn.api_s
+            conn.last_image = self.inputs
+            conn.next_tx = conn.next_tx + conn.api_s if due else now + conn.api_s
             if conn.next_tx <= now:  # late by more than a period: keep the pace from now
                 conn.next_tx = now + conn.api_s
         return out
+
+    def watches_changes(self) -> bool:
+        """A change-of-state connection is open: the caller offers the image more often."""
+        return any(c.change_of_state for c in self.io_connections())
 
     def next_due(self) -> float | None:
         """When the next T→O datagram is due (None: no class 1 connection)."""
@@ -317,10 +339,12 @@ class Adapter:
         if any(c.request.triple == fo.triple for c in self.connections.values()):
             return self._cm_error(req, peer, "Forward Open: a connection with this serial is "
                                   "open already", ExtendedStatus.DUPLICATE_FORWARD_OPEN), []
-        if fo.transport_class not in (1, 3):
+        trigger = (fo.transport_type_trigger >> 4) & 7
+        if fo.transport_class not in (1, 3) or fo.transport_class == 1 and trigger > 1 \
+                or fo.transport_type_trigger & 0x80 and fo.transport_class == 1:
             return self._cm_error(req, peer, "Forward Open: transport "
-                                  f"0x{fo.transport_type_trigger:02X} (class 1 cyclic and "
-                                  "class 3 are supported)",
+                                  f"0x{fo.transport_type_trigger:02X} (class 1 cyclic or change "
+                                  "of state, and class 3, are supported)",
                                   ExtendedStatus.TRANSPORT_NOT_SUPPORTED), []
         if len(self.connections) >= lim.max_connections:
             return self._cm_error(req, peer, f"Forward Open: {len(self.connections)} connections "

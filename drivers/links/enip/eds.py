@@ -112,7 +112,8 @@ def eds_text(identity: Identity, assemblies: Assemblies | None = None) -> str:
         '        Object_Name = "Connection Manager Object";',
         "        Object_Class_Code = 0x06;",
         "        Connection1 =",
-        "                0x04010002,             $ class 1, cyclic, exclusive owner",
+        "                0x04030002,             $ class 1, cyclic or change of state, "
+        "exclusive owner",
         "                0x44440405,             $ fixed sizes; O->T run/idle header, T->O "
         "modeless; point to point; scheduled",
         f"                Param{rpi},{a.output_size},Assem{a.output_instance},"

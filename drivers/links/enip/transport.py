@@ -32,6 +32,7 @@ from .objects import Assemblies
 log = logging.getLogger(__name__)
 
 TICK_S = 0.005  # the longest the pacing task sleeps (timeouts are checked this often)
+CHANGE_S = 0.001  # how often the image is compared for a change-of-state connection
 
 
 @dataclass
@@ -85,7 +86,6 @@ class EnipServer:
         self._io: _Io | None = None
         self._udp_encap: _Io | None = None
         self._pacer: asyncio.Task[None] | None = None
-        self._wake = asyncio.Event()
         self._writers: set[asyncio.StreamWriter] = set()
         self._handlers: set[asyncio.Task[None]] = set()
 
@@ -137,12 +137,13 @@ class EnipServer:
         if self._tcp is not None:
             self._tcp.close()
             for w in list(self._writers):
-                w.close()
-            for task in list(self._handlers):
+                w.close()  # each session's read ends (end of stream) and its task returns
+            if self._handlers:
+                await asyncio.wait(list(self._handlers), timeout=2.0)
+            for task in list(self._handlers):  # one that did not: cancelled (it returns)
                 task.cancel()
-            for task in list(self._handlers):
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+            if self._handlers:
+                await asyncio.wait(list(self._handlers), timeout=2.0)
             await self._tcp.wait_closed()
             self._tcp = None
         for proto in (self._io, self._udp_encap):
@@ -169,6 +170,10 @@ class EnipServer:
             self.stats.sessions += 1
             await self._session(session, reader, writer)
         except (ConnectionError, asyncio.IncompleteReadError):
+            pass
+        except asyncio.CancelledError:
+            # the server stops: end normally (asyncio's stream callback would otherwise log
+            # the cancellation as an error)
             pass
         finally:
             self._writers.discard(writer)
@@ -218,7 +223,8 @@ class EnipServer:
             try:
                 adapter.tick(now)
                 due = adapter.next_due()
-                if due is not None and due <= now:
+                watch = adapter.watches_changes()
+                if due is not None and due <= now or watch:
                     out = adapter.produce(now, self.inputs())
                     if self._io is not None and self._io.transport is not None:
                         for datagram, dest in out:
@@ -229,7 +235,9 @@ class EnipServer:
             except Exception as err:  # noqa: BLE001 — one bad pass must not stop the I/O
                 self._note(f"I/O pass failed: {err!r}")
                 due = None
-            wait = TICK_S if due is None else min(TICK_S, max(0.0, due - self.clock()))
+                watch = False
+            longest = CHANGE_S if watch else TICK_S
+            wait = longest if due is None else min(longest, max(0.0, due - self.clock()))
             await asyncio.sleep(wait)
 
     # --------------------------------------------------------------------- events

@@ -57,12 +57,15 @@ class EnipPort:
     byte_order = ByteOrder.LITTLE
     word_order = ByteOrder.LITTLE.word_order
 
-    def __init__(self, host: str, port: int, rpi_ms: float = 4.0, multiplier: int = 2,
-                 assemblies: Assemblies | None = None) -> None:
+    def __init__(self, host: str, port: int, rpi_ms: float = 4.0, multiplier: int = 5,
+                 assemblies: Assemblies | None = None, change_of_state: bool = True) -> None:
+        """``change_of_state``: ask the adapter to produce on a change of its inputs too (the
+        answer then leaves at once; RPI is the background rate); else cyclic only."""
         self.host = host
         self.port = port
         self.rpi_s = rpi_ms / 1000
         self.multiplier = multiplier
+        self.trigger = 0x11 if change_of_state else 0x01  # class 1; change of state or cyclic
         self.assemblies = a = assemblies or Assemblies(input_size=layout.INPUT_SIZE,
                                                        output_size=layout.OUTPUT_SIZE)
         self.outputs = bytearray(a.output_size)
@@ -101,7 +104,7 @@ class EnipPort:
         fo = ForwardOpen(
             0, 0x7000_0000 | self._serial, self._serial, 0xFFFF, self._origin,
             self.multiplier, rpi_us, NetworkParameters(a.output_size + 6), rpi_us,
-            NetworkParameters(a.input_size + 2), 0x01,
+            NetworkParameters(a.input_size + 2), self.trigger,
             Path(class_id=4, instance=a.config_instance,
                  points=(a.output_instance, a.input_instance)))
         response, items = await self._cm(Service.FORWARD_OPEN, fo.pack(),
@@ -220,7 +223,10 @@ class EnipPort:
         return response, items[2:]
 
 
-def enip_twin(host: str, port: int, *, rpi_ms: float = 4.0, multiplier: int = 2,
-              poll_s: float = 0.0) -> PlcTwin:
-    """A PLC twin on EtherNet/IP class 1 I/O (RPI ``rpi_ms``, timeout RPI × 4 << multiplier)."""
-    return PlcTwin(EnipPort(host, port, rpi_ms=rpi_ms, multiplier=multiplier), poll_s=poll_s)
+def enip_twin(host: str, port: int, *, rpi_ms: float = 4.0, multiplier: int = 5,
+              poll_s: float = 0.0, change_of_state: bool = True) -> PlcTwin:
+    """A PLC twin on EtherNet/IP class 1 I/O (RPI ``rpi_ms``, timeout RPI × 4 << multiplier:
+    512 ms by default, past the stalls of a loaded test machine, as a PLC's 100 ms floor is
+    past a busy network's)."""
+    return PlcTwin(EnipPort(host, port, rpi_ms=rpi_ms, multiplier=multiplier,
+                            change_of_state=change_of_state), poll_s=poll_s)
