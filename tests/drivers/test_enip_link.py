@@ -146,3 +146,54 @@ def test_the_shipped_eds_is_the_generated_one(capsys: pytest.CaptureFixture[str]
 def test_outcome_helper_is_what_the_twin_checks() -> None:
     assert expected_outcome(26).result_code != 0  # the suite above covers a NOK answer
     assert Status.RESULT_OK not in Status(0)
+
+
+async def test_bad_input_gets_its_status_a_log_line_and_nothing_else(
+        link: tuple[EnipLink, ArithmeticHandler], caplog: pytest.LogCaptureFixture) -> None:
+    lk, handler = link
+    reader, writer = await asyncio.open_connection("127.0.0.1", lk.port)
+
+    async def ask(raw: bytes) -> bytes:
+        writer.write(raw)
+        head = await asyncio.wait_for(reader.readexactly(24), 10)
+        return head + await reader.readexactly(int.from_bytes(head[2:4], "little"))
+
+    def encap(command: int, data: bytes = b"", session: int = 0) -> bytes:
+        return struct.pack("<HHII8sI", command, len(data), session, 0, b"badinput", 0) + data
+
+    try:
+        assert struct.unpack_from("<I", await ask(encap(0x99)), 8) == (0x01,)  # unknown command
+        reply = await ask(encap(0x6F, bytes(8), session=0x1234))  # no session registered
+        assert struct.unpack_from("<I", reply, 8) == (0x64,)
+        reply = await ask(encap(0x65, b"\x01\x00\x00\x00"))
+        session = struct.unpack_from("<I", reply, 4)[0]
+        # Set_Attribute_Single on the input assembly: CIP 0x0E in the reply's general status
+        mr = b"\x10\x03\x20\x04\x24\x64\x30\x03" + bytes(140)
+        cpf = struct.pack("<IHHHHHH", 0, 0, 2, 0, 0, 0xB2, len(mr)) + mr
+        reply = await ask(encap(0x6F, cpf, session))
+        assert struct.unpack_from("<I", reply, 8) == (0,) and reply[24 + 16 + 2] == 0x0E
+        # a Forward Open for 64 output bytes: CIP 0x01, extended 0x0127 and the size wanted
+        fo = struct.pack("<BBIIHHIB3sIHIHBB", 0x0A, 0xF0, 0, 1, 9, 1, 2, 5, bytes(3), 4000,
+                         64 | 0x4800, 4000, 142 | 0x4800, 0x11, 4) \
+            + b"\x20\x04\x24\x97\x2c\x96\x2c\x64"
+        mr = b"\x54\x02\x20\x06\x24\x01" + fo
+        cpf = struct.pack("<IHHHHHH", 0, 0, 2, 0, 0, 0xB2, len(mr)) + mr
+        reply = await ask(encap(0x6F, cpf, session))
+        body = reply[24 + 16:]
+        assert body[2] == 0x01 and struct.unpack_from("<HH", body, 4) == (0x0127, 86)
+        # a length past the limit: status 0x0065, and the connection is closed
+        writer.write(struct.pack("<HHII8sI", 0x6F, 60000, session, 0, b"badinput", 0))
+        head = await asyncio.wait_for(reader.readexactly(24), 10)
+        assert struct.unpack_from("<I", head, 8) == (0x65,)
+        assert await asyncio.wait_for(reader.read(10), 10) == b""
+    finally:
+        writer.close()
+    assert handler.requests == [] and lk.runner is not None
+    assert lk.runner.machine.stats.triggers == 0
+    refused = [r.getMessage() for r in caplog.records if "EtherNet/IP" in r.getMessage()]
+    assert len(refused) >= 5 and all("127.0.0.1" in m for m in refused), refused
+    twin = await attached(lk)  # the adapter serves on
+    try:
+        check_result(await twin.cycle(5, timeout=10.0), 5)
+    finally:
+        twin.close()

@@ -89,7 +89,8 @@ def _links(tmp: Path, opcua: bool) -> Callable[[dict[str, Any]], None]:
         # only this host's own loopback address may be the PLC (a peer from 127.0.0.2 is not)
         links = data.setdefault("links", {})
         links.setdefault("modbus", {})["allowlist"] = ["127.0.0.1"]
-        links["enip"] = {"port": 0, "io_port": 0, "allowlist": ["127.0.0.1"]}
+        links["enip"] = {"port": 0, "io_port": 0, "allowlist": ["127.0.0.1"],
+                         "watchdog_s": 10.0}
         if opcua:
             links["opcua"] = {
                 "port": 0, "pki_dir": str(tmp / "pki"), "measure_timeout_s": 30.0,
