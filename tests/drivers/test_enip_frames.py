@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import struct
 
+import numpy as np
 import pytest
 
 from drivers.links.enip.adapter import (
@@ -388,3 +389,32 @@ def test_frames_round_trip() -> None:
     assert IoFrame.unpack(frame.pack()) == frame
     with pytest.raises(FrameError, match="segment 0x.. at byte 0"):
         Path.unpack(b"\xe0\x00")
+
+
+def test_random_requests_get_answers_never_exceptions() -> None:
+    """Garbage inside well-framed messages: every one is answered (or dropped) with a status;
+    nothing raises out of the core."""
+    rng = np.random.default_rng(24)
+    a = adapter()
+    s = registered(a)
+    for n in range(3000):
+        kind = n % 4
+        body = rng.integers(0, 256, int(rng.integers(0, 80))).astype(np.uint8).tobytes()
+        if kind == 0:  # a message router request with a random path and data
+            mr = bytes([int(rng.integers(0, 256)), len(body) // 4]) + body
+            cpf = struct.pack("<HHHHH", 2, 0, 0, 0xB2, len(mr)) + mr
+            raw = encap(0x6F, struct.pack("<IH", 0, 0) + cpf, s.handle)
+        elif kind == 1:  # a Forward Open / Close / Unconnected Send with random data
+            service = int(rng.choice([0x54, 0x5B, 0x4E, 0x52]))
+            mr = cm(service, body)
+            cpf = struct.pack("<HHHHH", 2, 0, 0, 0xB2, len(mr)) + mr
+            raw = encap(0x6F, struct.pack("<IH", 0, 0) + cpf, s.handle)
+        elif kind == 2:  # random command data
+            raw = encap(int(rng.choice([0x04, 0x63, 0x6F, 0x70, 0x65])), body, s.handle)
+        else:  # a random I/O datagram
+            a.receive_io(body, "10.0.0.5", 0.0)
+            continue
+        s.receive_data(raw, 0.0)
+        if s.closed:
+            s = registered(a)
+    assert a.events()  # the refusals were reported

@@ -189,7 +189,11 @@ class EnipServer:
                     break
                 assert self.adapter is not None
                 self.adapter.inputs = bytes(self.inputs())  # a Get reads the image of now
-                replies = session.receive_data(data, self.clock())
+                try:
+                    replies = session.receive_data(data, self.clock())
+                except Exception as err:  # noqa: BLE001 — a core fault ends this peer only
+                    self._note(f"session of {session.peer} failed: {err!r}; connection closed")
+                    break
                 self._drain()
                 for reply in replies:
                     writer.write(reply)
