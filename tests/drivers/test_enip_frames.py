@@ -18,22 +18,18 @@ from drivers.links.enip.adapter import (
     Limits,
     OutputImage,
     Refused,
-    TcpSession,
 )
+from drivers.links.enip.cip import ForwardOpen, NetworkParameters, Path, Request, Response
 from drivers.links.enip.codec import (
     Encapsulation,
-    ForwardOpen,
     FrameError,
     Identity,
     IoFrame,
     Item,
-    NetworkParameters,
-    Path,
-    Request,
-    Response,
     SendData,
     unpack_items,
 )
+from drivers.links.enip.session import TcpSession
 
 IDENTITY = Identity(vendor_id=0xFFFF, device_type=0x2B, product_code=1, revision=(1, 2),
                     serial_number=0x12345678, product_name="mvpose station")

@@ -13,7 +13,8 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .codec import GeneralStatus, Identity, Request, Response, Service
+from .cip import GeneralStatus, Request, Response, Service
+from .codec import Identity
 
 IDENTITY, MESSAGE_ROUTER, ASSEMBLY, CONNECTION_MANAGER = 0x01, 0x02, 0x04, 0x06
 TCP_IP, ETHERNET_LINK = 0xF5, 0xF6

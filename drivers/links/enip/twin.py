@@ -15,21 +15,23 @@ import struct
 from .. import layout
 from ..layout import ByteOrder
 from ..twin import PlcTwin, PlcTwinError
-from .codec import (
-    Command,
-    Encapsulation,
+from .cip import (
     ForwardClose,
     ForwardOpen,
     ForwardOpenReply,
-    IoFrame,
-    Item,
-    ItemType,
     NetworkParameters,
     Path,
     Request,
     Response,
-    SendData,
     Service,
+)
+from .codec import (
+    Command,
+    Encapsulation,
+    IoFrame,
+    Item,
+    ItemType,
+    SendData,
     SocketAddress,
     run_idle,
 )
