@@ -37,7 +37,7 @@ CTX = b"ctx-0001"
 
 
 def adapter(**limits: int) -> Adapter:
-    return Adapter(IDENTITY, limits=Limits(**limits), udp_port=2222)
+    return Adapter(IDENTITY, limits=Limits(**limits), udp_port=40000)
 
 
 def encap(command: int, data: bytes = b"", session: int = 0) -> bytes:
@@ -99,8 +99,9 @@ def opened(a: Adapter, s: TcpSession, **kw: int) -> int:
     assert r.status == 0, (hex(r.status), r.extended)
     ot_id, to_id = struct.unpack_from("<II", r.data)
     assert to_id == 0xBEEF0001  # point to point: the originator's T→O id (Vol 2, 3-3.7.1)
+    # the adapter's I/O port is not 2222: the reply says where O→T datagrams go
     sockaddr = [i for i in reply.items if i.type_id == 0x8000]
-    assert sockaddr and struct.unpack(">hH", sockaddr[0].data[:4]) == (2, 2222)
+    assert sockaddr and struct.unpack(">hH", sockaddr[0].data[:4]) == (2, a.udp_port)
     return int(ot_id)
 
 
@@ -122,6 +123,13 @@ def test_register_session_then_list_identity_and_services() -> None:
     (raw,) = s.receive_data(encap(0x04), 0.0)
     (svc,) = unpack_items(Encapsulation.unpack(raw).data)
     assert svc.type_id == 0x100 and struct.unpack_from("<HH", svc.data) == (1, 0x0120)
+
+
+def test_the_usual_io_port_is_not_repeated_in_the_reply() -> None:
+    a = Adapter(IDENTITY, udp_port=2222)
+    reply = rr(registered(a), cm(0x54, forward_open()))
+    assert answer(reply).status == 0
+    assert [i.type_id for i in reply.items] == [0, 0xB2]
 
 
 def test_listidentity_on_udp_answers_and_other_commands_are_dropped() -> None:

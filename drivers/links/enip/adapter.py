@@ -427,8 +427,9 @@ class Adapter:
         reply = ForwardOpenReply(conn.o_t_id, conn.t_o_id, fo.connection_serial,
                                  fo.originator_vendor_id, fo.originator_serial,
                                  fo.o_t_rpi_us, fo.t_o_rpi_us)
+        # where the O→T datagrams go: said only when it is not the usual UDP 2222
         extra = [Item(ItemType.SOCKADDR_O_T, SocketAddress(self.udp_port).pack())] \
-            if fo.transport_class == 1 else []
+            if fo.transport_class == 1 and self.udp_port != UDP_IO_PORT else []
         return Response(req.service, data=reply.pack()), extra
 
     def _forward_close(self, req: Request, peer: str) -> Response:
