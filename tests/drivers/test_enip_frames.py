@@ -15,10 +15,10 @@ from drivers.links.enip.adapter import (
     Adapter,
     ConnectionClosed,
     ConnectionOpened,
-    Limits,
     OutputImage,
     Refused,
 )
+from drivers.links.enip.admission import Limits
 from drivers.links.enip.cip import ForwardOpen, NetworkParameters, Path, Request, Response
 from drivers.links.enip.codec import (
     Encapsulation,

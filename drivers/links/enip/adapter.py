@@ -19,6 +19,7 @@ import itertools
 import struct
 from dataclasses import dataclass
 
+from .admission import Limits, refusal
 from .cip import (
     ExtendedStatus,
     ForwardClose,
@@ -44,7 +45,7 @@ from .codec import (
     newer,
     pack_items,
 )
-from .objects import ASSEMBLY, CONNECTION_MANAGER, MESSAGE_ROUTER, Assemblies, ObjectModel
+from .objects import CONNECTION_MANAGER, Assemblies, ObjectModel
 from .session import TcpSession
 
 UDP_IO_PORT = 2222
@@ -123,16 +124,6 @@ class Connection:
     @property
     def transport_class(self) -> int:
         return self.request.transport_class
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What the adapter accepts (docs/integration.md, "EtherNet/IP")."""
-
-    max_sessions: int = 16
-    max_connections: int = 8  # class 1 + class 3 connections open at once
-    min_rpi_us: int = 2000
-    max_rpi_us: int = 10_000_000
 
 
 class Adapter:
@@ -335,87 +326,26 @@ class Adapter:
         except FrameError as err:
             self.refuse(peer, f"Forward Open: {err}", f"CIP 0x{err.status:02X}")
             return Response(req.service, err.status), []
-        a, lim = self.assemblies, self.limits
-        if any(c.request.triple == fo.triple for c in self.connections.values()):
-            return self._cm_error(req, peer, "Forward Open: a connection with this serial is "
-                                  "open already", ExtendedStatus.DUPLICATE_FORWARD_OPEN), []
-        trigger = (fo.transport_type_trigger >> 4) & 7
-        if fo.transport_class not in (1, 3) or fo.transport_class == 1 and trigger > 1 \
-                or fo.transport_type_trigger & 0x80 and fo.transport_class == 1:
-            return self._cm_error(req, peer, "Forward Open: transport "
-                                  f"0x{fo.transport_type_trigger:02X} (class 1 cyclic or change "
-                                  "of state, and class 3, are supported)",
-                                  ExtendedStatus.TRANSPORT_NOT_SUPPORTED), []
-        if len(self.connections) >= lim.max_connections:
-            return self._cm_error(req, peer, f"Forward Open: {len(self.connections)} connections "
-                                  f"open, the limit is {lim.max_connections}",
-                                  ExtendedStatus.OUT_OF_CONNECTIONS), []
-        key = fo.path.key
-        idt = self.identity
-        if key is not None:
-            vendor, dtype, product, major, minor = key
-            if vendor and vendor != idt.vendor_id or product and product != idt.product_code:
-                return self._cm_error(req, peer, f"Forward Open: electronic key vendor {vendor} "
-                                      f"product {product}",
-                                      ExtendedStatus.VENDOR_OR_PRODUCT_MISMATCH), []
-            if dtype and dtype != idt.device_type:
-                return self._cm_error(req, peer, f"Forward Open: electronic key device type "
-                                      f"{dtype}", ExtendedStatus.DEVICE_TYPE_MISMATCH), []
-            compatible = fo.path.compatibility and minor <= idt.revision[1]
-            if major and major != idt.revision[0] or minor and minor != idt.revision[1] \
-                    and not compatible:
-                return self._cm_error(req, peer, f"Forward Open: electronic key revision "
-                                      f"{major}.{minor}", ExtendedStatus.REVISION_MISMATCH), []
-        for name, rpi in (("O→T", fo.o_t_rpi_us), ("T→O", fo.t_o_rpi_us)):
-            if fo.transport_class == 1 and not lim.min_rpi_us <= rpi <= lim.max_rpi_us:
-                return self._cm_error(req, peer, f"Forward Open: {name} RPI {rpi} µs outside "
-                                      f"{lim.min_rpi_us}..{lim.max_rpi_us} µs",
-                                      ExtendedStatus.RPI_NOT_SUPPORTED), []
+        found = refusal(fo, self.identity, self.assemblies, self.limits,
+                        open_connections=len(self.connections),
+                        duplicate=any(c.request.triple == fo.triple
+                                      for c in self.connections.values()),
+                        owned=self.owned())
+        if found is not None:
+            return self._cm_error(req, peer, f"Forward Open: {found.text}", found.status,
+                                  *found.more), []
         if fo.transport_class == 3:
-            if fo.path.class_id != MESSAGE_ROUTER or fo.path.instance != 1:
-                return self._cm_error(req, peer, "Forward Open: a class 3 connection goes to "
-                                      "the Message Router (class 2 instance 1)",
-                                      ExtendedStatus.INVALID_APPLICATION_PATH), []
             conn = Connection(peer, fo, next(self._ids), fo.t_o_connection_id, fo.timeout_s(),
                               now, session=session)
         else:
-            p = fo.path
-            if p.class_id != ASSEMBLY or p.points != (a.output_instance, a.input_instance) \
-                    or p.instance not in (None, a.config_instance):
-                return self._cm_error(req, peer, f"Forward Open: connection path class "
-                                      f"{p.class_id} config {p.instance} points {p.points}; this "
-                                      f"adapter has class 4 config {a.config_instance} points "
-                                      f"({a.output_instance}, {a.input_instance})",
-                                      ExtendedStatus.INVALID_APPLICATION_PATH), []
-            if p.data:
-                return self._cm_error(req, peer, f"Forward Open: {len(p.data)} bytes of "
-                                      "configuration data; the configuration assembly holds 0",
-                                      ExtendedStatus.INVALID_CONFIGURATION_SIZE, 0), []
-            if fo.o_t_parameters.connection_type != 2 or fo.t_o_parameters.connection_type != 2:
-                return self._cm_error(req, peer, "Forward Open: only point-to-point class 1 "
-                                      "connections are supported (no multicast)",
-                                      ExtendedStatus.INVALID_CONNECTION_TYPE), []
-            o_t, t_o = a.output_size + 6, a.input_size + 2
-            if fo.o_t_parameters.size != o_t:
-                return self._cm_error(req, peer, f"Forward Open: O→T size "
-                                      f"{fo.o_t_parameters.size}, this adapter consumes {o_t} "
-                                      "(sequence count, run/idle header, output assembly)",
-                                      ExtendedStatus.INVALID_O_T_SIZE, o_t), []
-            if fo.t_o_parameters.size != t_o:
-                return self._cm_error(req, peer, f"Forward Open: T→O size "
-                                      f"{fo.t_o_parameters.size}, this adapter produces {t_o} "
-                                      "(sequence count, input assembly)",
-                                      ExtendedStatus.INVALID_T_O_SIZE, t_o), []
-            if self.owned():
-                return self._cm_error(req, peer, "Forward Open: an exclusive owner holds the "
-                                      "output assembly", ExtendedStatus.OWNERSHIP_CONFLICT), []
             dest = (peer, UDP_IO_PORT)
             for item in items:
                 if item.type_id == ItemType.SOCKADDR_T_O:
                     try:
                         sa = SocketAddress.unpack(item.data)
                     except FrameError as err:
-                        self.refuse(peer, f"Forward Open: {err}", "encapsulation status 0x0003")
+                        self.refuse(peer, f"Forward Open: T→O {err}",
+                                    f"CIP 0x{GeneralStatus.INVALID_PARAMETER:02X}")
                         return Response(req.service, GeneralStatus.INVALID_PARAMETER), []
                     dest = (peer, sa.port)  # unicast: the originator's own address
             api = fo.t_o_rpi_us / 1e6

@@ -9,7 +9,7 @@ from .. import layout
 from ..allowlist import networks
 from ..handshake import HandshakeConfig
 from ..layout import ByteOrder
-from .adapter import Limits
+from .admission import Limits
 from .codec import Identity
 from .objects import Assemblies
 

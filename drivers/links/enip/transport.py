@@ -21,11 +21,11 @@ from .adapter import (
     Adapter,
     ConnectionClosed,
     ConnectionOpened,
-    Limits,
     OutputImage,
     Refused,
     TcpSession,
 )
+from .admission import Limits
 from .codec import Identity
 from .objects import Assemblies
 
