@@ -320,10 +320,12 @@ def test_silent_consumer_times_out_after_rpi_times_multiplier() -> None:
     a = adapter()
     s = registered(a)
     ot_id = opened(a, s, rpi_us=10_000, multiplier=1)  # 10 ms × 8 = 80 ms
-    a.receive_io(io(ot_id, 1, bytes(80)), "10.0.0.5", 0.0)
-    a.tick(0.079)
+    a.tick(9.9)  # until the first packet, the watchdog runs 10 s (CIP's initial timeout)
     assert a.connections
-    a.tick(0.081)
+    a.receive_io(io(ot_id, 1, bytes(80)), "10.0.0.5", 9.9)
+    a.tick(9.979)
+    assert a.connections
+    a.tick(9.981)
     assert not a.connections
     closed = [e for e in a.events() if isinstance(e, ConnectionClosed)]
     assert closed and closed[0].why == "timed out"

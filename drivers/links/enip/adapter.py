@@ -49,6 +49,9 @@ from .objects import CONNECTION_MANAGER, Assemblies, ObjectModel
 from .session import TcpSession
 
 UDP_IO_PORT = 2222
+# until a connection's first packet arrives its watchdog runs at least this long (CIP's initial
+# inactivity timeout of 10 s), so a scanner slow to start producing is not dropped at once
+INITIAL_TIMEOUT_S = 10.0
 
 
 # ---------------------------------------------------------------------------- events
@@ -114,6 +117,7 @@ class Connection:
     last_count: int | None = None
     running: bool = False
     last_image: bytes | None = None  # what the last T→O datagram carried
+    heard: bool = False  # a packet of the originator's has arrived since the Forward Open
 
     @property
     def change_of_state(self) -> bool:
@@ -216,6 +220,7 @@ class Adapter:
                               f"0x{conn.o_t_id:08X}, opened for {want + 2}", "dropped")
             return
         conn.last_rx = now
+        conn.heard = True
         if conn.last_count is not None and not newer(frame.sequence_count, conn.last_count):
             return  # a repeat or an older packet: not new data (Vol 1, 3-4.4.5)
         conn.last_count = frame.sequence_count
@@ -267,7 +272,8 @@ class Adapter:
     def tick(self, now: float) -> None:
         """Close every connection whose consumer has been silent past its timeout."""
         for conn in list(self.connections.values()):
-            if now - conn.last_rx > conn.timeout_s:
+            limit = conn.timeout_s if conn.heard else max(conn.timeout_s, INITIAL_TIMEOUT_S)
+            if now - conn.last_rx > limit:
                 self._close(conn, "timed out")
 
     def _close(self, conn: Connection, why: str) -> None:

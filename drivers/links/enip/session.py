@@ -149,6 +149,7 @@ class TcpSession:
             raise FrameError(f"SendUnitData for connection 0x{conn_id:08X}, not a class 3 "
                              "connection of this session")
         conn.last_rx = now
+        conn.heard = True
         count, body = items[1].data[:2], items[1].data[2:]
         try:
             req = Request.unpack(body)
