@@ -109,6 +109,8 @@ async def test_pycomm3_list_identity_over_udp(served: tuple[EnipServer, Station]
 
     reply = await asyncio.to_thread(ask)
     assert struct.unpack_from("<H", reply) == (0x63,) and b"mvpose station" in reply
+    # the identity item's socket address (big-endian) names the encapsulation port in use
+    assert struct.unpack_from(">hH", reply, 32) == (2, srv.port)
     ident = await asyncio.to_thread(discover)
     assert ident["product_name"] == "mvpose station" and ident["serial"] == "0badf00d"
 

@@ -33,6 +33,8 @@ from .cip import (
     forward_close_reply,
 )
 from .codec import (
+    TCP_PORT,
+    UDP_IO_PORT,
     Command,
     Encapsulation,
     FrameError,
@@ -48,7 +50,6 @@ from .codec import (
 from .objects import CONNECTION_MANAGER, Assemblies, ObjectModel
 from .session import TcpSession
 
-UDP_IO_PORT = 2222
 # until a connection's first packet arrives its watchdog runs at least this long (CIP's initial
 # inactivity timeout of 10 s), so a scanner slow to start producing is not dropped at once
 INITIAL_TIMEOUT_S = 10.0
@@ -135,12 +136,13 @@ class Adapter:
 
     def __init__(self, identity: Identity, assemblies: Assemblies | None = None,
                  limits: Limits | None = None, host: str = "127.0.0.1",
-                 udp_port: int = UDP_IO_PORT) -> None:
+                 udp_port: int = UDP_IO_PORT, tcp_port: int = TCP_PORT) -> None:
         self.identity = identity
         self.assemblies = assemblies or Assemblies()
         self.limits = limits or Limits()
         self.host = host
         self.udp_port = udp_port
+        self.tcp_port = tcp_port  # what ListIdentity says the encapsulation port is
         self.inputs = bytes(self.assemblies.input_size)
         self.outputs = bytes(self.assemblies.output_size)
         self.connections: dict[int, Connection] = {}  # by our O→T id
@@ -194,7 +196,7 @@ class Adapter:
         host = self.host if self.host not in ("", "0.0.0.0") else "0.0.0.0"
         address = int.from_bytes(bytes(int(p) for p in host.split(".")), "big") \
             if host.count(".") == 3 else 0
-        return pack_items([self.identity.list_identity_item(SocketAddress(44818, address))])
+        return pack_items([self.identity.list_identity_item(SocketAddress(self.tcp_port, address))])
 
     def receive_io(self, datagram: bytes, peer: str, now: float) -> None:
         """A class 1 datagram from ``peer`` (Vol 2, 3-2.1). Unknown connections and wrong

@@ -179,10 +179,6 @@ class Path:
         return out
 
 
-def request_path(class_id: int, instance: int, attribute: int | None = None) -> Path:
-    return Path(class_id=class_id, instance=instance, attribute=attribute)
-
-
 # ---------------------------------------------------------------------------- message router
 
 

@@ -111,7 +111,8 @@ class EnipServer:
         except OSError as err:  # ListIdentity on UDP is a convenience: say so, run without
             self._note(f"UDP {self.port} for ListIdentity cannot be bound ({err}); "
                        "ListIdentity is answered on TCP only")
-        self.adapter = Adapter(self.identity, self.assemblies, self.limits, host, self.io_port)
+        self.adapter = Adapter(self.identity, self.assemblies, self.limits, host, self.io_port,
+                               self.port)
         self._pacer = asyncio.create_task(self._pace(), name="enip-io")
 
     @property
