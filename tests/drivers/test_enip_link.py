@@ -192,3 +192,54 @@ async def test_bad_input_gets_its_status_a_log_line_and_nothing_else(
         check_result(await twin.cycle(5, timeout=10.0), 5)
     finally:
         twin.close()
+
+
+async def test_a_plc_with_msg_instructions_only_triggers_through_the_assemblies() -> None:
+    """pycomm3 as a PLC without class 1 I/O: Set_Attribute_Single on the output assembly, Get on
+    the input assembly (CIP's byte order: the layout's words and 32-bit values little-endian)."""
+    from pycomm3 import CIPDriver
+
+    handler = ArithmeticHandler()
+    handler.recipe = 1
+    lk = EnipLink(config(), handler)  # type: ignore[arg-type]
+    await lk.start()
+
+    def plc() -> tuple[int, int, int]:
+        with CIPDriver(f"127.0.0.1:{lk.port}") as drv:
+            def put(control: int, beat: int, trigger_id: int = 0, part: bytes = b"") -> None:
+                out = bytearray(r.OUTPUT_SIZE)
+                struct.pack_into("<HH", out, 0, control, beat)
+                struct.pack_into("<I", out, 2 * r.HR_TRIGGER_ID, trigger_id)
+                out[2 * r.HR_PART_ID : 2 * r.HR_PART_ID + len(part)] = part
+                done = drv.generic_message(service=0x10, class_code=4, instance=150,
+                                           attribute=3, request_data=bytes(out))
+                assert done.error is None, done.error
+
+            def get() -> bytes:
+                got = drv.generic_message(service=0x0E, class_code=4, instance=100, attribute=3)
+                assert got.error is None and len(got.value) == r.INPUT_SIZE, got
+                return bytes(got.value)
+
+            def wait(bit: int) -> bytes:
+                for _ in range(2000):
+                    image = get()
+                    if struct.unpack_from("<H", image)[0] & bit:
+                        return image
+                raise AssertionError(f"status bit {bit:#x} never came")
+
+            en = int(r.Control.TRIGGER_ENABLE)
+            put(en, 1)
+            wait(int(r.Status.READY))
+            put(en | int(r.Control.TRIGGER), 2, 42, b"MSG-42")
+            image = wait(int(r.Status.RESULT_VALID))
+            put(en | int(r.Control.RESULT_ACK), 3)
+            echo, result_id = struct.unpack_from("<II", image, 2 * r.IR_TRIGGER_ID)
+            (code,) = struct.unpack_from("<H", image, 2 * r.IR_RESULT_CODE)
+            return echo, result_id, code
+
+    try:
+        echo, result_id, code = await asyncio.to_thread(plc)
+    finally:
+        await lk.stop()
+    assert (echo, result_id, code) == (42, 1, 0)
+    assert [(q.trigger_id, q.part_id) for q in handler.requests] == [(42, "MSG-42")]
