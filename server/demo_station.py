@@ -51,7 +51,7 @@ def _units(conv: RobotConvention) -> tuple[str, str]:
 def run_station_demo(
     station_path: str | Path, triggers: int | None, *, keep_serving: bool = False, seed: int = 1,
     port: int = 8000, data_dir: Path = Path("var") / "demo", max_mm: float = 20.0,
-    max_deg: float = 2.0, truth: Path | None = None,
+    max_deg: float = 2.0, truth: Path | None = None, link: str = "modbus",
 ) -> int:
     """Run the demo; returns the number of OK results whose error is beyond the tolerances."""
     station = load_station(station_path)  # StationFileError names file, field and value
@@ -61,7 +61,7 @@ def run_station_demo(
     settings = Settings(station=Path(station_path), data_dir=data_dir, bootstrap_token=token)
     try:
         return asyncio.run(_demo(settings, triggers, keep_serving, seed, _free(port), token,
-                                 max_mm, max_deg, truth))
+                                 max_mm, max_deg, truth, link))
     except KeyboardInterrupt:
         print("\nstopped")
         return 0
@@ -69,13 +69,13 @@ def run_station_demo(
 
 async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, seed: int,
                 port: int, token: str, max_mm: float, max_deg: float,
-                truth: Path | None = None) -> int:
+                truth: Path | None = None, link: str = "modbus") -> int:
     rng = np.random.default_rng(seed)
     # The pipeline as `mvpose serve` runs it on this machine.
     options = StationOptions(
         sim_seed=seed, pipeline=PipelineOptions(detect_processes=auto_detect_processes()))
     print("starting the station: store, 4 MP simulated cameras, warm-up ...", flush=True)
-    async with running_station(settings, options, http_port=port) as lb:
+    async with running_station(settings, options, http_port=port, link=link) as lb:
         rt = lb.runtime
         assert rt.active is not None and rt.services is not None  # started
         recipe = rt.active.config
@@ -85,7 +85,8 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         print(f"REST API  {lb.base_url}/api/v1   (OpenAPI: {lb.base_url}/docs)")
         print(f"token     {token}   (engineer; e.g. curl -H 'Authorization: Bearer {token}' "
               f"{lb.base_url}/api/v1/measurements)")
-        print(f"Modbus    127.0.0.1:{rt.link_port('modbus')}   "
+        bus = {"modbus": "Modbus", "enip": "EtherNet/IP"}.get(link, link)
+        print(f"{bus:<9} 127.0.0.1:{rt.link_port(link)}   "
               f"store {settings.resolved_database_url}")
         conv = recipe.robot_convention
         lin, ang = _units(conv)

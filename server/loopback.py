@@ -104,10 +104,26 @@ class RunningServer:
     base_url: str | None
 
 
+# the block a backend's link gets on loopback (free ports); its twin (see _twin)
+LOOPBACK_LINKS: dict[str, dict[str, object]] = {
+    "modbus": {"host": "127.0.0.1", "port": 0},
+    "enip": {"host": "127.0.0.1", "port": 0, "io_port": 0},
+}
+
+
+def _twin(link: str, port: int, poll_s: float) -> PlcTwin:
+    """The PLC twin on backend ``link``'s bus, for a link listening on ``port``."""
+    if link == "enip":
+        from drivers.links.enip.twin import enip_twin
+
+        return enip_twin("127.0.0.1", port, poll_s=poll_s)
+    return modbus_twin("127.0.0.1", port, poll_s=poll_s)
+
+
 @contextlib.asynccontextmanager
 async def running_server(
     settings: Settings, options: StationOptions | None = None, *,
-    http_host: str = "127.0.0.1", http_port: int | None = 0,
+    http_host: str = "127.0.0.1", http_port: int | None = 0, link: str = "modbus",
 ) -> AsyncIterator[RunningServer]:
     """The station (with its control channel) + the API app served by uvicorn (unless
     ``http_port`` is None), in this process, with no PLC attached.
@@ -117,13 +133,18 @@ async def running_server(
     through the control channel exactly as in production. The station file is
     ``settings.station``; the Modbus link listens on a free loopback port. The PLC side is up to
     the caller: :func:`running_station` adds an in-process twin; the station benchmark runs
-    `mvpose serve` and the twin as processes.
+    `mvpose serve` and the twin as processes. ``link`` other than Modbus: that backend's link
+    is on loopback too (free ports), and the Modbus link is off, so the station's state is
+    the one that link's PLC sees.
     """
     if settings.station is None:
         raise ValueError("settings.station must name the station file")
     station = load_station(settings.station)
     links = dict(station.links)  # the PLC twin's link, on loopback
-    links["modbus"] = {**(links.get("modbus") or {}), "host": "127.0.0.1", "port": 0}
+    links["modbus"] = {**(links.get("modbus") or {}), **LOOPBACK_LINKS["modbus"]}
+    if link != "modbus":
+        links[link] = {**(links.get(link) or {}), **LOOPBACK_LINKS[link]}
+        links["modbus"]["enabled"] = False
     station = station.model_copy(update={"links": links})
     proc = StationProcess(settings, station, options or StationOptions())
     await asyncio.to_thread(proc.start)
@@ -158,13 +179,14 @@ async def running_server(
         await asyncio.to_thread(proc.stop)
 
 
-async def attach_twin(port: int, poll_s: float = 0.001) -> tuple[PlcTwin, asyncio.Task[None]]:
+async def attach_twin(port: int, poll_s: float = 0.001, link: str = "modbus"
+                      ) -> tuple[PlcTwin, asyncio.Task[None]]:
     """A connected twin with its cyclic heartbeat running, trigger enabled, station READY.
 
     An earlier PLC's disconnect may have left the station in ERROR (heartbeat watchdog): the
     twin resets it first, as a PLC program does after a restart.
     """
-    twin = modbus_twin("127.0.0.1", port, poll_s=poll_s)
+    twin = _twin(link, port, poll_s)
     await twin.connect()
     # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
     beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")
@@ -200,13 +222,15 @@ async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
 async def running_station(
     settings: Settings, options: StationOptions | None = None, *,
     http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
+    link: str = "modbus",
 ) -> AsyncIterator[Loopback]:
-    """:func:`running_server` plus a connected, enabled PLC twin in this process."""
+    """:func:`running_server` plus a connected, enabled PLC twin on ``link``'s bus in this
+    process."""
     async with running_server(settings, options, http_host=http_host,
-                              http_port=http_port) as rs:
+                              http_port=http_port, link=link) as rs:
         # A PLC scans every few ms; a twin polling flat out in this process would only
         # compete with the pipeline for the GIL.
-        twin, beat = await attach_twin(rs.runtime.link_port("modbus"), twin_poll_s)
+        twin, beat = await attach_twin(rs.runtime.link_port(link), twin_poll_s, link)
         try:
             yield Loopback(runtime=rs.runtime, twin=twin, server=rs.server, base_url=rs.base_url)
         finally:

@@ -22,10 +22,12 @@ from .base import Link, LinkOutcome, LinkRequest, StationHandler, relay
 BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
+    "enip": ("drivers.links.enip", "EnipLink"),
 }
 SETTINGS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus.settings", "ModbusLinkConfig"),
     "opcua": ("drivers.links.opcua.settings", "OpcUaLinkConfig"),
+    "enip": ("drivers.links.enip.settings", "EnipLinkConfig"),
 }
 OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
 ON_BY_DEFAULT: tuple[str, ...] = ("modbus",)

@@ -1,4 +1,5 @@
-"""``mvpose demo --triggers N``: the whole server on station 1 and the PLC twin; REST printed."""
+"""``mvpose demo --triggers N``: the whole server on station 1 and the PLC twin (over Modbus or
+EtherNet/IP); REST printed."""
 
 from __future__ import annotations
 
@@ -12,14 +13,16 @@ from server.cli import main
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.parametrize(("link", "bus"), [("modbus", "Modbus"), ("enip", "EtherNet/IP")])
 def test_demo_measures_n_triggers_and_stops(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], link: str, bus: str
 ) -> None:
     rc = main(["demo", "--triggers", "2", "--port", "0", "--data-dir", str(tmp_path / "var"),
-               "--seed", "3"])
+               "--seed", "3", "--link", link])
     out = capsys.readouterr().out
     assert rc == 0, out
     assert re.search(r"REST API\s+http://127\.0\.0\.1:\d+/api/v1", out)
+    assert re.search(rf"^{re.escape(bus)}\s+127\.0\.0\.1:\d+", out, flags=re.M), out
     true_rows = re.findall(r"^\s+\d+\s+true\s", out, flags=re.M)
     assert len(true_rows) == 2
     # Each trigger is answered: measured (with its error and latency) or NOK with the reason.

@@ -89,6 +89,8 @@ def _links(tmp: Path, opcua: bool) -> Callable[[dict[str, Any]], None]:
         # only this host's own loopback address may be the PLC (a peer from 127.0.0.2 is not)
         links = data.setdefault("links", {})
         links.setdefault("modbus", {})["allowlist"] = ["127.0.0.1"]
+        links["enip"] = {"port": 0, "io_port": 0, "allowlist": ["127.0.0.1"],
+                         "watchdog_s": 10.0}
         if opcua:
             links["opcua"] = {
                 "port": 0, "pki_dir": str(tmp / "pki"), "measure_timeout_s": 30.0,
@@ -419,6 +421,40 @@ class TestModbus(LinkBehaviour):
         finally:
             writer.close()
         assert link.status()["rejected_connections"] == rejected + 1
+
+
+# --------------------------------------------------------------------------- EtherNet/IP
+class TestEnip(TestModbus):
+    """The same handshake over EtherNet/IP class 1 I/O (RPI 4 ms), driven by the PLC twin's
+    scanner port (drivers/links/enip/twin.py); the PLC program's steps are Modbus's."""
+
+    name = "enip"
+
+    @contextlib.asynccontextmanager
+    async def session(self, env: Env) -> AsyncIterator[PlcTwin]:
+        twin, beat = await attach_twin(env.station.link_port("enip"), 0.002, link="enip")
+        try:
+            yield twin
+        finally:
+            await detach_twin(twin, beat)
+
+    async def refuse_stranger(self, env: Env) -> None:
+        """The allowlist: a scanner from 127.0.0.2 is closed without an answer."""
+        link = env.station.link("enip")
+        rejected = link.status()["rejected_peers"]
+        reader, writer = await asyncio.open_connection(
+            "127.0.0.1", env.station.link_port("enip"), local_addr=("127.0.0.2", 0))
+        try:  # RegisterSession (Vol 2, 2-4.4)
+            writer.write(bytes.fromhex("6500040000000000000000000000000000000000000000000100"
+                                       "0000"))
+            try:
+                await writer.drain()
+                assert await asyncio.wait_for(reader.read(100), 10) == b""
+            except ConnectionResetError:
+                pass
+        finally:
+            writer.close()
+        assert link.status()["rejected_peers"] == rejected + 1
 
 
 # --------------------------------------------------------------------------- OPC UA

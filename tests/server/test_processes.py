@@ -1,8 +1,9 @@
 """`mvpose serve` as it runs on a station: two processes, each killed with SIGKILL and restarted.
 
 The supervisor, the station process and the API process are real processes started by the
-command line; the PLC is the twin in this test's process, talking Modbus/TCP on loopback. While
-the twin triggers back to back, the API process is killed: no trigger fails. Then the station
+command line; the PLC is the twin in this test's process, talking Modbus/TCP (or EtherNet/IP
+class 1 I/O) on loopback. While the twin triggers back to back, the API process is killed: no
+trigger fails. Then the station
 process is killed: the API keeps serving history and its readiness says the station is down,
 until the station is back; result ids go on from where they were, never reused.
 """
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from stations import ENGINEER, relaxed_deadline, station_file
 
 from server.loopback import attach_twin, detach_twin
@@ -58,8 +60,15 @@ def _api(data_dir: Path) -> dict[str, Any] | None:
     return found if live.status_code == 200 else None
 
 
-async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: Path) -> None:
-    path = station_file(tmp_path, "station1", relaxed_deadline)
+def _enip(data: dict[str, Any]) -> None:
+    data["links"]["enip"] = {"port": 0, "io_port": 0, "watchdog_s": 10.0}
+
+
+@pytest.mark.parametrize("link", ["modbus", "enip"])
+async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: Path,
+                                                                      link: str) -> None:
+    path = station_file(tmp_path, "station1", relaxed_deadline,
+                        *((_enip,) if link == "enip" else ()))
     data = tmp_path / "var"
     env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=ENGINEER)
     log = (tmp_path / "serve.log").open("wb")
@@ -71,8 +80,8 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
     try:
         station = await _until("the station process answers", lambda: _ping(client))
         api = await _until("the API process answers", lambda: _api(data))
-        port = (await asyncio.to_thread(client.status)).links["modbus"]["port"]
-        twin, beat = await attach_twin(port, poll_s=0.002)
+        port = (await asyncio.to_thread(client.status)).links[link]["port"]
+        twin, beat = await attach_twin(port, poll_s=0.002, link=link)
         answers: list[tuple[int, int, int]] = []
         try:
             async def storm(first: int, n: int) -> None:
@@ -113,8 +122,8 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
                 "a new station process",
                 lambda: (p := _ping(client)) and p["pid"] != station["pid"] and p)
             assert restarted["pid"] != station["pid"]
-            port = (await asyncio.to_thread(client.status)).links["modbus"]["port"]
-            twin, beat = await attach_twin(port, poll_s=0.002)
+            port = (await asyncio.to_thread(client.status)).links[link]["port"]
+            twin, beat = await attach_twin(port, poll_s=0.002, link=link)
             try:
                 for k in range(31, 34):
                     status = await twin.cycle(k, timeout=10.0)

@@ -143,8 +143,9 @@ async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) ->
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("link", ["modbus", "enip"])
 async def test_a_frozen_database_never_delays_the_answer(
-    tmp_path: Path, postgres_cluster: Any
+    tmp_path: Path, postgres_cluster: Any, link: str
 ) -> None:
     # The relaxed deadline: a trigger merely preempted on a loaded machine must not be taken for
     # one that waited for the database (which, frozen until every trigger is answered, would
@@ -152,7 +153,7 @@ async def test_a_frozen_database_never_delays_the_answer(
     url = postgres_cluster.create_database()
     path = station_file(tmp_path, "station1", relaxed_deadline)
     settings = settings_for(path, tmp_path / "var", database_url=url)
-    async with running_station(settings, runtime_options(), http_port=None) as lb:
+    async with running_station(settings, runtime_options(), http_port=None, link=link) as lb:
         recipe = lb.runtime.active.config
         await move_part(lb.runtime, lb.twin, recipe.T_rf_from_pf0.matrix)
         for k in range(3):  # warm: the database answers
