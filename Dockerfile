@@ -41,6 +41,10 @@ COPY drivers ./drivers
 COPY server ./server
 COPY --from=web /web/node_modules ./server/web/node_modules
 COPY --from=nodesets /nodesets/node_modules ./drivers/links/opcua_nodesets/node_modules
+# The operator page's message catalogues, compiled (.po → .mo) before the package is installed
+# with them; Babel is pinned as in pyproject.toml.
+RUN python -m pip install --no-cache-dir "babel==2.18.0" \
+    && python -m babel.messages.frontend compile -d server/web/locale
 # postgres: the psycopg driver for plants that collect every station in one PostgreSQL database.
 RUN python -m pip install --no-cache-dir ".[postgres]"
 COPY deploy/stations /etc/mvpose/examples

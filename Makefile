@@ -3,10 +3,25 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
+# The operator page's message catalogues (server/web/locale): .po in the repository, .mo compiled
+# here (and by the Dockerfile), never committed.
+LOCALES := server/web/locale
+MO := $(patsubst %.po,%.mo,$(wildcard $(LOCALES)/*/LC_MESSAGES/messages.po))
 
-.PHONY: demo test bench lint venv clean
+.PHONY: demo test bench lint venv clean messages
 
-venv: $(STAMP)
+venv: $(STAMP) $(MO)
+
+$(MO): %.mo: %.po $(STAMP)
+	$(BIN)/pybabel compile -i $< -o $@
+
+# After changing the page's English texts: the template and every language's catalogue follow
+# (then translate the new or changed messages; tests/server/test_i18n.py finds any left over).
+messages: $(STAMP)
+	$(BIN)/pybabel extract -F babel.cfg -k N_ --no-location --sort-output --project mvpose \
+		--copyright-holder "the mvpose authors" -o $(LOCALES)/messages.pot server/web
+	$(BIN)/pybabel update -i $(LOCALES)/messages.pot -d $(LOCALES) --no-location \
+		--ignore-obsolete --width 100
 
 $(STAMP): pyproject.toml server/web/package-lock.json drivers/links/opcua_nodesets/package-lock.json \
 		tests/peers/axe-core/package-lock.json tests/peers/node-opcua/package-lock.json
@@ -24,13 +39,13 @@ $(STAMP): pyproject.toml server/web/package-lock.json drivers/links/opcua_nodese
 	touch $(STAMP)
 	@echo "mvpose: $(VENV) ready"
 
-demo: $(STAMP)
+demo: $(STAMP) $(MO)
 	$(BIN)/mvpose demo --triggers 10
 
-test: $(STAMP)
+test: $(STAMP) $(MO)
 	$(BIN)/python -m pytest -q tests
 
-bench: $(STAMP)
+bench: $(STAMP) $(MO)
 	$(BIN)/python -m bench
 
 lint: $(STAMP)

@@ -449,6 +449,9 @@ class RecipeConfig(_Model):
 
 # ------------------------------------------------------------------------------- station
 
+#: the operator page's languages (server/web/locale holds a catalogue for each but English,
+#: the source); zh_Hans is Simplified Chinese
+PAGE_LANGUAGES = ("en", "de", "zh_Hans", "es")
 
 #: the operator page logs out after this long without a user action (s): a quarter of an hour
 #: keeps a panel PC logged in through a part change or a short talk at the line, and a login
@@ -467,7 +470,9 @@ class PageConfig(_Model):
         False, description="the line view (/line) and its NOK thumbnails are readable without "
                            "a login, read-only (a panel PC beside the line); every other page "
                            "still needs a login")
-
+    language: Literal["en", "de", "zh_Hans", "es"] | None = Field(
+        None, description="the page's language unless a user picks one: en, de, zh_Hans "
+                          "(Simplified Chinese) or es; unset: the browser's Accept-Language")
 
 
 class StationConfig(_Model):
@@ -493,8 +498,10 @@ class StationConfig(_Model):
         UncertaintyConfig(), description="detector noise pooling and calibration 1σ"
     )
     shifts: list[Shift] = Field(list(DEFAULT_SHIFTS), description="shift starts (line view)")
-    time_zone: str = Field("UTC", description="the plant's IANA time zone (shift starts)")
-    page: PageConfig = Field(PageConfig(), description="the operator page: idle logout, kiosk")
+    time_zone: str = Field("UTC", description="the plant's IANA time zone (shift starts, the "
+                                              "operator page's times)")
+    page: PageConfig = Field(PageConfig(), description="the operator page: idle logout, kiosk, "
+                                                       "the plant's language")
 
     @model_validator(mode="after")
     def _check_shifts(self) -> StationConfig:

@@ -76,14 +76,16 @@ def _npm_commands(instructions: list[tuple[str, str]]) -> list[list[str]]:
     return cmds
 
 
-def _pip_commands(instructions: list[tuple[str, str]]) -> list[list[str]]:
+def _pip_commands(instructions: list[tuple[str, str]],
+                  also: tuple[str, ...] = ()) -> list[list[str]]:
+    """The RUN lines' ``pip install`` commands (and those naming a module in ``also``)."""
     cmds = []
     for word, rest in instructions:
         if word != "RUN":
             continue
         for part in rest.split("&&"):
             argv = shlex.split(part)
-            if "pip" in argv and "install" in argv:
+            if ("pip" in argv and "install" in argv) or any(m in argv for m in also):
                 cmds.append(argv)
     return cmds
 
@@ -149,9 +151,11 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
                     stage_dir, stage_ctx = node[stage]
                     origin = stage_ctx / Path(src).relative_to(stage_dir)
                 if origin.is_dir():
-                    # a developer's own server/web/node_modules is not in the image's context
+                    # a developer's own server/web/node_modules and compiled catalogues are
+                    # not in the image's context (.dockerignore)
                     shutil.copytree(origin, target, ignore=shutil.ignore_patterns(
-                        "__pycache__", "*.pyc", *(("node_modules",) if stage is None else ())))
+                        "__pycache__", "*.pyc",
+                        *(("node_modules", "*.mo") if stage is None else ())))
                 else:
                     shutil.copy2(origin, target)
 
@@ -169,7 +173,8 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("VIRTUAL_ENV")}
     env.update(_env(ins))
     env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env.get('PATH', '')}"
-    for argv in _pip_commands(ins):
+    # the install commands, and the compilation of the page's message catalogues between them
+    for argv in _pip_commands(ins, also=("babel.messages.frontend",)):
         if argv[0] in ("python", "python3"):
             argv = [str(py), *argv[1:]]
         done = subprocess.run(argv, cwd=ctx, env=env, capture_output=True, text=True, timeout=240)
@@ -191,6 +196,11 @@ def test_dockerfile_install_commands_in_fresh_venv(tmp_path: Path) -> None:
     web = ROOT / "server" / "web"
     missing += [str(f.relative_to(ROOT)) for f in (web / "static").iterdir()
                 if not (site / f.relative_to(ROOT)).exists()]
+    # the message catalogues, compiled in the image (never committed)
+    for po in (web / "locale").glob("*/LC_MESSAGES/messages.po"):
+        for f in (po, po.with_suffix(".mo")):
+            if not (site / f.relative_to(ROOT)).is_file():
+                missing.append(str(f.relative_to(ROOT)))
     assert not missing, f"files not installed by the Dockerfile's pip install: {missing}"
     # The operator page's libraries: the npm packages' files it serves, in the installed package
     from server.web.assets import VENDOR

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Annotated, Any
 from urllib.parse import urlsplit
 
-from fastapi import APIRouter, Body, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from pydantic import BaseModel, Field, model_validator
 from starlette.concurrency import run_in_threadpool
@@ -21,8 +21,9 @@ from server import users
 from server.auth import Role, authenticate
 from server.errors import ForbiddenError, NotReadyError
 from server.users import NAME_PATTERN
-from server.web import html
+from server.web import html, i18n
 from server.web.context import in_thread, need, page_user, runtime_of, services_of
+from server.web.i18n import _
 from server.web.session import (
     COOKIE,
     MAX_AGE_S,
@@ -36,7 +37,7 @@ from server.web.session import (
 if TYPE_CHECKING:  # server.app imports this package
     from server.app import StationHandle
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 
 
 class Login(BaseModel):
@@ -81,28 +82,39 @@ async def login_page(request: Request,
                      idle: Annotated[int, Query(ge=0, le=1)] = 0) -> Response:
     if await page_user(request) is not None:
         return RedirectResponse(_safe_next(next), status_code=303)
-    target = html.esc(_safe_next(next))
-    why = ('<p class="msg done" role="status" id="idle-note">You were logged out: nothing was '
-           'done on the page for a while.</p>' if idle else "")
-    body = f"""<section class="panel login"><h2>Log in</h2>{why}
+    e = html.esc
+    target = e(_safe_next(next))
+    why = ('<p class="msg done" role="status" id="idle-note">'
+           + e(_("You were logged out: nothing was done on the page for a while.")) + "</p>"
+           if idle else "")
+    idle_words = e(_("The page logs out after {duration} without a click or a key; the browser "
+                     "only holds a session cookie.").format(
+        duration=_duration(idle_logout_s(services_of(request)))))
+    login_words, token_words = e(_("Log in")), e(_("token"))
+    body = f"""<section class="panel login"><h2>{login_words}</h2>{why}
 <form id="login-form" data-next="{target}">
-<label>user <input name="user" autocomplete="username" required maxlength="64"
+<label>""" + e(_("user")) + """ <input name="user" autocomplete="username" required maxlength="64"
  autocapitalize="none" spellcheck="false"></label>
-<label>PIN or password <input name="secret" type="password" autocomplete="current-password"
- required maxlength="200"></label><button type="submit">Log in</button></form>
+<label>""" + e(_("PIN or password")) + """ <input name="secret" type="password"
+ autocomplete="current-password" required maxlength="200"></label>
+<button type="submit">""" + login_words + """</button></form>
 <p class="msg" role="alert"></p>
-<details id="token-login"><summary>Log in with an API token (engineers)</summary>
+<details id="token-login"><summary>""" + e(_("Log in with an API token (engineers)")) + f"""\
+</summary>
 <form id="token-form" data-next="{target}">
-<label>token <input name="token" type="password" autocomplete="off" required
- maxlength="200"></label><button type="submit">Log in with the token</button></form>
+<label>{token_words} <input name="token" type="password" autocomplete="off" required
+ maxlength="200"></label><button type="submit">""" + e(_("Log in with the token")) + f"""\
+</button></form>
 <p class="msg" role="alert"></p></details>
-<p>The page logs out after {_duration(idle_logout_s(services_of(request)))} without a click or
- a key; the browser only holds a session cookie.</p></section>"""
-    return HTMLResponse(html.layout("Log in", None, body))
+<p>{idle_words}</p></section>"""
+    return HTMLResponse(html.layout(_("Log in"), None, body))
 
 
 def _duration(seconds: float) -> str:
-    return f"{seconds / 60:g} min" if seconds >= 120 else f"{seconds:g} s"
+    if seconds >= 120:
+        return _("{minutes} min").format(minutes=i18n.num(seconds / 60, 0 if seconds % 60 == 0
+                                                          else 1))
+    return _("{seconds} s").format(seconds=i18n.num(seconds, 0))
 
 
 def _source(request: Request) -> str:
@@ -114,7 +126,7 @@ async def login(request: Request, body: Annotated[Login, Body()]) -> Response:
     """Check a user's PIN or password (or an API token, like a bearer token); on success set
     the session cookie."""
     if not same_origin(request):
-        raise ForbiddenError("log in from the operator page itself (Origin is not this host)")
+        raise ForbiddenError(_("log in from the operator page itself (Origin is not this host)"))
     sessions = sessions_of(request)
     if sessions is None:
         raise NotReadyError("sessions are not set up in this app")
@@ -140,7 +152,8 @@ async def login(request: Request, body: Annotated[Login, Body()]) -> Response:
 @router.post("/web/logout")
 async def logout(request: Request) -> Response:
     if not same_origin(request):
-        raise ForbiddenError("log out from the operator page itself (Origin is not this host)")
+        raise ForbiddenError(_("log out from the operator page itself (Origin is not this "
+                               "host)"))
     sessions, sid = sessions_of(request), request.cookies.get(COOKIE)
     if sessions is not None and sid:
         sessions.close(sid)
@@ -173,7 +186,7 @@ async def activity(request: Request) -> dict[str, Any]:
 def _station(request: Request) -> StationHandle:
     runtime = runtime_of(request.app)
     if runtime is None:
-        raise NotReadyError("station down: no station process is connected")
+        raise NotReadyError(_("station down: no station process is connected"))
     return runtime
 
 
@@ -195,7 +208,7 @@ async def arm_teach(request: Request) -> dict[str, Any]:
     user = await need(request, Role.OPERATOR)
     runtime = _station(request)
     await in_thread(runtime.arm_teach, user.name)
-    return {"message": "teach armed: the next OK result becomes the reference"}
+    return {"message": _("teach armed: the next OK result becomes the reference")}
 
 
 @router.post("/web/actions/teach")
@@ -204,8 +217,8 @@ async def teach(request: Request, body: Annotated[TeachBody, Body()]) -> dict[st
     runtime = _station(request)
     rec = await in_thread(runtime.teach_from_measurement, body.measurement_id, user.name)
     version = rec.version
-    return {"message": f"taught from measurement {body.measurement_id}: new version "
-                       f"{version}", "version": version}
+    return {"message": _("taught from measurement {id}: new version {version}").format(
+        id=body.measurement_id, version=version), "version": version}
 
 
 @router.post("/web/actions/activate")
@@ -218,13 +231,14 @@ async def activate(request: Request, body: Annotated[ActivateBody, Body()]) -> d
         except NotReadyError:
             pass  # the station is down: the store takes it, as the REST API's activate does
         else:
-            return {"message": f"{body.name} v{rec.version} active",
-                    "via": "station"}
+            return {"message": _("{name} v{version} active").format(
+                name=body.name, version=rec.version), "via": "station"}
     services = services_of(request)
     info = await in_thread(services.store.versions.activate, "recipe", body.name, body.version,
                            user.name)
-    return {"message": f"{info.name} v{info.version} active (station down: it takes this "
-                       "version when it starts)", "via": "store"}
+    return {"message": _("{name} v{version} active (station down: it takes this version when "
+                         "it starts)").format(name=info.name, version=info.version),
+            "via": "store"}
 
 
 def install_sessions(app: Any) -> Sessions:

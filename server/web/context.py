@@ -12,8 +12,9 @@ from mvpose_core.station import RecipeConfig
 from server.auth import Principal, Role
 from server.errors import ForbiddenError, UnauthenticatedError
 from server.state import Services
-from server.web import html
-from server.web.live import LiveFeed
+from server.web import html, i18n
+from server.web.i18n import _
+from server.web.live import LiveFeed, LiveFeeds
 from server.web.reader import Reader, RecordView, age_words
 from server.web.session import cookie_principal
 
@@ -54,15 +55,30 @@ def reader_of(request: Request) -> Reader:
     if reader is None or reader.services is not services:
         reader = Reader(services)
         request.app.state.web_reader = reader
-        request.app.state.web_live = LiveFeed(
-            reader, render_live_result, lambda: render_status(request.app, reader))
+        request.app.state.web_live = LiveFeeds(lambda code: live_in(request.app, reader, code))
     return reader
+
+
+def live_in(app: Any, reader: Reader, code: str) -> LiveFeed:
+    """The Live page's feed in language ``code`` (its fragments rendered in it)."""
+    zone = zone_of(reader)
+
+    def result(reader: Reader, newest: int | None,
+               frames_id: int | None) -> tuple[str, str, int | None, bool]:
+        with i18n.use(code, zone):
+            return render_live_result(reader, newest, frames_id)
+
+    def status() -> str:
+        with i18n.use(code, zone):
+            return render_status(app, reader)
+
+    return LiveFeed(reader, result, status)
 
 
 def live_feed(request: Request) -> LiveFeed:
     reader_of(request)
-    feed: LiveFeed = request.app.state.web_live
-    return feed
+    feeds: LiveFeeds = request.app.state.web_live
+    return feeds.of(i18n.current().code)
 
 
 def runtime_of(app: Any) -> StationHandle | None:
@@ -79,7 +95,8 @@ def station_status(app: Any) -> tuple[dict[str, Any] | None, str | None]:
     try:
         return runtime.status().model_dump(mode="json"), None
     except Exception as err:  # a station handle that cannot answer is a station that is down
-        return None, f"the station does not answer: {type(err).__name__}: {err}"
+        return None, _("the station does not answer: {error}").format(
+            error=f"{type(err).__name__}: {err}")
 
 
 def has_endpoint(app: Any, path: str, method: str) -> bool:
@@ -101,13 +118,14 @@ def calibration_words(reader: Reader) -> str:
     for n in store.versions.names("calibration"):
         if n.active_version is None:
             continue
-        info, _ = store.versions.content("calibration", n.name, n.active_version)
-        out.append(f"{html.esc(n.name)} v{n.active_version} ({age_words(info.created_at, now)}"
-                   " old)")
+        info, _content = store.versions.content("calibration", n.name, n.active_version)
+        out.append(f"{html.esc(n.name)} v{n.active_version} (" + html.esc(_("{age} old").format(
+            age=age_words(info.created_at, now))) + ")")
     if out:
         return ", ".join(out)
     station = reader.services.settings.station
-    return f"station file {html.esc(station.name) if station else '(none)'}"
+    return html.esc(_("station file {name}").format(
+        name=station.name if station else _("(none)")))
 
 
 def render_status(app: Any, reader: Reader) -> str:
@@ -135,7 +153,8 @@ def render_live_result(reader: Reader, newest: int | None,
     that older record's images next to its own result. Returns the panels, the newest record
     with frames, and whether the newest record's planned frames are all on disk yet."""
     if newest is None:
-        empty = '<section id="result" class="panel"><h2>Last result</h2><p>none yet</p></section>'
+        empty = ('<section id="result" class="panel"><h2>' + html.esc(_("Last result")) + '</h2>'
+                 '<p>' + html.esc(_("none yet")) + '</p></section>')
         return empty, html.frames_panel(None, None), None, True
     view = reader.get(newest)
     planned = {(i.view, i.camera_id) for i in view.stored.record.images}

@@ -12,24 +12,25 @@ read-only (a kiosk).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Request
+from fastapi import APIRouter, Depends, Path, Request
 from fastapi.responses import HTMLResponse, Response
 
-from mvpose_core.reasons import describe, what_to_check
 from mvpose_core.shifts import ShiftWindow
 from server.auth import Principal, Role
 from server.errors import NotFoundError, UnauthenticatedError
 from server.store.schemas import MAX_ID, MeasurementFilter, MeasurementSummary
 from server.store.shifts import ShiftCounts
-from server.web import html
+from server.web import html, i18n
 from server.web.context import in_thread, need, page_user, reader_of, station_status, zone_of
+from server.web.i18n import N_, _, ngettext
 from server.web.pages import Html, frame_response, to_login
 from server.web.reader import Reader
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 #: seconds between the page's refreshes
 POLL_S = 2
 #: NOKs in the strip
@@ -39,10 +40,10 @@ THUMB_W = 320
 
 
 #: the station's states (OPC 40100's, as the PLC reads them) in words
-STATES = {"READY": "ready", "SINGLE_EXECUTION": "measuring",
-          "PREOPERATIONAL": "waiting for the PLC", "HALTED": "halted (trigger disabled)",
-          "INITIALIZED": "no recipe selected",
-          "ERROR": "error, needs a reset", "STOPPED": "link stopped"}
+STATES = {"READY": N_("ready"), "SINGLE_EXECUTION": N_("measuring"),
+          "PREOPERATIONAL": N_("waiting for the PLC"), "HALTED": N_("halted (trigger disabled)"),
+          "INITIALIZED": N_("no recipe selected"),
+          "ERROR": N_("error, needs a reset"), "STOPPED": N_("link stopped")}
 
 
 @dataclass(frozen=True)
@@ -62,12 +63,12 @@ class LineFigures:
 def read_figures(reader: Reader, app: Any) -> LineFigures:
     """Blocking: the store's figures and the station's status."""
     store = reader.store
-    page, _ = store.measurements.summary_page(MeasurementFilter(), None, 1)
-    status, _ = station_status(app)
+    page, _next = store.measurements.summary_page(MeasurementFilter(), None, 1)
+    status, _why = station_status(app)
     window, counts = reader.shift()
     active = reader.active_recipe()
     limit = active[2].nok_streak_warning if active and active[2] is not None else 3
-    noks, _ = store.measurements.summary_page(MeasurementFilter(result="NOK"), None, LAST_NOKS)
+    noks, _next = store.measurements.summary_page(MeasurementFilter(result="NOK"), None, LAST_NOKS)
     strip = []
     for m in noks:
         on_disk = [i for i in store.images.for_measurement(m.id) if i.evicted_at is None]
@@ -101,7 +102,7 @@ async def line_page(request: Request) -> Html:
     reader = reader_of(request)
     figures = await in_thread(read_figures, reader, request.app)
     body = render(figures, zone_of(reader))
-    return HTMLResponse(html.layout("Line", user, body, "/line", body_class="line"))
+    return HTMLResponse(html.layout(_("Line"), user, body, "/line", body_class="line"))
 
 
 @router.get("/web/line/fragment")
@@ -132,87 +133,108 @@ async def line_thumb(
 
 # ---------------------------------------------------------------------------- HTML
 def render(f: LineFigures, zone: str) -> str:
+    e = html.esc
     return f"""<div id="line-view" hx-get="/web/line/fragment" hx-trigger="every {POLL_S}s"
  hx-swap="outerHTML" data-newest="{f.newest.id if f.newest else ''}">
-<div class="line-grid"><section aria-label="last result">{tile(f)}{states(f)}{streak(f)}</section>
-<section class="panel shift" aria-label="this shift"><h2>This shift</h2>
+<div class="line-grid"><section aria-label=\"""" + e(_("last result")) + f"""">{tile(f)}{states(f)}\
+{streak(f)}</section>
+<section class="panel shift" aria-label=\"""" + e(_("this shift")) + """">
+<h2>""" + e(_("This shift")) + f"""</h2>
 {shift_table(f, zone)}</section></div>
-<section class="panel line-noks" aria-label="last NOKs"><h2>Last NOKs</h2>
+<section class="panel line-noks" aria-label=\"""" + e(_("last NOKs")) + """">
+<h2>""" + e(_("Last NOKs")) + f"""</h2>
 {nok_strip(f)}</section>
 </div>"""
 
 
 def tile(f: LineFigures) -> str:
     m = f.newest
+    e = html.esc
     if f.status is None:
-        kind, word = "down", "STATION DOWN"
-        words = ("the station process does not answer"
-                 + (f" · last result #{m.id} {m.result}" if m else ""))
+        kind, word = "down", e(_("STATION DOWN"))
+        words = e(_("the station process does not answer")) + (
+            " · " + e(_("last result #{id}").format(id=m.id)) + " " +
+            html.verdict_word(m.result) if m else "")
     elif m is None:
-        kind, word, words = "none", "—", "no result yet"
+        kind, word, words = "none", "—", e(_("no result yet"))
     else:
-        kind, word = ("ok", "OK") if m.result == "OK" else ("nok", "NOK")
-        words = (f'<a href="/history/{m.id}">#{m.id}</a> · {html.esc(m.reason)}: '
-                 f"{html.esc(describe(m.reason_code))} · {html.esc(m.part_id or '')} · "
+        kind, word = (("ok", html.ok_word()) if m.result == "OK" else ("nok", html.nok_word()))
+        words = (f'<a href="/history/{m.id}">#{m.id}</a> · {e(m.reason)}: '
+                 f"{e(i18n.reason_words(m.reason_code))} · {e(m.part_id or '')} · "
                  f"{html.when(m.triggered_at)}")
     return (f'<div id="verdict" class="tile {kind}" data-verdict="{kind.upper()}">'
-            f'<p class="verdict-word">{html.esc(word)}</p>'
+            f'<p class="verdict-word">{word}</p>'
             f'<p class="tile-words">{words}</p></div>')
 
 
 def states(f: LineFigures) -> str:
     if f.status is None:
-        station, link, good_s, good_l = "station down", "link: unknown", False, False
+        station, link, good_s, good_l = _("station down"), _("link: unknown"), False, False
     else:
         state = str(f.status.get("state", "?"))
-        station = f"station: {STATES.get(state, state)}"
+        station = _("station: {state}").format(state=_(STATES[state]) if state in STATES
+                                               else state)
         good_s = state in ("READY", "SINGLE_EXECUTION")
         links = f.status.get("links") or ({"plc": f.status["plc"]} if f.status.get("plc")
                                           else {})
         words = [f"{name}: {html.link_words(v)}" for name, v in links.items()]
-        link = "; ".join(words) if words else "no link configured"
-        good_l = bool(words) and all("offline" not in w and "not running" not in w
-                                     for w in words)
+        link = "; ".join(words) if words else _("no link configured")
+        good_l = bool(words) and all(_link_good(v) for v in links.values())
     return (f'<div class="line-state"><p id="station-state" class="{"good" if good_s else "bad"}">'
             f'{html.esc(station)}</p><p id="link-state" class="{"good" if good_l else "bad"}">'
             f"{html.esc(link)}</p></div>")
 
 
+def _link_good(v: object) -> bool:
+    """A link that runs and whose PLC is not offline."""
+    if not isinstance(v, Mapping):
+        return "offline" not in str(v) and "not running" not in str(v)
+    return bool(v.get("state") or v.get("running")) and v.get("plc_online") is not False
+
+
 def streak(f: LineFigures) -> str:
     if f.streak < f.streak_limit:
         return ""
-    hint = f" Check: {html.esc(what_to_check(f.noks[0][0].reason_code))}." if f.noks else ""
-    return (f'<p class="streak" role="alert" data-streak="{f.streak}">⚠ {f.streak} NOKs in a row '
-            f"(warning from {f.streak_limit}, recipe {html.esc(f.recipe or '—')}).{hint}</p>")
+    e = html.esc
+    hint = (" " + e(_("Check: {what}.").format(what=i18n.check_words(f.noks[0][0].reason_code)))
+            if f.noks else "")
+    words = ngettext("{n} NOK in a row (warning from {limit}, recipe {recipe}).",
+                     "{n} NOKs in a row (warning from {limit}, recipe {recipe}).", f.streak)
+    return (f'<p class="streak" role="alert" data-streak="{f.streak}">⚠ '
+            f"{e(words.format(n=f.streak, limit=f.streak_limit, recipe=f.recipe or '—'))}"
+            f"{hint}</p>")
 
 
 def shift_table(f: LineFigures, zone: str) -> str:
     c = f.counts
-    y = c.yield_pct
+    e = html.esc
     span = html.shift_span(f.window, zone)
 
     def ms(v: float | None) -> str:
         return f"{html.num(v, 1)} ms" if v is not None else "—"
 
     return (f'<p class="muted">{span}</p><dl>'
-            f'<dt>OK</dt><dd data-count="ok">{c.ok}</dd>'
-            f'<dt>NOK</dt><dd data-count="nok">{c.nok}</dd>'
-            f'<dt>yield</dt><dd data-count="yield">{"—" if y is None else f"{y:.1f} %"}</dd>'
-            f'<dt>cycle min</dt><dd data-count="min">{ms(c.min_ms)}</dd>'
-            f'<dt>cycle mean</dt><dd data-count="mean">{ms(c.mean_ms)}</dd>'
-            f'<dt>cycle max</dt><dd data-count="max">{ms(c.max_ms)}</dd></dl>')
+            f'<dt>{html.ok_word()}</dt><dd data-count="ok">{c.ok}</dd>'
+            f'<dt>{html.nok_word()}</dt><dd data-count="nok">{c.nok}</dd>'
+            f'<dt>' + e(_("yield")) + f'</dt><dd data-count="yield">{i18n.pct(c.yield_pct)}</dd>'
+            f'<dt>' + e(_("cycle min")) + f'</dt><dd data-count="min">{ms(c.min_ms)}</dd>'
+            f'<dt>' + e(_("cycle mean")) + f'</dt><dd data-count="mean">{ms(c.mean_ms)}</dd>'
+            f'<dt>' + e(_("cycle max")) + f'</dt><dd data-count="max">{ms(c.max_ms)}</dd></dl>')
 
 
 def nok_strip(f: LineFigures) -> str:
+    e = html.esc
     if not f.noks:
-        return '<p class="muted">No NOK results.</p>'
+        return '<p class="muted">' + e(_("No NOK results.")) + '</p>'
     items = []
     for m, thumb in f.noks:
-        img = (f'<img src="{html.esc(thumb)}" alt="frame of NOK #{m.id}" loading="lazy">'
-               if thumb else '<span class="noimg">no frame kept</span>')
+        alt = _("frame of NOK #{id}").format(id=m.id)
+        img = (f'<img src="{e(thumb)}" alt="{e(alt)}" loading="lazy">'
+               if thumb else '<span class="noimg">' + e(_("no frame kept")) + '</span>')
+        check = _("Check: {what}").format(what=i18n.check_words(m.reason_code))
         items.append(
             f'<li data-id="{m.id}" data-reason="{m.reason_code}">{img}'
             f'<span class="when">#{m.id} · {html.when(m.triggered_at)}</span><br>'
-            f'<span class="reason">{html.esc(m.reason)}</span>: {html.esc(describe(m.reason_code))}'
-            f'<br><span class="check">Check: {html.esc(what_to_check(m.reason_code))}</span></li>')
+            f'<span class="reason">{e(m.reason)}</span>: {e(i18n.reason_words(m.reason_code))}'
+            f'<br><span class="check">{e(check)}</span></li>')
     return f'<ul class="noks">{"".join(items)}</ul>'

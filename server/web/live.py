@@ -1,4 +1,5 @@
-"""The Live page's server-sent events: one watcher per process, fanned out to every browser.
+"""The Live page's server-sent events: one watcher per process and language, fanned out to every
+browser that reads the page in that language.
 
 The watcher asks the store for its newest record (one cheap query every
 :data:`POLL_S`) and the station for its status; when either changes it renders the HTML once and
@@ -133,6 +134,24 @@ class LiveFeed:
             await asyncio.sleep(POLL_S)
 
 
-def live_of(app: Any) -> LiveFeed:
-    feed: LiveFeed = app.state.web_live
-    return feed
+@dataclass
+class LiveFeeds:
+    """One :class:`LiveFeed` per language the page is open in (each renders its fragments once
+    in its language; a language nobody reads has no watcher)."""
+
+    make: Callable[[str], LiveFeed]
+    feeds: dict[str, LiveFeed] = field(default_factory=dict)
+
+    def of(self, code: str) -> LiveFeed:
+        if code not in self.feeds:
+            self.feeds[code] = self.make(code)
+        return self.feeds[code]
+
+    @property
+    def listeners(self) -> int:
+        return sum(f.listeners for f in self.feeds.values())
+
+
+def live_of(app: Any) -> LiveFeeds:
+    feeds: LiveFeeds = app.state.web_live
+    return feeds

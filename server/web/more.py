@@ -6,14 +6,14 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 
 from mvpose_core.shifts import time_zone
 from server.auth import Role
 from server.errors import DomainError, InvalidInputError
 from server.store.schemas import MeasurementFilter
-from server.web import html
+from server.web import html, i18n
 from server.web.context import (
     DRIFT_ENDPOINT,
     VERIFY_ENDPOINT,
@@ -25,11 +25,12 @@ from server.web.context import (
     reader_of,
     station_up,
 )
-from server.web.pages import Html, to_login
+from server.web.i18n import N_, _, ngettext
+from server.web.pages import Html, disabled_down, to_login
 from server.web.reader import age_words
 from server.web.spc import BASELINE_POINTS, Baseline, spc_charts
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 NamePath = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=64)]
 #: newest records on the charts unless the page asks for another number
 TREND_POINTS = 2000
@@ -79,11 +80,11 @@ async def spc_json(
     await need(request, Role.READ)
     if baseline_since and baseline_until and (baseline_since.tzinfo is None) != (
             baseline_until.tzinfo is None):
-        raise InvalidInputError("baseline_since and baseline_until: give both with a UTC "
-                                "offset or both without (the plant's time)")
+        raise InvalidInputError(_("baseline_since and baseline_until: give both with a UTC "
+                                  "offset or both without (the plant's time)"))
     if baseline_since and baseline_until and baseline_until < baseline_since:
-        raise InvalidInputError(f"baseline_until {baseline_until.isoformat()} is before "
-                                f"baseline_since {baseline_since.isoformat()}")
+        raise InvalidInputError(_("baseline_until {until} is before baseline_since {since}").format(
+            until=baseline_until.isoformat(), since=baseline_since.isoformat()))
     reader = reader_of(request)
     zone = time_zone(_zone(reader))
     # a baseline typed on the page (datetime-local) is the plant's wall-clock time
@@ -101,10 +102,13 @@ async def spc_json(
 
 def _charts_page(title: str, active: str, intro: str, kind: str, user: Any, zone: str,
                  extra: str = "", src: str = "/web/trends.json", more: str = "") -> HTMLResponse:
-    body = f"""<section class="panel"><h2>{html.esc(title)}</h2>{intro}
-<form id="trend-filters" class="filters"><label>points <input name="limit" type="number"
- min="1" max="{MAX_POINTS}" value="{TREND_POINTS}"></label><label>recipe <input name="recipe">
-</label>{more}<button type="submit">Show</button></form>
+    e = html.esc
+    body = f"""<section class="panel"><h2>{e(title)}</h2>{intro}
+<form id="trend-filters" class="filters"><label>""" + e(_("points")) + f""" <input name="limit"
+ type="number" min="1" max="{MAX_POINTS}" value="{TREND_POINTS}"></label><label>\
+""" + e(_("recipe")) + f""" <input name="recipe"></label>{more}
+<button type="submit">""" + e(_("Show")) + f"""\
+</button></form>
 <div id="charts" data-kind="{kind}" data-src="{src}" data-tz="{html.esc(zone)}"></div>
 </section>{extra}"""
     return HTMLResponse(html.layout(title, user, body, active))
@@ -123,22 +127,23 @@ async def spc_page(request: Request) -> Html:
     if user is None:
         return to_login(request)
     zone = _zone(reader_of(request))
-    intro = (f"<p>Individuals and moving-range (I-MR) charts of the newest results, oldest on "
-             f"the left, per offset axis, per camera's RMS residual and for the cycle time. "
-             f"The control limits "
-             f"(UCL, centre, LCL: x̄ ± 3·MR̄/1.128) come from the baseline: the first "
-             f"{BASELINE_POINTS} points of the window unless a baseline time range is given. "
-             f"Dashed grey lines are the active recipe's tolerances (the deadline for the "
-             f"cycle time). Points that break a run rule "
-             f"(Nelson's eight; rules 1, 2, 5 and 6 are the Western Electric rules) are marked "
-             f"and listed under their chart. Cp/Cpk use σ within (MR̄/1.128), Pp/Ppk the "
-             f"overall σ, over all points of the window. Times are the plant's "
-             f"({html.esc(zone)}).</p>")
-    more = (f'<label>baseline points <input name="baseline" type="number" min="2" '
+    e = html.esc
+    intro = "<p>" + e(_(
+        "Individuals and moving-range (I-MR) charts of the newest results, oldest on the left, "
+        "per offset axis, per camera's RMS residual and for the cycle time. The control limits "
+        "(UCL, centre, LCL: x̄ ± 3·MR̄/1.128) come from the baseline: the first {n} points of "
+        "the window unless a baseline time range is given. Dashed grey lines are the active "
+        "recipe's tolerances (the deadline for the cycle time). Points that break a run rule "
+        "(Nelson's eight; rules 1, 2, 5 and 6 are the Western Electric rules) are marked and "
+        "listed under their chart. Cp/Cpk use σ within (MR̄/1.128), Pp/Ppk the overall σ, over "
+        "all points of the window. Times are the plant's ({zone}).").format(
+        n=BASELINE_POINTS, zone=zone)) + "</p>"
+    more = ('<label>' + e(_("baseline points")) + f' <input name="baseline" type="number" min="2" '
             f'max="{MAX_POINTS}" value="{BASELINE_POINTS}"></label>'
-            f'<label>or baseline from <input name="baseline_since" type="datetime-local">'
-            f'</label><label>to <input name="baseline_until" type="datetime-local"></label>')
-    return _charts_page("SPC", "/spc", intro, "spc", user, zone, src="/web/spc.json",
+            f'<label>' + e(_("or baseline from")) + ' <input name="baseline_since" '
+            'type="datetime-local"></label><label>' + e(_("to")) + ' <input name="baseline_until" '
+            'type="datetime-local"></label>')
+    return _charts_page(_("SPC"), "/spc", intro, "spc", user, zone, src="/web/spc.json",
                         more=more)
 
 
@@ -150,28 +155,34 @@ async def calibration_page(request: Request) -> Html:
     reader = reader_of(request)
     ages = await in_thread(calibration_ages, reader)
     drift_mounted = has_endpoint(request.app, DRIFT_ENDPOINT, "get")
-    drift = (f'<div id="drift" data-src="{DRIFT_ENDPOINT}"><p class="muted">loading the drift '
-             "detector's warnings…</p></div>" if drift_mounted else
-             f'<div id="drift" data-src=""><p class="hook">The drift watch is not installed in '
-             f"this server (no GET {DRIFT_ENDPOINT}): the charts above show what the records "
-             "hold. A steady mean residual that walks away from zero is a camera that moved."
-             "</p></div>")
-    drift += ("<p>To check the calibration against the taught reference part: put the "
-              "reference part at its taught place and verify (operator; the PLC runs the same "
-              "verify with command VERIFY), or open a stored measurement of it in History and "
-              "use <i>Verify with this reference measurement</i>.</p>")
+    e = html.esc
+    loading = e(_("loading the drift detector's warnings…"))
+    drift = (f'<div id="drift" data-src="{DRIFT_ENDPOINT}" data-loading="1"><p class="muted">'
+             f"{loading}</p></div>" if drift_mounted else
+             '<div id="drift" data-src=""><p class="hook">' + e(_(
+                 "The drift watch is not installed in this server (no GET {endpoint}): the "
+                 "charts above show what the records hold. A steady mean residual that walks "
+                 "away from zero is a camera that moved.").format(endpoint=DRIFT_ENDPOINT))
+             + "</p></div>")
+    drift += "<p>" + e(_(
+        "To check the calibration against the taught reference part: put the reference part at "
+        "its taught place and verify (operator; the PLC runs the same verify with command "
+        "VERIFY), or open a stored measurement of it in History and use {button}.")).format(
+        button="<i>" + e(_('Verify with this reference measurement')) + "</i>") + "</p>"
     if html.can(user, Role.OPERATOR) and has_endpoint(request.app, VERIFY_ENDPOINT, "post"):
         up = await in_thread(station_up, request.app)
-        down = "" if up else " disabled title='station down'"
+        down = disabled_down(up)
         drift += (f'<button type="button" class="post" data-needs-station{down} '
-                  f'data-action="{VERIFY_ENDPOINT}">Measure the reference part and verify'
-                  '</button><p class="msg" role="status"></p>')
-    extra = f"""<section class="panel"><h2>Drift warnings</h2>{drift}</section>
-<section class="panel"><h2>Calibration age</h2>{ages}</section>"""
-    intro = ("<p>Per camera, the mean reprojection residual of each result (du, dv in px: the "
-             "marks' detected minus reprojected centres) and its RMS. A calibration that has "
-             "stopped fitting shows as a mean that leaves zero and stays away.</p>")
-    return _charts_page("Calibration health", "/calibration", intro, "calibration", user,
+                  f'data-action="{VERIFY_ENDPOINT}">'
+                  + e(_("Measure the reference part and verify"))
+                  + '</button><p class="msg" role="status"></p>')
+    extra = """<section class="panel"><h2>""" + e(_("Drift warnings")) + f"""</h2>{drift}</section>
+<section class="panel"><h2>""" + e(_("Calibration age")) + f"""</h2>{ages}</section>"""
+    intro = "<p>" + e(_(
+        "Per camera, the mean reprojection residual of each result (du, dv in px: the marks' "
+        "detected minus reprojected centres) and its RMS. A calibration that has stopped "
+        "fitting shows as a mean that leaves zero and stays away.")) + "</p>"
+    return _charts_page(_("Calibration health"), "/calibration", intro, "calibration", user,
                         _zone(reader), extra)
 
 
@@ -182,18 +193,22 @@ def calibration_ages(reader: Any) -> str:
         for v in store.versions.versions("calibration", n.name):
             rows.append(f"<tr><td>{html.esc(n.name)}</td><td>v{v.version}</td>"
                         f"<td>{html.when(v.created_at)}</td><td>{age_words(v.created_at, now)}"
-                        f"</td><td>{'active' if v.active else ''}</td>"
+                        f"</td><td>" + (html.esc(_('active')) if v.active else '') + f"</td>"
                         f"<td>{html.esc(v.created_by)}</td></tr>")
     station = reader.services.settings.station
     file_age = ""
     if station is not None and station.exists():
         mtime = datetime.fromtimestamp(station.stat().st_mtime, UTC)
-        file_age = (f"<p>The cameras' intrinsics and poses come from the station file "
-                    f"<code>{html.esc(station)}</code>, changed {html.when(mtime)} "
-                    f"(<b class='age'>{age_words(mtime, now)}</b> ago).</p>")
-    table = ("<table><tr><th>calibration</th><th>version</th><th>uploaded</th><th>age</th>"
-             f"<th>state</th><th>by</th></tr>{''.join(rows)}</table>" if rows else
-             "<p class='muted'>No calibration uploaded to the store.</p>")
+        file_age = "<p>" + html.esc(_(
+            "The cameras' intrinsics and poses come from the station file {file}, changed "
+            "{when} ({age} ago).")).format(file=f"<code>{html.esc(station)}</code>",
+                                            when=html.when(mtime),
+                                            age=f"<b class='age'>{age_words(mtime, now)}</b>"
+                                            ) + "</p>"
+    heads = "".join("<th>" + html.esc(_(h)) + "</th>" for h in (
+        N_("calibration"), N_("version"), N_("uploaded"), N_("age"), N_("state"), N_("by")))
+    table = (f"<table><tr>{heads}</tr>{''.join(rows)}</table>" if rows else
+             "<p class='muted'>" + html.esc(_('No calibration uploaded to the store.')) + "</p>")
     return file_age + table
 
 
@@ -208,9 +223,12 @@ async def recipes_page(request: Request) -> Html:
     rows = "".join(f'<tr><td><a href="/recipes/{html.esc(n.name)}">{html.esc(n.name)}</a></td>'
                    f"<td>v{n.active_version or '—'}</td><td>v{n.latest_version}</td></tr>"
                    for n in names)
-    body = (f'<section class="panel"><h2>Recipes</h2><table><tr><th>recipe</th><th>active</th>'
-            f"<th>latest</th></tr>{rows}</table></section>")
-    return HTMLResponse(html.layout("Recipes", user, body, "/recipes"))
+    e = html.esc
+    body = ('<section class="panel"><h2>' + e(_("Recipes")) + '</h2><table><tr>'
+            '<th>' + e(_("recipe")) + '</th><th>' + e(_("active")) + '</th>'
+            '<th>' + e(_("latest")) + f'</th></tr>'
+            f"{rows}</table></section>")
+    return HTMLResponse(html.layout(_("Recipes"), user, body, "/recipes"))
 
 
 @router.get("/recipes/{name}")
@@ -237,6 +255,7 @@ async def recipe_page(
         diff = f"<p class='bad'>{html.esc(err.detail)}</p>"
     else:
         diff = diff_table(ca, cb, ia.version, ib.version)
+    e = html.esc
     engineer = html.can(user, Role.ENGINEER)
     up = html.can(user, Role.OPERATOR) and await in_thread(station_up, request.app)
     rows = []
@@ -245,31 +264,39 @@ async def recipe_page(
         if engineer and not v.active:
             act = (f'<button type="button" class="post" data-action="/web/actions/activate" '
                    f"data-body='{{\"name\": \"{html.esc(name)}\", \"version\": {v.version}}}' "
-                   f'data-confirm="Activate {html.esc(name)} v{v.version}: the station measures '
-                   f'with it from the next trigger on?">Activate</button>')
+                   'data-confirm="' + e(_("Activate {name} v{version}: the station measures "
+                                          "with it from the next trigger on?").format(
+                       name=name, version=v.version)) + '">' + e(_("Activate")) + '</button>')
         rows.append(f"<tr class='{'active' if v.active else ''}'><td>v{v.version}</td>"
-                    f"<td>{html.when(v.created_at)}</td><td>{html.esc(v.created_by)}</td>"
-                    f"<td>{html.esc(v.comment)}</td><td class='hash'>{html.esc(v.sha256[:12])}</td>"
-                    f"<td>{'active' if v.active else ''}</td><td>{act}</td></tr>")
+                    f"<td>{html.when(v.created_at)}</td><td>{e(v.created_by)}</td>"
+                    f"<td>{e(v.comment)}</td><td class='hash'>{e(v.sha256[:12])}</td>"
+                    f"<td>" + (e(_('active')) if v.active else '') + f"</td><td>{act}</td></tr>")
     options = {k: "".join(f"<option{' selected' if n == sel else ''}>{n}</option>"
                           for n in numbers) for k, sel in (("a", a), ("b", b))}
     arm = ""
     if html.can(user, Role.OPERATOR):
-        down = "" if up else " disabled title='station down'"
+        down = disabled_down(up)
+        confirm = _("The next OK result becomes the reference of the active recipe. Arm?")
+        rest = e(_("or teach from a stored OK measurement: open it in {history}.")).format(
+            history='<a href="/history?result=OK">' + e(_("History")) + '</a>')
         arm = (f'<p><button type="button" class="post" data-needs-station '
                f'data-action="/web/actions/arm-teach" '
-               f'data-confirm="The next OK result becomes the reference of the active recipe. '
-               f'Arm?"{down}>Arm teach (next OK result)</button> or teach from a stored OK '
-               f'measurement: open it in <a href="/history?result=OK">History</a>.</p>')
-    body = f"""<section class="panel"><h2>Recipe {html.esc(name)}</h2>
-<table class="versions"><tr><th>version</th><th>created</th><th>by</th><th>comment</th>
-<th>sha256</th><th>state</th><th>action</th></tr>{''.join(rows)}</table>{arm}
+               f'data-confirm="{e(confirm)}"{down}>'
+               + e(_("Arm teach (next OK result)")) + f'</button> '
+               f"{rest}</p>")
+    heads = "".join("<th>" + e(_(h)) + "</th>" for h in (
+        N_("version"), N_("created"), N_("by"), N_("comment"), N_("sha256"), N_("state"),
+        N_("action")))
+    title = _("Recipe {name}").format(name=name)
+    body = f"""<section class="panel"><h2>{e(title)}</h2>
+<table class="versions"><tr>{heads}</tr>{''.join(rows)}</table>{arm}
 <p class="msg" role="status"></p></section>
-<section class="panel"><h2>Side by side</h2><form class="filters" method="get">
-<label>left <select name="a">{options['a']}</select></label>
-<label>right <select name="b">{options['b']}</select></label><button>Compare</button></form>
+<section class="panel"><h2>""" + e(_("Side by side")) + """</h2><form class="filters" method="get">
+<label>""" + e(_("left")) + f""" <select name="a">{options['a']}</select></label>
+<label>""" + e(_("right")) + f""" <select name="b">{options['b']}</select></label>\
+<button>""" + e(_("Compare")) + f"""</button></form>
 {diff}</section>"""
-    return HTMLResponse(html.layout(f"Recipe {name}", user, body, "/recipes"))
+    return HTMLResponse(html.layout(title, user, body, "/recipes"))
 
 
 def _two(reader: Any, name: str, a: int, b: int) -> tuple[Any, Any]:
@@ -296,15 +323,19 @@ def diff_table(a: dict[str, Any], b: dict[str, Any], va: int, vb: int) -> str:
     keys = sorted(set(fa) | set(fb))
     changed = [k for k in keys if fa.get(k) != fb.get(k)]
     same = [k for k in keys if fa.get(k) == fb.get(k)]
-    head = f"<tr><th>field</th><th>v{va}</th><th>v{vb}</th></tr>"
+    head = "<tr><th>" + html.esc(_('field')) + f"</th><th>v{va}</th><th>v{vb}</th></tr>"
 
     def rows(ks: list[str], cls: str) -> str:
         return "".join(f"<tr class='{cls}'><td>{html.esc(k)}</td><td>{html.esc(fa.get(k, '—'))}"
                        f"</td><td>{html.esc(fb.get(k, '—'))}</td></tr>" for k in ks)
 
-    return (f"<p class='diffsum'>{len(changed)} of {len(keys)} fields differ between v{va} and "
-            f"v{vb}.</p><table class='diff'>{head}{rows(changed, 'changed')}</table>"
-            f"<details class='same'><summary>{len(same)} fields the same</summary>"
+    summary = _("{changed} of {total} fields differ between v{a} and v{b}.").format(
+        changed=len(changed), total=len(keys), a=va, b=vb)
+    same_words = ngettext("{n} field the same", "{n} fields the same", len(same)).format(
+        n=len(same))
+    return (f"<p class='diffsum'>{html.esc(summary)}</p><table class='diff'>{head}"
+            f"{rows(changed, 'changed')}</table>"
+            f"<details class='same'><summary>{html.esc(same_words)}</summary>"
             f"<table class='diff'>{head}{rows(same, 'same')}</table></details>")
 
 

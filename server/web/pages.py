@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response, StreamingResponse
 
 from mvpose_core.offset import frame_offsets
@@ -15,7 +15,7 @@ from mvpose_core.station import RecipeConfig
 from server.auth import Role
 from server.errors import InvalidInputError, NotFoundError
 from server.store.schemas import MAX_ID, MeasurementFilter
-from server.web import html
+from server.web import html, i18n
 from server.web.context import (
     VERIFY_ENDPOINT,
     TeachPreview,
@@ -30,9 +30,10 @@ from server.web.context import (
     render_status,
     station_up,
 )
+from server.web.i18n import N_, _
 from server.web.reader import Reader, RecordView
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 Html = Response  # HTMLResponse or a RedirectResponse to the login
 
 
@@ -48,22 +49,30 @@ async def live_page(request: Request) -> Html:
         return to_login(request)
     reader = reader_of(request)
     newest = await in_thread(reader.newest_id)
-    result, frames, _, _ = await in_thread(render_live_result, reader, newest, None)
+    result, frames, _framed, _complete = await in_thread(render_live_result, reader, newest, None)
     status = await in_thread(render_status, request.app, reader)
     actions = ""
     if html.can(user, Role.OPERATOR):
         up = await in_thread(station_up, request.app)
-        down = "" if up else " disabled title='station down'"
-        actions = f"""<section class="panel actions"><h2>Commissioning</h2>
-<form id="trigger-form" data-action="/web/actions/trigger"><label>part id
+        down = disabled_down(up)
+        e = html.esc
+        confirm = _("The next OK result becomes the active recipe's reference (zero offset). "
+                    "Arm?")
+        actions = """<section class="panel actions"><h2>""" + e(_("Commissioning")) + """</h2>
+<form id="trigger-form" data-action="/web/actions/trigger"><label>""" + e(_("part id")) + f"""
 <input name="part_id" maxlength="40"></label><button type="submit" data-needs-station{down}>
-Trigger now</button></form><button type="button" class="post" data-needs-station
- data-action="/web/actions/arm-teach"
- data-confirm="The next OK result becomes the active recipe's reference (zero offset). Arm?"
- {down}>Arm teach</button><p class="msg" role="status"></p></section>"""
+""" + e(_("Trigger now")) + f"""</button></form>
+<button type="button" class="post" data-needs-station
+ data-action="/web/actions/arm-teach" data-confirm="{e(confirm)}"
+ {down}>""" + e(_("Arm teach")) + """</button><p class="msg" role="status"></p></section>"""
     body = f"""<div id="live" data-events="/web/live/events" class="grid">
 <div class="col">{status}{result}{actions}</div><div class="col wide">{frames}</div></div>"""
-    return HTMLResponse(html.layout("Live", user, body, "/"))
+    return HTMLResponse(html.layout(_("Live"), user, body, "/"))
+
+
+def disabled_down(up: bool) -> str:
+    """The attributes of a station action while the station is down."""
+    return "" if up else " disabled title='" + html.esc(_('station down')) + "'"
 
 
 @router.get("/web/live/events")
@@ -147,8 +156,8 @@ async def history_page(
     except InvalidInputError as err:
         # The page says what is wrong where the list would be (htmx swaps a 400 in: app.js).
         status = 400
-        rows = (f'<div id="rows"><p class="msg error" role="alert">Not filtered: '
-                f"{html.esc(err.detail)}</p></div>")
+        rows = ('<div id="rows"><p class="msg error" role="alert">'
+                + html.esc(_("Not filtered:")) + f' {html.esc(err.detail)}</p></div>')
     else:
         next_url = (f"/history?{html.query(params | {'cursor': next_cursor, 'limit': limit})}"
                     if next_cursor else None)
@@ -157,21 +166,24 @@ async def history_page(
         return HTMLResponse(rows, status_code=status)
     e = html.esc
     sel = {v: " selected" if result == v else "" for v in ("", "OK", "NOK")}
-    body = f"""<section class="panel"><h2>History</h2>
+    body = """<section class="panel"><h2>""" + e(_("History")) + """</h2>
 <form id="filters" class="filters" action="/history" method="get" hx-get="/history"
  hx-target="#rows" hx-select="#rows" hx-swap="outerHTML" hx-push-url="true">
-<label>since <input name="since" value="{e(params['since'])}"
+<label>""" + e(_("since")) + f""" <input name="since" value="{e(params['since'])}"
  placeholder="2026-11-02T06:00Z"></label>
-<label>until <input name="until" value="{e(params['until'])}"></label>
-<label>result <select name="result"><option value=""{sel[""]}>any</option>
-<option{sel["OK"]}>OK</option><option{sel["NOK"]}>NOK</option></select></label>
-<label>reason code <input name="reason_code" type="number" min="0" max="65535"
+<label>""" + e(_("until")) + f""" <input name="until" value="{e(params['until'])}"></label>
+<label>""" + e(_("result")) + f""" <select name="result">
+<option value=""{sel[""]}>""" + e(_("any")) + f"""</option>
+<option value="OK"{sel["OK"]}>{html.ok_word()}</option>
+<option value="NOK"{sel["NOK"]}>{html.nok_word()}</option></select></label>
+<label>""" + e(_("reason code")) + f""" <input name="reason_code" type="number" min="0" max="65535"
  value="{e(reason_code)}"></label>
-<label>recipe <input name="recipe" value="{e(recipe)}"></label>
-<label>part id <input name="part_id" value="{e(part_id)}"></label>
-<label>per page <input name="limit" type="number" min="1" max="1000" value="{limit}"></label>
-<button type="submit">Filter</button></form>{rows}</section>"""
-    return HTMLResponse(html.layout("History", user, body, "/history"), status_code=status)
+<label>""" + e(_("recipe")) + f""" <input name="recipe" value="{e(recipe)}"></label>
+<label>""" + e(_("part id")) + f""" <input name="part_id" value="{e(part_id)}"></label>
+<label>""" + e(_("per page")) + f""" <input name="limit" type="number" min="1" max="1000"
+ value="{limit}"></label>
+<button type="submit">""" + e(_("Filter")) + f"""</button></form>{rows}</section>"""
+    return HTMLResponse(html.layout(_("History"), user, body, "/history"), status_code=status)
 
 
 def _time(text: str, name: str) -> datetime | None:
@@ -180,9 +192,11 @@ def _time(text: str, name: str) -> datetime | None:
     try:
         t = datetime.fromisoformat(text.replace("Z", "+00:00"))
     except ValueError:
-        raise InvalidInputError(f"{name} = {text!r} is not an ISO 8601 time") from None
+        raise InvalidInputError(_("{name} = {text} is not an ISO 8601 time").format(
+            name=name, text=repr(text))) from None
     if t.tzinfo is None:
-        raise InvalidInputError(f"{name} = {text!r} has no time zone; add Z or +hh:mm")
+        raise InvalidInputError(_("{name} = {text} has no time zone; add Z or +hh:mm").format(
+            name=name, text=repr(text)))
     return t
 
 
@@ -203,24 +217,35 @@ async def record_page(
         teach = teach_block(s.id, preview, await in_thread(station_up, request.app))
         if has_endpoint(request.app, VERIFY_ENDPOINT, "post"):
             teach += verify_block(s.id)
-    images = "".join(f"<li>view {i.view} {html.esc(i.camera_id)}: "
-                     f"{'archived' if (i.view, i.camera_id) in view.frames else 'evicted'}</li>"
-                     for i in rec.images) or "<li>none kept (OK frames are kept 1 in N)</li>"
-    body = f"""<div class="grid"><div class="col">
-{html.result_panel(s.id, rec, deadline_ms(reader)).replace('Last result', 'Measurement', 1)}
-<section class="panel"><h2>Audit</h2><dl><dt>seq</dt><dd>{s.seq}</dd>
-<dt>stored</dt><dd>{html.when(s.stored_at)}</dd>
-<dt>hash</dt><dd class="hash">{html.esc(s.hash)}</dd>
-<dt>recipe</dt><dd><a href="/recipes/{html.esc(rec.recipe)}">{html.esc(rec.recipe)}</a>
+    e = html.esc
+    images = "".join(
+        "<li>" + e(_("view {view} {camera}: {state}").format(
+            view=i.view, camera=i.camera_id,
+            state=_("archived") if (i.view, i.camera_id) in view.frames else _("evicted")))
+        + "</li>" for i in rec.images) or (
+        "<li>" + e(_('none kept (OK frames are kept 1 in N)')) + "</li>")
+    body = """<div class="grid"><div class="col">
+""" + html.result_panel(s.id, rec, deadline_ms(reader), N_("Measurement")) + """
+<section class="panel"><h2>""" + e(_("Audit")) + """</h2>
+<dl><dt>""" + e(_("seq")) + f"""</dt><dd>{s.seq}</dd>
+<dt>""" + e(_("stored")) + f"""</dt><dd>{html.when(s.stored_at)}</dd>
+<dt>""" + e(_("hash")) + f"""</dt><dd class="hash">{e(s.hash)}</dd>
+<dt>""" + e(_("recipe")) + f"""</dt><dd><a href="/recipes/{e(rec.recipe)}">{e(rec.recipe)}</a>
  v{rec.recipe_version}</dd>
-<dt>calibration</dt><dd>{html.esc(rec.calibration_id or 'station file')}
- {html.esc((rec.calibration_hash or '')[:12])}</dd>
-<dt>software</dt><dd>{html.esc(rec.software_version)}</dd></dl>
-<h3>Timings</h3>{html.timings_table(rec)}<h3>Frames</h3><ul>{images}</ul></section>{teach}
+<dt>""" + e(_("calibration")) + """</dt>
+<dd>""" + e(rec.calibration_id or _('station file')) + f"""
+ {e((rec.calibration_hash or '')[:12])}</dd>
+<dt>""" + e(_("software")) + f"""</dt><dd>{e(rec.software_version)}</dd></dl>
+<h3>""" + e(_("Timings")) + f"""</h3>{html.timings_table(rec)}
+<h3>""" + e(_("Frames")) + f"""</h3><ul>{images}</ul>
+</section>{teach}
 </div><div class="col wide"><section class="panel" id="frames" data-id="{s.id}">
-<h2>Images and overlays</h2>{html.legend()}<div class="cams">{html.camera_figures(view)}</div>
-<h3>Detections and residuals</h3>{html.detections_table(view)}</section></div></div>"""
-    return HTMLResponse(html.layout(f"Measurement {s.id}", user, body, "/history"))
+<h2>""" + e(_("Images and overlays")) + f"""</h2>{html.legend()}<div class="cams">\
+{html.camera_figures(view)}</div>
+<h3>""" + e(_("Detections and residuals")) + f"""</h3>{html.detections_table(view)}
+</section></div></div>"""
+    title = _("Measurement {id}").format(id=s.id)
+    return HTMLResponse(html.layout(title, user, body, "/history"))
 
 
 def teach_preview(reader: Reader, view: RecordView) -> TeachPreview | None:
@@ -238,11 +263,14 @@ def teach_preview(reader: Reader, view: RecordView) -> TeachPreview | None:
 
 
 def verify_block(rec_id: int) -> str:
-    return f"""<section class="panel"><h2>Verify the calibration</h2>
-<p>If this is a measurement of the taught reference part, the calibration still holds when its
- implied offset is within the recipe's 1σ tolerances.</p>
+    e = html.esc
+    return """<section class="panel"><h2>""" + e(_("Verify the calibration")) + """</h2>
+<p>""" + e(_("If this is a measurement of the taught reference part, the calibration still holds "
+        "when its implied offset is within the recipe's 1σ tolerances.")) + f"""</p>
 <button type="button" class="post" data-action="{VERIFY_ENDPOINT}"
- data-body='{{"measurement_id": {rec_id}}}'>Verify with this reference measurement</button>
+ data-body='{{"measurement_id": {rec_id}}}'>
+""" + e(_("Verify with this reference measurement")) + """\
+</button>
 <p class="msg" role="status"></p></section>"""
 
 
@@ -253,21 +281,25 @@ def teach_block(rec_id: int, p: TeachPreview | None, station_up: bool) -> str:
     cells = "".join(f"<td>{html.num(v)} {html.esc(u)}</td>"
                     for v, u in zip(p.values, html.units(conv), strict=True))
     heads = "".join(f"<th>{html.esc(x)}</th>" for x in conv.labels)
-    down = "" if station_up else " disabled title='station down'"
-    note = "" if station_up else "<p class='muted'>station down: teaching needs the station</p>"
-    return f"""<section class="panel"><h2>Teach</h2>
-<button type="button" id="teach-open" data-needs-station{down}>Teach this as the reference…
-</button>{note}
-<dialog id="teach-dialog"><h3>Make measurement #{rec_id} the reference of
- {html.esc(p.recipe.name)}?</h3>
-<p>Against the active reference (v{p.recipe.version}) this part sits at the offset below. After
- teaching, a part lying like this one reads zero offset; the robot's taught path must be
- re-touched for the new reference.</p>
-<table class="offset" id="teach-offset"><caption>implied offset, {html.esc(conv.value)}
- convention</caption><tr>{heads}</tr><tr>{cells}</tr></table>
-<p>grasp point moves {html.num(p.grasp_displacement_mm)} mm, part turns
- {html.num(p.rotation_deg)}°</p>
-<form method="dialog"><button value="cancel">Cancel</button>
+    down = disabled_down(station_up)
+    e = html.esc
+    note = ("" if station_up else
+            "<p class='muted'>" + e(_('station down: teaching needs the station')) + "</p>")
+    return """<section class="panel"><h2>""" + e(_("Teach")) + f"""</h2>
+<button type="button" id="teach-open" data-needs-station{down}>\
+""" + e(_("Teach this as the reference…")) + f"""</button>{note}
+<dialog id="teach-dialog"><h3>""" + e(_("Make measurement #{id} the reference of {recipe}?").format(
+        id=rec_id, recipe=p.recipe.name)) + """</h3>
+<p>""" + e(_("Against the active reference (v{version}) this part sits at the offset below. After "
+        "teaching, a part lying like this one reads zero offset; the robot's taught path must "
+        "be re-touched for the new reference.").format(version=p.recipe.version)) + """</p>
+<table class="offset" id="teach-offset"><caption>\
+""" + e(_("implied offset, {convention} convention").format(
+        convention=conv.value)) + f"""</caption>\
+<tr>{heads}</tr><tr>{cells}</tr></table>
+<p>""" + e(_("grasp point moves {mm} mm, part turns {deg}°").format(
+        mm=html.num(p.grasp_displacement_mm), deg=html.num(p.rotation_deg))) + """</p>
+<form method="dialog"><button value="cancel">""" + e(_("Cancel")) + f"""</button>
 <button type="button" class="post" data-action="/web/actions/teach"
- data-body='{{"measurement_id": {rec_id}}}'>Teach</button></form>
+ data-body='{{"measurement_id": {rec_id}}}'>""" + e(_("Teach")) + """</button></form>
 <p class="msg" role="status"></p></dialog></section>"""

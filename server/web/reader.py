@@ -18,6 +18,7 @@ from server.store.archive import ImageInfo
 from server.store.schemas import MeasurementFilter, MeasurementSummary, StoredMeasurement
 from server.store.shifts import ShiftCounts
 from server.web.geometry import CameraOverlay, Geometry, recipe_from_content
+from server.web.i18n import _
 
 #: how far back the Live page looks for a record with archived frames (OK frames are kept 1 in N)
 FRAMES_LOOKBACK = 400
@@ -57,7 +58,7 @@ class Reader:
         key = (name, version)
         if key not in self._recipes:
             try:
-                _, content = self.store.versions.content("recipe", name, version)
+                _info, content = self.store.versions.content("recipe", name, version)
                 self._recipes[key] = recipe_from_content(name, version, content)
             except (DomainError, ValueError):
                 self._recipes[key] = None
@@ -77,7 +78,7 @@ class Reader:
         return self.view(self.store.measurements.get(measurement_id))
 
     def newest_id(self) -> int | None:
-        items, _ = self.store.measurements.summary_page(MeasurementFilter(), None, 1)
+        items, _next = self.store.measurements.summary_page(MeasurementFilter(), None, 1)
         return items[0].id if items else None
 
     def shift(self, now: datetime | None = None) -> tuple[ShiftWindow, ShiftCounts]:
@@ -211,7 +212,7 @@ def age_words(then: datetime, now: datetime) -> str:
     h, rem = divmod(rem, 3600)
     m = rem // 60
     if d:
-        return f"{d} d {h} h"
+        return _("{d} d {h} h").format(d=d, h=h)
     if h:
-        return f"{h} h {m} min"
-    return f"{m} min"
+        return _("{h} h {m} min").format(h=h, m=m)
+    return _("{m} min").format(m=m)

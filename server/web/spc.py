@@ -13,6 +13,17 @@ from typing import Any
 import numpy as np
 
 from mvpose_core.spc import RULES, capability, imr_limits, nelson
+from server.web.i18n import N_, _, when
+
+#: mvpose_core.spc's rule names, for the catalogue (the page shows them translated)
+RULE_NAMES = (
+    N_("1 point beyond 3σ"), N_("9 points in a row on one side of the centre line"),
+    N_("6 points in a row steadily increasing or decreasing"),
+    N_("14 points in a row alternating up and down"),
+    N_("2 of 3 points in a row beyond 2σ on one side"),
+    N_("4 of 5 points in a row beyond 1σ on one side"),
+    N_("15 points in a row within 1σ of the centre line"),
+    N_("8 points in a row beyond 1σ, on either side"))
 
 #: points a chart draws at most; beyond, each bucket's min and max are drawn (flagged points
 #: always are)
@@ -43,10 +54,10 @@ class Baseline:
 
     def words(self) -> str:
         if self.since is None and self.until is None:
-            return f"the first {self.points} points of the window"
-        a = self.since.isoformat() if self.since else "the window's start"
-        b = self.until.isoformat() if self.until else "its end"
-        return f"the points from {a} to {b}"
+            return _("the first {n} points of the window").format(n=self.points)
+        a = when(self.since) if self.since else _("the window's start")
+        b = when(self.until) if self.until else _("its end")
+        return _("the points from {a} to {b}").format(a=a, b=b)
 
 
 def _r(x: float | None, digits: int = 6) -> float | None:
@@ -78,12 +89,13 @@ def chart(key: str, title: str, unit: str, ids: list[int], t: list[float],
                            "lsl": lsl, "usl": usl, "limits": None, "capability": None,
                            "rules": [], "t": [], "values": [], "mr": [], "flagged": []}
     if x.size == 0:
-        out["message"] = "no values in this window"
+        out["message"] = _("no values in this window")
         return out
     base = baseline.mask(tt)
     if base.sum() < 2:
-        out["message"] = (f"the baseline ({baseline.words()}) holds {int(base.sum())} "
-                          "value(s) of this series: no control limits (2 needed)")
+        out["message"] = _("the baseline ({baseline}) holds {n} value(s) of this series: no "
+                           "control limits (2 needed)").format(baseline=baseline.words(),
+                                                               n=int(base.sum()))
         flags: dict[int, list[int]] = {}
     else:
         lim = imr_limits(x[base])
@@ -104,7 +116,7 @@ def chart(key: str, title: str, unit: str, ids: list[int], t: list[float],
         if idx:
             rule = RULES[number]
             out["rules"].append({
-                "rule": number, "name": rule.name, "western_electric": rule.western_electric,
+                "rule": number, "name": _(rule.name), "western_electric": rule.western_electric,
                 "count": len(idx),
                 "points": [{"id": rid[i], "t": float(tt[i]), "value": _r(float(x[i]))}
                            for i in idx[-LISTED:]]})
@@ -125,16 +137,16 @@ def spc_charts(cols: dict[str, Any], tol: dict[str, Any],
     units = tol.get("units") or ["mm", "mm", "mm", "°", "°", "°"]
     charts = []
     for k, values in enumerate(cols["offset"]):
-        label = labels[k] if k < len(labels) else f"axis {k + 1}"
+        label = labels[k] if k < len(labels) else _("axis {n}").format(n=k + 1)
         unit = units[k] if k < len(units) else ""
         lim = tol.get("max_offset_deg") if unit == "°" else tol.get("max_offset_mm")
-        charts.append(chart(f"offset.{label}", f"Offset {label} ({unit})", unit, cols["id"],
-                            cols["t"], values, -lim if lim is not None else None, lim,
-                            baseline))
+        title = _("Offset {axis} ({unit})").format(axis=label, unit=unit)
+        charts.append(chart(f"offset.{label}", title, unit, cols["id"], cols["t"], values,
+                            -lim if lim is not None else None, lim, baseline))
     for cam in cols["cameras"]:
-        charts.append(chart(f"rms.{cam}", f"RMS residual, camera {cam} (px)", "px", cols["id"],
-                            cols["t"], cols["camera_rms"][cam], None, tol.get("max_rms_px"),
-                            baseline))
-    charts.append(chart("cycle.total", "Cycle time (ms)", "ms", cols["id"], cols["t"],
+        title = _("RMS residual, camera {camera} (px)").format(camera=cam)
+        charts.append(chart(f"rms.{cam}", title, "px", cols["id"], cols["t"],
+                            cols["camera_rms"][cam], None, tol.get("max_rms_px"), baseline))
+    charts.append(chart("cycle.total", _("Cycle time (ms)"), "ms", cols["id"], cols["t"],
                         cols["total_ms"], None, tol.get("deadline_ms"), baseline))
     return charts

@@ -183,7 +183,8 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
     # second browser gets it from the same single watcher of the store.
     other = site.page("read")
     other.wait_for_function("document.getElementById('live').dataset.connected === '1'")
-    feed = site.app.state.web_live
+    feeds = site.app.state.web_live  # one feed per language; both pages read English
+    feed = feeds.of("en")
     # the browser says it is connected when its stream opened; the server counts it as it
     # starts serving that stream, which a busy machine may do a moment later
     until_sync(lambda: feed.listeners == 2, "both pages listen to the one feed", 15)
@@ -194,7 +195,7 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
                             timeout=15000)
     assert page.evaluate("window.__same_page") == 42
     until_sync(lambda: feed.listeners == 2, "both pages still listen", 15)
-    assert feed._task is not None  # one watcher task for both
+    assert feed._task is not None and list(feeds.feeds) == ["en"]  # one watcher for both
     other.context.close()
     framed = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
     page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{framed.id}'",

@@ -2,6 +2,40 @@
 // confirmation, and the SPC and calibration charts (uPlot). No framework; htmx handles the History filters.
 "use strict";
 
+// The page's language: its messages (server/web/jstext.py, translated from the page's one
+// catalogue), its BCP 47 tag and the plant's time zone, in the JSON block the server wrote.
+const I18N = (() => {
+  const el = document.getElementById("i18n");
+  try { return el ? JSON.parse(el.textContent) : {}; } catch (e) { return {}; }
+})();
+const LANG = I18N.lang || "en";
+
+// A message in the page's language, its {names} filled from `args`.
+function t(message, args) {
+  const text = (I18N.messages && I18N.messages[message]) || message;
+  return text.replace(/\{(\w+)\}/g, (m, k) => (args && k in args ? String(args[k]) : m));
+}
+
+const NUMBER_FORMATS = {};
+// A number with `digits` decimals in the page's locale (decimal comma in German and Spanish).
+function localNumber(v, digits) {
+  const key = String(digits);
+  const f = NUMBER_FORMATS[key] || (NUMBER_FORMATS[key] = new Intl.NumberFormat(LANG,
+    {minimumFractionDigits: digits, maximumFractionDigits: digits, useGrouping: false}));
+  return f.format(v);
+}
+
+// The user's language: a cookie for a year, then the page again in it.
+function setupLanguage() {
+  const sel = document.getElementById("lang-select");
+  if (!sel) return;
+  sel.addEventListener("change", () => {
+    document.cookie = sel.dataset.cookie + "=" + encodeURIComponent(sel.value) +
+      "; path=/; max-age=31536000; SameSite=Lax";
+    window.location.reload();
+  });
+}
+
 function postJSON(url, body) {
   return fetch(url, {method: "POST", credentials: "same-origin",
     headers: {"Content-Type": "application/json", "Accept": "application/json"},
@@ -47,7 +81,7 @@ function setupActions() {
     btn.disabled = true;
     postJSON(btn.dataset.action, btn.dataset.body ? JSON.parse(btn.dataset.body) : {})
       .then((data) => {
-        say(btn, data.message || "done", data.passed !== false);
+        say(btn, data.message || t("done"), data.passed !== false);
         if (btn.dataset.action.endsWith("/activate")) setTimeout(() => window.location.reload(), 800);
       })
       .catch((err) => say(btn, err.message, false))
@@ -57,7 +91,7 @@ function setupActions() {
   if (trig) trig.addEventListener("submit", (ev) => {
     ev.preventDefault();
     postJSON(trig.dataset.action, {part_id: trig.part_id.value || null})
-      .then((d) => say(trig, d.message + (d.measurement_id ? " (record #" + d.measurement_id + ")" : ""),
+      .then((d) => say(trig, d.message + (d.measurement_id ? " (" + t("record #{id}", {id: d.measurement_id}) + ")" : ""),
                        d.result_code === 0))
       .catch((err) => say(trig, err.message, false));
   });
@@ -75,7 +109,7 @@ function stationActions() {
   const down = state.dataset.state === "DOWN";
   document.querySelectorAll("[data-needs-station]").forEach((b) => {
     b.disabled = down;
-    if (down) b.title = "station down"; else b.removeAttribute("title");
+    if (down) b.title = t("station down"); else b.removeAttribute("title");
   });
 }
 
@@ -141,9 +175,9 @@ function chart(host, title, x, series, opts) {
     if (v === undefined) return;
     if (opts.log || Math.abs(v) <= 20 * Math.max(Math.abs(lo), Math.abs(hi), 1e-9)) {
       lo = Math.min(lo, v); hi = Math.max(hi, v);
-    } else off.push(s.label + " " + v);
+    } else off.push(s.label + " " + localNumber(v, 3));
   });
-  box.querySelector("h3").textContent = title + (off.length ? " — off the scale: " + off.join(", ") : "");
+  box.querySelector("h3").textContent = title + (off.length ? " — " + t("off the scale: {bands}", {bands: off.join(", ")}) : "");
   let range;
   if (opts.log) {
     lo = Math.max(lo, 1e-6);
@@ -160,7 +194,7 @@ function chart(host, title, x, series, opts) {
   const plot = new uPlot({width: width, height: opts.height || 220, series: spec,
     tzDate: (ts) => uPlot.tzDate(new Date(ts * 1e3), ZONE),  // ticks on the plant's hours
     scales: {x: {time: true, range: timeRange(x)}, y: {distr: opts.log ? 3 : 1, log: 10, range: range}},
-    axes: [{values: timeTicks, label: "time (" + ZONE + ")"},
+    axes: [{values: timeTicks, label: t("time ({zone})", {zone: ZONE})},
            // 24 px between y ticks (uPlot's 30 leaves one tick on a short chart's narrow range)
            {label: opts.unit || "", space: 24, values: opts.log ? undefined : numberTicks}],
     cursor: {drag: {x: true, y: false}}}, data, box);
@@ -181,7 +215,7 @@ function timeRange(x) {
 
 // The plant's time zone (the station file's time_zone, an IANA name): every time on the
 // charts is the plant's wall-clock time.
-let ZONE = "UTC";
+let ZONE = I18N.zone || "UTC";
 const ZONE_FORMATS = {};
 
 // 2026-11-02T07:00:00.000 in ZONE (the layout of toISOString, without the Z).
@@ -199,17 +233,34 @@ function zoneTime(t) {
     "." + String(((ms % 1000) + 1000) % 1000).padStart(3, "0");
 }
 
-// Time ticks in the plant's zone, as precise as the tick step needs and with the date once
-// the span passes most of a day (uPlot's own labels read ":53.900" on short spans).
+const DATE_FORMATS = {};
+// The date of `t` in the plant's zone, in the page's locale (`opts`: Intl's date fields).
+function zoneDate(t, opts) {
+  const key = ZONE + JSON.stringify(opts);
+  const f = DATE_FORMATS[key] || (DATE_FORMATS[key] = new Intl.DateTimeFormat(LANG,
+    Object.assign({timeZone: ZONE}, opts)));
+  return f.format(new Date(Math.round(t * 1000)));
+}
+
+// A moment in the plant's time, the locale's date and 24-hour time, and the zone.
+function stamp(t) {
+  return zoneDate(t, {year: "numeric", month: "short", day: "numeric", hour: "2-digit",
+    minute: "2-digit", second: "2-digit", hourCycle: "h23"}) + " " + ZONE;
+}
+
+// Time ticks in the plant's zone, as precise as the tick step needs and with the date (in the
+// page's locale) once the span passes most of a day (uPlot's own labels read ":53.900" on
+// short spans).
 function timeTicks(u, splits, axisIdx, space, incr) {
   const span = u.scales.x.max - u.scales.x.min;
   const d = incr < 1 ? Math.min(3, Math.ceil(-Math.log10(incr) - 1e-9)) : 0;
-  return splits.map((t) => {
-    const s = zoneTime(t);  // 2026-11-02T07:00:00.000
-    if (incr >= 86400) return s.slice(0, 10);
-    if (span > 20 * 3600) return s.slice(5, 10) + " " + s.slice(11, 16);
+  const point = localNumber(0.5, 1).charAt(1);
+  return splits.map((x) => {
+    const s = zoneTime(x);  // 2026-11-02T07:00:00.000
+    if (incr >= 86400) return zoneDate(x, {year: "numeric", month: "2-digit", day: "2-digit"});
+    if (span > 20 * 3600) return zoneDate(x, {month: "2-digit", day: "2-digit"}) + " " + s.slice(11, 16);
     if (incr >= 60) return s.slice(11, 16);
-    return s.slice(11, 19) + (d ? s.slice(19, 20 + d) : "");
+    return s.slice(11, 19) + (d ? point + s.slice(20, 20 + d) : "");
   });
 }
 
@@ -218,7 +269,8 @@ function numberTicks(u, splits, axisIdx, space, incr) {
   const d = Math.max(0, Math.min(9, Math.ceil(-Math.log10(incr) - 1e-9)));
   return splits.map((v) => {
     const s = v.toFixed(d);
-    return /^-0(\.0*)?$/.test(s) ? s.slice(1) : s.replace("-", "\u2212");
+    const shown = /^-0(\.0*)?$/.test(s) ? s.slice(1) : s;
+    return localNumber(Number(shown), d).replace(/^[-\u2212]/, "\u2212");
   });
 }
 
@@ -232,58 +284,60 @@ function para(host, cls, text) {
   return p;
 }
 
-function fmt(v, digits) { return v === null || v === undefined ? "—" : Number(v).toFixed(digits); }
+function fmt(v, digits) { return v === null || v === undefined ? "—" : localNumber(Number(v), digits); }
 
 // One I-MR chart per offset axis and camera residual (server/web/spc.py computes everything:
 // limits from the baseline, the run rules' points, Cp/Cpk and Pp/Ppk).
 function drawSpc(host, d) {
-  para(host, "spc-head", d.points + " results" + (d.recipe ? ", tolerances of " + d.recipe : "") +
-    "; control limits from " + d.baseline + "; times in " + d.time_zone + ".");
+  const head = {n: d.points, recipe: d.recipe, baseline: d.baseline, zone: d.time_zone};
+  para(host, "spc-head", d.recipe
+    ? t("{n} results, tolerances of {recipe}; control limits from {baseline}; times in {zone}.", head)
+    : t("{n} results; control limits from {baseline}; times in {zone}.", head));
   d.charts.forEach((c) => {
     const box = document.createElement("section");
     box.className = "spc";
     box.dataset.key = c.key;
     host.appendChild(box);
-    if (!c.points) { para(box, "muted", c.title + ": " + (c.message || "no values")); return; }
+    if (!c.points) { para(box, "muted", c.title + ": " + (c.message || t("no values"))); return; }
     const n = c.t.length, L = c.limits, name = c.key.split(".").pop();
     const ind = [{label: name, values: c.values}];
     if (L) {
-      ind.push({label: "UCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.ucl)},
-               {label: "centre", band: true, color: "#15803d", dash: [1, 0], values: band(n, L.center)},
-               {label: "LCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.lcl)});
+      ind.push({label: t("UCL"), band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.ucl)},
+               {label: t("centre"), band: true, color: "#15803d", dash: [1, 0], values: band(n, L.center)},
+               {label: t("LCL"), band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.lcl)});
     }
-    if (c.usl !== null) ind.push({label: "USL (tolerance)", band: true, values: band(n, c.usl)});
-    if (c.lsl !== null) ind.push({label: "LSL (tolerance)", band: true, values: band(n, c.lsl)});
-    ind.push({label: "run rule broken", marks: true, values: c.flagged});
-    chart(box, c.title + ": individuals", c.t, ind, {unit: c.unit, height: 230});
-    const mr = [{label: "moving range", values: c.mr}];
+    if (c.usl !== null) ind.push({label: t("USL (tolerance)"), band: true, values: band(n, c.usl)});
+    if (c.lsl !== null) ind.push({label: t("LSL (tolerance)"), band: true, values: band(n, c.lsl)});
+    ind.push({label: t("run rule broken"), marks: true, values: c.flagged});
+    chart(box, t("{title}: individuals", {title: c.title}), c.t, ind, {unit: c.unit, height: 230});
+    const mr = [{label: t("moving range"), values: c.mr}];
     if (L) {
-      mr.push({label: "UCL", band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.mr_ucl)},
+      mr.push({label: t("UCL"), band: true, color: "#b91c1c", dash: [3, 3], values: band(n, L.mr_ucl)},
               {label: "MR\u0304", band: true, color: "#15803d", dash: [1, 0], values: band(n, L.mr_center)});
     }
-    chart(box, c.title + ": moving range", c.t, mr, {unit: c.unit, height: 200});
+    chart(box, t("{title}: moving range", {title: c.title}), c.t, mr, {unit: c.unit, height: 200});
     if (c.message) para(box, "hook", c.message);
     const k = c.capability;
-    para(box, "capability", k ? "Over the " + k.n + " points: Cp " + fmt(k.cp, 2) + ", Cpk " +
-      fmt(k.cpk, 2) + " (σ within " + fmt(k.sigma_within, 4) + " " + c.unit + "); Pp " +
-      fmt(k.pp, 2) + ", Ppk " + fmt(k.ppk, 2) + " (σ overall " + fmt(k.sigma_overall, 4) + " " +
-      c.unit + ")." : "No tolerance for this series: no capability.");
+    para(box, "capability", k ? t("Over the {n} points: Cp {cp}, Cpk {cpk} (σ within {sw} {unit}); " +
+      "Pp {pp}, Ppk {ppk} (σ overall {so} {unit}).", {n: k.n, cp: fmt(k.cp, 2), cpk: fmt(k.cpk, 2),
+      sw: fmt(k.sigma_within, 4), unit: c.unit, pp: fmt(k.pp, 2), ppk: fmt(k.ppk, 2),
+      so: fmt(k.sigma_overall, 4)}) : t("No tolerance for this series: no capability."));
     const ul = document.createElement("ul");
     ul.className = "rules";
     c.rules.forEach((r) => {
       const li = document.createElement("li");
       li.className = "rule-broken";
       li.dataset.rule = String(r.rule);
-      li.textContent = "Rule " + r.rule + (r.western_electric ? " (Western Electric)" : "") + ", " +
-        r.name + ": " + r.count + (r.count === 1 ? " point" : " points") +
-        (r.count > r.points.length ? " (the newest " + r.points.length + ")" : "") + " — " +
+      li.textContent = t("Rule {n}", {n: r.rule}) + (r.western_electric ? " (" + t("Western Electric") + ")" : "") + ", " +
+        r.name + ": " + (r.count === 1 ? t("1 point") : t("{n} points", {n: r.count})) +
+        (r.count > r.points.length ? " (" + t("the newest {n}", {n: r.points.length}) + ")" : "") + " — " +
         r.points.map((p) => zoneTime(p.t).replace("T", " ").slice(0, 19) + " #" + p.id + " " +
           fmt(p.value, 3)).join("; ");
       ul.appendChild(li);
     });
     if (!c.rules.length) {
       const li = document.createElement("li");
-      li.textContent = L ? "No run rule broken." : "No control limits: no run rules.";
+      li.textContent = L ? t("No run rule broken.") : t("No control limits: no run rules.");
       ul.appendChild(li);
     }
     box.appendChild(ul);
@@ -292,7 +346,7 @@ function drawSpc(host, d) {
 
 function drawCalibration(host, d) {
   const c = d.columns, n = c.t.length;
-  c.cameras.forEach((cam) => chart(host, "Camera " + cam + ": mean residual (px)", c.t, [
+  c.cameras.forEach((cam) => chart(host, t("Camera {camera}: mean residual (px)", {camera: cam}), c.t, [
     {label: "du", values: c.camera_du[cam]}, {label: "dv", values: c.camera_dv[cam]},
     {label: "RMS", values: c.camera_rms[cam]}, {label: "0", band: true, values: band(n, 0)}], {unit: "px", height: 180}));
 }
@@ -307,7 +361,7 @@ function setupCharts() {
     const mine = ++asked;
     const q = new URLSearchParams();
     new FormData(form).forEach((v, k) => { if (v) q.set(k, v); });
-    host.textContent = "loading…";
+    host.textContent = t("loading…");
     delete host.dataset.points;
     const t0 = performance.now();
     fetch(host.dataset.src + "?" + q.toString(), {credentials: "same-origin"})
@@ -325,7 +379,7 @@ function setupCharts() {
         host.dataset.loadMs = String(Math.round(t1 - t0));
         host.dataset.points = String(d.columns ? d.columns.t.length : d.points);
         host.dataset.limit = q.get("limit") || "";
-      }).catch((err) => { if (mine === asked) host.textContent = "could not load: " + err.message; });
+      }).catch((err) => { if (mine === asked) host.textContent = t("could not load: {error}", {error: err.message}); });
   };
   form.addEventListener("submit", (ev) => { ev.preventDefault(); load(); });
   load();
@@ -350,8 +404,9 @@ function setupDrift() {
     const head = document.createElement("p");
     head.className = "drift-status " + d.status;
     head.dataset.status = d.status;
-    head.textContent = "Drift watch: " + d.status + " — " + d.records + " records of " +
-      (d.recipe || "—") + " with calibration " + (d.calibration_id || "of the station file") + ".";
+    head.textContent = t("Drift watch: {status} — {records} records of {recipe} with calibration " +
+      "{calibration}.", {status: t(d.status), records: d.records, recipe: d.recipe || "—",
+      calibration: d.calibration_id || t("of the station file")});
     box.appendChild(head);
     const ul = document.createElement("ul");
     [...new Set(d.messages || [])].forEach((m) => {
@@ -362,21 +417,26 @@ function setupDrift() {
     });
     if (!ul.children.length) {
       const li = document.createElement("li");
-      li.textContent = "No camera in warning or alarm.";
+      li.textContent = t("No camera in warning or alarm.");
       ul.appendChild(li);
     }
     box.appendChild(ul);
     const table = document.createElement("table");
-    table.innerHTML = "<tr><th>camera</th><th>status</th><th>what</th><th>move px</th>" +
-      "<th>since</th><th>triggers</th></tr>";
+    const heads = document.createElement("tr");
+    ["camera", "status", "what", "move px", "since", "triggers"].forEach((h) => {
+      const th = document.createElement("th");
+      th.textContent = t(h);
+      heads.appendChild(th);
+    });
+    table.appendChild(heads);
     (d.cameras || []).forEach((c) => {
       const tr = document.createElement("tr");
       cell(tr, (c.view > 1 ? "v" + c.view + "/" : "") + c.camera_id);
-      cell(tr, c.status, c.status === "alarm" || c.status === "warning" ? "drift-warning" : "");
+      cell(tr, t(c.status), c.status === "alarm" || c.status === "warning" ? "drift-warning" : "");
       cell(tr, c.message);
-      cell(tr, c.shift_px === null || c.shift_px === undefined ? null : c.shift_px.toFixed(2));
-      cell(tr, c.since ? new Date(c.since).toISOString().replace("T", " ").slice(0, 19) + " UTC" : null);
-      cell(tr, c.learning_left ? c.triggers + " (learning: " + c.learning_left + " to go)" : c.triggers);
+      cell(tr, c.shift_px === null || c.shift_px === undefined ? null : localNumber(c.shift_px, 2));
+      cell(tr, c.since ? stamp(Date.parse(c.since) / 1000) : null);
+      cell(tr, c.learning_left ? t("{n} (learning: {left} to go)", {n: c.triggers, left: c.learning_left}) : c.triggers);
       table.appendChild(tr);
     });
     box.appendChild(table);
@@ -386,18 +446,23 @@ function setupDrift() {
     if (v) {
       const a = document.createElement("a");
       a.href = "/history/" + v.measurement_id;
-      a.textContent = "record #" + v.measurement_id;
-      verify.append("Last verify (" + new Date(v.triggered_at).toISOString().replace("T", " ")
-                    .slice(0, 16) + " UTC, ", a, "): " + v.message);
+      a.textContent = t("record #{id}", {id: v.measurement_id});
+      const [before, after] = t("Last verify ({when}, {record}): {message}", {
+        when: stamp(Date.parse(v.triggered_at) / 1000), message: v.message}).split("{record}");
+      verify.append(before, a, after === undefined ? "" : after);
       if (v.passed === false) verify.classList.add("drift-warning");
     } else {
-      verify.textContent = "No calibration verify recorded yet.";
+      verify.textContent = t("No calibration verify recorded yet.");
     }
     box.appendChild(verify);
-  }).catch((err) => { box.textContent = "drift watch: " + err.message; });
+    delete box.dataset.loading;
+  }).catch((err) => {
+    box.textContent = t("drift watch: {error}", {error: err.message});
+    delete box.dataset.loading;
+  });
 }
 
 document.addEventListener("DOMContentLoaded", () => {
-  setupLogin(); setupLogout(); setupActions(); setupHtmxErrors(); setupLive(); setupCharts();
+  setupLanguage(); setupLogin(); setupLogout(); setupActions(); setupHtmxErrors(); setupLive(); setupCharts();
   setupDrift();
 });
