@@ -20,7 +20,7 @@ $(MO): %.mo: %.po $(STAMP)
 messages: $(STAMP)
 	$(BIN)/pybabel extract -F babel.cfg -k N_ --no-location --sort-output --project mvpose \
 		--copyright-holder "the mvpose authors" -o $(LOCALES)/messages.pot server/web
-	$(BIN)/pybabel update -i $(LOCALES)/messages.pot -d $(LOCALES) --no-location \
+	$(BIN)/pybabel update -i $(LOCALES)/messages.pot -d $(LOCALES) \
 		--ignore-obsolete --width 100
 
 $(STAMP): pyproject.toml server/web/package-lock.json drivers/links/opcua_nodesets/package-lock.json \

@@ -12,7 +12,7 @@ from server.web.i18n import N_, _
 
 MESSAGES = (
     N_("done"), N_("record #{id}"), N_("station down"), N_("off the scale: {bands}"),
-    N_("time ({zone})"),
+    N_("time ({zone})"), N_("Time"),
     N_("{n} results; control limits from {baseline}; times in {zone}."),
     N_("{n} results, tolerances of {recipe}; control limits from {baseline}; times in {zone}."),
     N_("no values"), N_("UCL"), N_("centre"), N_("LCL"), N_("USL (tolerance)"),

@@ -5,9 +5,10 @@ helpers: the app on a real socket, Debian's Chromium through Playwright).
 
 starts the API app on a temporary SQLite store, fills it with records the pose engine measured
 on simulated station 1 (server.web.sample), ending now, starts a station process on it (simulated
-cameras, no PLC), logs in and saves ``operator-<page>.jpg`` for each page, and the line view at
-the panel PC's 1366 x 768 and at 1920 x 1080 (``operator-line-<w>x<h>.jpg``). Needs the ``test``
-extra (playwright) and /usr/bin/chromium (Debian's ``chromium``).
+cameras, no PLC), logs in and saves every page as the screen shows it, at a full-HD monitor's
+1920 x 1080 and the panel PC's 1366 x 768, in English and German (the selector's cookie):
+``operator-<page>-<language>-<w>x<h>.jpg``, JPEG quality 70. Needs the ``test`` extra
+(playwright) and /usr/bin/chromium (Debian's ``chromium``).
 """
 
 from __future__ import annotations
@@ -34,8 +35,24 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backg
                  "--disable-component-update", "--no-first-run"]
 STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
 VIEWPORT = {"width": 1440, "height": 900}
-#: the line view's screens: the panel PC's (15.6", 1366 x 768) and a full-HD monitor
-LINE_VIEWPORTS = ({"width": 1366, "height": 768}, {"width": 1920, "height": 1080})
+#: the screens: a full-HD monitor and the panel PC's (15.6", 1366 x 768)
+SCREENS = ({"width": 1920, "height": 1080}, {"width": 1366, "height": 768})
+#: the languages of the pictures in the docs (the page has four: server/web/i18n.py)
+SHOWN = ("en", "de")
+QUALITY = 70
+#: each page: its path (``{record}``: a NOK with frames) and what shows that it is drawn
+PAGES = {
+    "login": ("/login", "#login-form"),
+    "live": ("/", "#frames figure.cam img"),
+    "line": ("/line", "ul.noks img"),
+    "history": ("/history?limit=30", "table.history"),
+    "record": ("/history/{record}", "figure.cam img"),
+    "spc": ("/spc", "#charts[data-points]"),
+    "calibration": ("/calibration", "#charts[data-points]"),
+    "recipes": ("/recipes/floor_panel", "table.diff"),
+    "gauge": ("/gauge", "main section"),
+    "docs": ("/docs", ".swagger-ui .opblock"),  # Swagger UI's own words: English only
+}
 
 
 @contextmanager
@@ -113,7 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m server.web.screenshots",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/figures"))
+    parser.add_argument("--languages", default=",".join(SHOWN),
+                        help="comma-separated: en, de, zh_Hans, es (default: %(default)s)")
     args = parser.parse_args(argv)
+    languages = [c.strip() for c in args.languages.split(",") if c.strip()]
     args.out.mkdir(parents=True, exist_ok=True)
     token = "mvp_screenshots-engineer-0123456789"
     with tempfile.TemporaryDirectory() as tmp:
@@ -132,41 +152,40 @@ def main(argv: list[str] | None = None) -> int:
             app = create_app(settings, StationClient(settings.resolved_control_socket))
             with serve(app) as base, sync_playwright() as pw:
                 browser = launch(pw)
-                page = browser.new_page(viewport=VIEWPORT)
-                page.on("pageerror", lambda err: print(f"page error: {err}"))
-                login(page, base, token)
-                shots = {
-                    "live": ("/", "#frames figure.cam"),
-                    "history": ("/history?limit=15", "table.history"),
-                    "record": (f"/history/{newest[0].id - 2}", "figure.cam"),
-                    "spc": ("/spc", "#charts[data-points]"),
-                    "calibration": ("/calibration", "#charts[data-points]"),
-                    "recipes": ("/recipes/floor_panel", "table.diff"),
-                    "docs": ("/docs", ".swagger-ui .opblock"),
-                }
-                for name, (path, ready) in shots.items():
-                    page.goto(base + path)
-                    page.wait_for_selector(ready)
-                    page.wait_for_function(  # the drift watch answers after the page
-                        "!(document.querySelector('#drift') || {textContent: ''})"
-                        ".textContent.includes('loading')", timeout=60000)
-                    target = args.out / f"operator-{name}.jpg"
-                    page.screenshot(path=str(target), full_page=name != "docs", type="jpeg",
-                                    quality=80)
-                    print(target)
-                for size in LINE_VIEWPORTS:
-                    page.set_viewport_size(size)
-                    page.goto(base + "/line")
-                    page.wait_for_function("[...document.querySelectorAll('ul.noks img')]"
-                                           ".every((i) => i.complete && i.naturalWidth > 0)")
-                    target = args.out / f"operator-line-{size['width']}x{size['height']}.jpg"
-                    page.screenshot(path=str(target), type="jpeg", quality=80)
-                    print(target)
+                record = newest[0].id - 2  # the OK with frames populate() taught from
+                for code in languages:
+                    for size in SCREENS:
+                        shoot(browser, base, token, code, size, record, args.out)
                 browser.close()
         finally:
             proc.stop()
             writer.close()
     return 0
+
+
+def shoot(browser: Any, base: str, token: str, code: str, size: dict[str, int], record: int,
+          out: Path) -> None:
+    """Every page in language ``code`` on a screen of ``size``."""
+    from server.web.i18n import COOKIE
+
+    context = browser.new_context(viewport=size)
+    context.add_cookies([{"name": COOKIE, "value": code, "url": base}])
+    page = context.new_page()
+    page.on("pageerror", lambda err: print(f"page error: {err}"))
+    for name, (path, ready) in PAGES.items():
+        if name == "docs" and code != "en":
+            continue
+        if name == "live":
+            login(page, base, token)
+        page.goto(base + path.format(record=record))
+        page.wait_for_selector(ready)
+        page.wait_for_function(  # images drawn; the drift watch answers after the page
+            "[...document.images].every((i) => i.complete && i.naturalWidth > 0) && "
+            "!document.querySelector('#drift[data-loading]')", timeout=60000)
+        target = out / f"operator-{name}-{code}-{size['width']}x{size['height']}.jpg"
+        page.screenshot(path=str(target), type="jpeg", quality=QUALITY)
+        print(target)
+    context.close()
 
 
 if __name__ == "__main__":

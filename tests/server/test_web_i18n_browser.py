@@ -191,7 +191,8 @@ def test_the_browsers_language_then_the_selector(site: Site) -> None:
     ticks = page.evaluate("[...document.querySelectorAll('#charts .chart')]"
                           ".flatMap((c) => c.plot.axes[1]._values || [])")
     assert any("," in v for v in ticks if v) and not any("." in v for v in ticks if v), ticks
-    assert "Eingriffsgrenzen aus die ersten" in page.inner_text("#charts .spc-head")
+    assert "Basis der Eingriffsgrenzen: die ersten 50 Punkte" in page.inner_text(
+        "#charts .spc-head")
     assert_accessible(page, "/spc in de")
     # and back to English, the source
     page.select_option("#lang-select", "en")

@@ -151,7 +151,7 @@ function chart(host, title, x, series, opts) {
   box.innerHTML = "<h3></h3>";
   host.appendChild(box);
   const data = [x];
-  const spec = [{}];
+  const spec = [{label: t("Time")}];
   const values = [];
   series.forEach((s, i) => {
     data.push(s.values);
