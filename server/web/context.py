@@ -36,10 +36,10 @@ async def need(request: Request, role: Role) -> Principal:
     """The session's principal if it may do what needs ``role`` (401/403 otherwise)."""
     user = await page_user(request)
     if user is None:
-        raise UnauthenticatedError("log in on the operator page first (session expired?)")
+        raise UnauthenticatedError(_("log in on the operator page first (session expired?)"))
     if not user.role.allows(role):
-        raise ForbiddenError(f"{user.name!r} has role {user.role.value!r}; "
-                             f"this needs {role.value!r}")
+        raise ForbiddenError(_("{name} has role {role}; this needs {needed}").format(
+            name=repr(user.name), role=repr(user.role.value), needed=repr(role.value)))
     return user
 
 

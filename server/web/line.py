@@ -89,7 +89,7 @@ async def line_user(request: Request) -> Principal | None:
     """The logged-in user, or None on a public (kiosk) line view; 401 otherwise."""
     user = await page_user(request)
     if user is None and not kiosk(request):
-        raise UnauthenticatedError("log in on the operator page first (session expired?)")
+        raise UnauthenticatedError(_("log in on the operator page first (session expired?)"))
     return user
 
 
