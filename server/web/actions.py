@@ -107,7 +107,7 @@ async def login_page(request: Request,
 </button></form>
 <p class="msg" role="alert"></p></details>
 <p>{idle_words}</p></section>"""
-    return HTMLResponse(html.layout(_("Log in"), None, body))
+    return HTMLResponse(html.layout(_("Log in"), None, body, choose_language=True))
 
 
 def _duration(seconds: float) -> str:

@@ -83,8 +83,11 @@ def js_messages() -> str:
 
 
 def layout(title: str, user: Principal | None, body: str, active: str = "",
-           scripts: Iterable[str] = (), body_class: str = "") -> str:
-    """A whole page; its one ``<h1>`` is ``title`` (shown in the header bar)."""
+           scripts: Iterable[str] = (), body_class: str = "",
+           choose_language: bool | None = None) -> str:
+    """A whole page; its one ``<h1>`` is ``title`` (shown in the header bar). The language
+    selector is on every page of a logged-in user and where ``choose_language`` says (the
+    login page); a kiosk has no control at all and speaks the plant's language."""
     on = ' class="on" aria-current="page"'
     tabs = "".join(f'<a href="{href}"{on if href == active else ""}>' + esc(_(name)) + '</a>'
                    for href, name in TABS) if user else ""
@@ -95,6 +98,8 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
     # A logged-in page reports its user's actions and leaves when the session ends.
     scripts = [*scripts, "/static/session.js"] if user else list(scripts)
     extra = "".join(f'<script src="{esc(s)}" defer></script>' for s in scripts)
+    shown = user is not None if choose_language is None else choose_language
+    chooser = language_selector() if shown else ""
     return f"""<!doctype html>
 <html lang="{i18n.current().html_lang}"><head><meta charset="utf-8">
 <link rel="icon" href="/favicon.ico">
@@ -107,7 +112,7 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
 <script src="/static/app.js" defer></script>{extra}{js_messages()}
 </head><body{f' class="{esc(body_class)}"' if body_class else ""}>
 <header><span class="brand">mvpose</span><h1>{esc(title)}</h1><nav>{tabs}</nav>{who}\
-{language_selector()}</header>
+{chooser}</header>
 <main>{body}</main>
 <footer>""" + esc(_("mvpose operator page")) + """ ·
 <a href="/docs">""" + esc(_("API docs")) + """</a></footer>

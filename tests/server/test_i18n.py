@@ -193,3 +193,18 @@ async def test_the_pages_speak_the_requests_language(tmp_path: Path) -> None:
         spc_json = (await client.get("/web/spc.json", params={"limit": 5})).json()
         assert spc_json["baseline"] == "die ersten 50 Punkte des Fensters"
         assert spc_json["charts"][-1]["title"] == "Zykluszeit (ms)"
+
+
+async def test_a_kiosk_speaks_the_plants_language_and_offers_no_choice(tmp_path: Path) -> None:
+    def plant(data: dict[str, Any]) -> None:
+        data["page"] = {"language": "de", "kiosk": True}
+
+    cfg = stations.settings_for(stations.station_file(tmp_path, "station1", plant),
+                                tmp_path / "var")
+    async with running(create_app(cfg)) as (client, _state):
+        line = await client.get("/line", headers={"Accept-Language": "es"})
+        assert line.status_code == 200
+        assert '<html lang="de">' in line.text and "Diese Schicht" in line.text
+        assert 'id="lang-select"' not in line.text  # read-only: no control at all
+        # the login page offers the choice before anyone is logged in
+        assert 'id="lang-select"' in (await client.get("/login")).text
