@@ -272,3 +272,40 @@ def test_the_first_reach_is_used_only_inside_wider_tolerances() -> None:
     for mm, deg in ((0.0, 2.5), (-1.0, 2.5), (25.0, 0.0)):
         with pytest.raises(ValueError, match="first_reach"):
             DetectOptions(first_reach_mm=mm, first_reach_deg=deg)
+
+
+# A displaced part: images whose small windows hold no blob for some mark go straight to the
+# whole tolerance's windows and are measured once. Every mark is found, at the centre the
+# one-pass search (first_reach_mm=None) measures, from beyond the first reach to the tolerance:
+# exactly for an image searched again, within the detector's noise (~0.01 px) for one whose
+# marks all lay in their small windows (the measurement starts from another blob there).
+@pytest.mark.parametrize("share", [0.5, 0.75, 1.0])
+def test_a_displaced_part_is_found_where_the_whole_tolerance_finds_it(  # type: ignore[no-untyped-def]
+    lab, share: float
+) -> None:
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    tol = recipe.tolerances
+    mm, deg = share * tol.max_offset_mm / 1.8, share * tol.max_offset_deg / 1.8
+    T = T0 @ xyzwpr_to_matrix([mm, -mm, 0.5 * mm, deg, -deg, 0.5 * deg])
+    rng = np.random.default_rng(43)
+    frames = [(render_view(c, recipe, T, rng).image, c) for c in cams]
+    two = detect_marks_many(frames, recipe, T0, DetectOptions())
+    one = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
+    for a_dets, b_dets in zip(two, one, strict=True):
+        for a, b in zip(a_dets, b_dets, strict=True):
+            assert a.found and b.found and a.mark_id == b.mark_id
+            assert np.abs(a.uv - b.uv).max() < 0.01
+
+
+def test_an_image_with_a_blobless_window_is_sent_to_the_whole_tolerance(lab) -> None:  # type: ignore[no-untyped-def]
+    from mvpose_core.detect.window import _search, _unfound
+
+    cams, recipe = lab
+    T0 = recipe.T_rf_from_pf0.matrix
+    near = render_view(cams[0], recipe, T0, np.random.default_rng(5)).image
+    far = render_view(cams[0], recipe, T0 @ xyzwpr_to_matrix([50.0, -50.0, 25.0, 5.0, -5.0, 2.5]),
+                      np.random.default_rng(5)).image
+    assert not _unfound(_search(near, cams[0], recipe, T0, DetectOptions(), 0.25))
+    assert _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 0.25))
+    assert not _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 1.0))
