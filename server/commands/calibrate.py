@@ -277,6 +277,7 @@ def _step_stereo(args: argparse.Namespace) -> int:
         )
 
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, c1)]))
+    reports = _as_start(reports, "stereo")
     reports.append((stereo_report(res, depth, solve), None))
     models = {c1: res.model1, c2: res.model2}
     rig_id, T_rig_from_cf1 = _rig_frame(ctx, args, c1, "robot", allow_any=True)
@@ -347,11 +348,7 @@ def _step_handeye(args: argparse.Namespace) -> int:
         res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
     except CalibrationError as err:
         raise CliError(f"{args.poses}: {err}") from None
-    # The steps before wrote start values; the file holds the hand-eye's, and says so.
-    reports = [
-        (replace(r, kind=f"{r.kind}, start of the hand-eye (the file holds the values below)"), x)
-        for r, x in reports
-    ]
+    reports = _as_start(reports, "hand-eye")
     reports.append((handeye_report(problem, res), res.residuals))
     models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
@@ -405,11 +402,17 @@ def _step_station(args: argparse.Namespace) -> int:
         he = calibrate_handeye(problem, rejected=rejected)
         T_rf_from_bf = board_poses_from_robot(poses, he.Y)
         src = args.poses
-    res = calibrate_station(ctx["board"], models, ctx["dets"], T_rf_from_bf)
+    # Intrinsics from --base were chosen by the engineer: hold them (as the hand-eye does).
+    from_base = ctx["base"] is not None and all(c in ctx["base"].cameras for c in models)
+    res = calibrate_station(
+        ctx["board"], models, ctx["dets"], T_rf_from_bf, refine_intrinsics=not from_base
+    )
     residuals = {s: r for g in res.groups for s, r in g.residuals.items()}
     ref = next(iter(models))
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, ref)]))
+    reports = _as_start(reports, "station adjustment")
     reports.append((station_report(res, depth, models[ref].fx), residuals))
+    models = dict(res.cameras)  # adjusted with the relations: the file holds these
     station = ctx["station"]
     rigs = {}
     for rig in station.rigs:
@@ -424,6 +427,14 @@ def _step_station(args: argparse.Namespace) -> int:
             {rc.camera: invert(T_rf_from_rig) @ res.T_rf_from_cf[rc.camera] for rc in cams},
         )
     return _write(args, ctx, "station", models, rigs, reports, poses_file=src)
+
+
+def _as_start(reports: list, step: str) -> list:
+    """The steps before wrote start values; the file holds the last step's, and says so."""
+    return [
+        (replace(r, kind=f"{r.kind}, start of the {step} (the file holds the values below)"), x)
+        for r, x in reports
+    ]
 
 
 # --------------------------------------------------------------------------- outputs
