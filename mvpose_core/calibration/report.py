@@ -162,17 +162,8 @@ def handeye_report(
         "robot pose σ stated per axis": f"{result.stated.robot_mm:g} mm / "
         f"{result.stated.robot_deg:g}°",
     }
-    for cid, cam in result.cameras.items():
-        cs = result.camera_sigma.get(cid)
-        held = "" if cs is not None else " (held)"
-        keys = ("fx", "fy", "cx", "cy")
-        for k, key in enumerate(keys):
-            x = float(getattr(cam, key))
-            values[f"{cid} {key} px{held}"] = rounded(x, float(cs[k])) if cs is not None else x
-        values[f"{cid} distortion{held}"] = [
-            rounded(float(d), float(cs[4 + k])) if cs is not None else float(d)
-            for k, d in enumerate(cam.dist)
-        ]
+    values.update(_camera_values(result.cameras, result.camera_sigma))
+    for cid in result.cameras:
         if cid != ref:
             values[f"{cid} baseline to {ref} mm"] = round(
                 float(np.linalg.norm(invert(result.T_cfc_from_cf0[cid])[:3, 3])), 4
@@ -279,15 +270,37 @@ def _intr_numbers(r: IntrinsicsResult) -> dict[str, float]:
     return {"fx px": r.camera.fx, "cx px": r.camera.cx, "cy px": r.camera.cy}
 
 
+def _camera_values(cameras: Mapping[str, Any], sds: Mapping[str, Array]) -> dict[str, Any]:
+    """Each camera's intrinsics as the file holds them, with the digits their 1σ needs
+    (unrounded, marked *(held)*, where they were not adjusted)."""
+    values: dict[str, Any] = {}
+    for cid, cam in cameras.items():
+        sd = sds.get(cid)
+        held = "" if sd is not None else " (held)"
+        for k, key in enumerate(("fx", "fy", "cx", "cy")):
+            x = float(getattr(cam, key))
+            values[f"{cid} {key} px{held}"] = rounded(x, float(sd[k])) if sd is not None else x
+        values[f"{cid} distortion{held}"] = [
+            rounded(float(d), float(sd[4 + k])) if sd is not None else float(d)
+            for k, d in enumerate(cam.dist)
+        ]
+    return values
+
+
 def stereo_report(
     res: StereoResult, depth_mm: float, solve: Callable[[list[str]], StereoResult] | None = None
 ) -> CalibrationReport:
+    """Report of a stereo calibration: the 1σ of the second camera's pose in the first's (from
+    the images-only adjustment's covariance, intrinsics included when they were refined) first,
+    then the values the file holds and the leave-one-out spread of the baseline."""
     rep = None
     ids = sorted(res.per_sample_rms_px)
     if solve is not None and len(ids) >= 6:
         rep = leave_one_out(
             ids, lambda s: {"baseline mm": solve(s).baseline_mm}, {"baseline mm": res.baseline_mm}
         )
+    name = "T_cf1_from_cf2"
+    T = invert(res.T_cf2_from_cf1)
     return CalibrationReport(
         kind=f"stereo ({res.camera1}/{res.camera2})",
         per_sample_rms_px=res.per_sample_rms_px,
@@ -296,19 +309,40 @@ def stereo_report(
         error_mm_at_working_distance=res.rms_px * depth_mm / res.model1.fx,
         outliers=find_outliers(res.per_sample_rms_px),
         rejected=dict(res.rejected),
+        sigma={
+            f"{name} translation mm": _sig(res.sigma_mm),
+            f"{name} rotation deg": _sig(res.sigma_deg),
+            "baseline mm": _sig(res.sigma_baseline_mm),
+        },
         result={
-            "baseline mm": round(res.baseline_mm, 4),
-            "T_cf2_from_cf1 xyz mm": [round(float(x), 4) for x in res.T_cf2_from_cf1[:3, 3]],
+            "baseline mm": rounded(res.baseline_mm, res.sigma_baseline_mm),
+            f"{name} xyz mm ({res.camera2} in {res.camera1})": [
+                rounded(float(x), res.sigma_mm) for x in T[:3, 3]
+            ],
+            **_camera_values({res.camera1: res.model1, res.camera2: res.model2}, res.intrinsics_sd),
         },
         repeatability=rep,
     )
 
 
 def station_report(res: StationResult, depth_mm: float, fx: float) -> CalibrationReport:
-    """Report of a fixed-station calibration: the camera groups and how well the robot-frame
+    """Report of a fixed-station calibration: per camera the 1σ of its pose relative to its
+    group's reference camera (images-only adjustment) and in RF (with the group's placement,
+    jackknife over the placements); the camera groups and how well the robot-frame
     measurements agree with the rigid station."""
     v = np.array(list(res.per_sample_rms_px.values()))
     rms = float(np.sqrt(np.mean(v**2)))
+    sigma: dict[str, float] = {}
+    for g in res.groups:
+        for c in g.T_ref_from_cf:
+            if c != g.reference:
+                mm, deg = res.sigma_relative[c]
+                sigma[f"{c} from {g.reference} translation mm"] = _sig(mm)
+                sigma[f"{c} from {g.reference} rotation deg"] = _sig(deg)
+    for c, (mm, deg) in res.sigma_rf.items():
+        sigma[f"{c} in RF translation mm"] = _sig(mm)
+        sigma[f"{c} in RF rotation deg"] = _sig(deg)
+    sds = {c: sd for g in res.groups for c, sd in g.intrinsics_sd.items()}
     return CalibrationReport(
         kind="station (fixed cameras)",
         per_sample_rms_px=res.per_sample_rms_px,
@@ -317,9 +351,17 @@ def station_report(res: StationResult, depth_mm: float, fx: float) -> Calibratio
         error_mm_at_working_distance=rms * depth_mm / fx,
         outliers=find_outliers(res.per_sample_rms_px),
         rejected=dict(res.rejected),
+        sigma=sigma,
         result={
             "camera groups": [sorted(g.T_ref_from_cf) for g in res.groups],
-            "RF placement RMS mm (per group)": res.placement_rms_mm,
+            "RF placement RMS mm (per group)": {
+                k: round(x, 3) for k, x in res.placement_rms_mm.items()
+            },
+            **{
+                f"{c} xyz mm in RF": [rounded(float(x), res.sigma_rf[c][0]) for x in T[:3, 3]]
+                for c, T in res.T_rf_from_cf.items()
+            },
+            **_camera_values(res.cameras, sds),
         },
     )
 

@@ -1,22 +1,19 @@
-"""Stereo calibration of two cameras with known intrinsics, paired by sample and corner id."""
+"""Stereo calibration of two cameras, paired by sample and corner id: an images-only bundle
+adjustment (:mod:`mvpose_core.calibration.group`) that gives the relative pose its 1σ."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from mvpose_core.calibration.boards import BoardSpec, Detection
 from mvpose_core.calibration.errors import CalibrationError
+from mvpose_core.calibration.group import adjust_group
 from mvpose_core.calibration.intrinsics import require_samples, split_detections
 from mvpose_core.camera import CameraModel
-from mvpose_core.transforms import Array, make_transform
-
-# OpenCV's joint stereo LM converges slowly (about 16 ms per iteration for 15 views); 100
-# iterations leave the baseline within ~0.05 mm of the converged value at 0.1 px noise.
-_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+from mvpose_core.transforms import Array, invert
 
 
 @dataclass(frozen=True)
@@ -29,8 +26,15 @@ class StereoResult:
     model2: CameraModel
     T_cf2_from_cf1: Array
     rms_px: float
-    per_sample_rms_px: dict[str, float]  # mean of both cameras' RMS per sample
+    per_sample_rms_px: dict[str, float]  # RMS over both cameras' corners per sample
     rejected: dict[str, str] = field(default_factory=dict)
+    #: 1σ of ``T_cf1_from_cf2`` (the second camera's pose in the first camera's frame): RSS over
+    #: the axes of its translation (mm) and rotation (deg), from the adjustment's covariance
+    sigma_mm: float = float("nan")
+    sigma_deg: float = float("nan")
+    sigma_baseline_mm: float = float("nan")
+    #: per camera 1σ of (fx, fy, cx, cy, distortion...) when the intrinsics were refined
+    intrinsics_sd: dict[str, Array] = field(default_factory=dict)
 
     @property
     def baseline_mm(self) -> float:
@@ -55,7 +59,8 @@ def calibrate_stereo(
     min_corners: int = 6,
     refine_intrinsics: bool = True,
 ) -> StereoResult:
-    """Solve ``T_cf2_from_cf1``, starting from both cameras' intrinsics; samples paired by id.
+    """Solve ``T_cf2_from_cf1``, starting from both cameras' intrinsics; samples paired by id
+    (each camera's every corner of a sample both cameras saw with ``min_corners`` in common).
 
     With ``refine_intrinsics`` the intrinsics are refined jointly with the relative pose: the
     shared views constrain them better than each camera alone (on 15 views at 0.1 px this
@@ -73,52 +78,40 @@ def calibrate_stereo(
     rejected = {sid: f"{camera1}: {why}" for sid, why in r1.items()}
     for sid, why in r2.items():
         rejected[sid] = (rejected[sid] + "; " if sid in rejected else "") + f"{camera2}: {why}"
-    obj, img1, img2, ids = [], [], [], []
+    ids = []
     for sid in sorted(set(u1) & set(u2)):
-        o, a, b = common_corners(u1[sid], u2[sid], board)
-        if len(o) < min_corners:
-            rejected[sid] = f"only {len(o)} corners seen by both cameras (need {min_corners})"
+        n_common = len(np.intersect1d(u1[sid].ids, u2[sid].ids))
+        if n_common < min_corners:
+            rejected[sid] = f"only {n_common} corners seen by both cameras (need {min_corners})"
             continue
         ids.append(sid)
-        obj.append(o.astype(np.float32))
-        img1.append(a.astype(np.float32).reshape(-1, 1, 2))
-        img2.append(b.astype(np.float32).reshape(-1, 1, 2))
     require_samples(len(ids), min_samples, what, ids)
-    # OpenCV takes one image size; it only matters for intrinsics, which are fixed here.
-    out = cv2.stereoCalibrateExtended(  # type: ignore[call-overload]
-        obj,
-        img1,
-        img2,
-        model1.K,
-        model1.dist_array,
-        model2.K,
-        model2.dist_array,
-        (model1.width, model1.height),
-        None,
-        None,
-        flags=cv2.CALIB_USE_INTRINSIC_GUESS if refine_intrinsics else cv2.CALIB_FIX_INTRINSIC,
-        criteria=_CRITERIA,
+    group = adjust_group(
+        board,
+        {camera1: model1, camera2: model2},
+        {camera1: {i: u1[i] for i in ids}, camera2: {i: u2[i] for i in ids}},
+        camera1,
+        refine_intrinsics,
     )
-    rms, K1, D1, K2, D2, R, T = out[:7]
-    per_view = out[-1]
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(T))):
-        raise CalibrationError(f"{what}: OpenCV returned a non-finite relative pose")
-    per = per_view.reshape(len(ids), 2).mean(axis=1)
+    if camera2 not in group.T_ref_from_cf:  # cannot happen: every sample is shared
+        raise CalibrationError(f"{what}: the cameras share no sample")
+    T_cf1_from_cf2 = group.T_ref_from_cf[camera2]
+    if not np.all(np.isfinite(T_cf1_from_cf2)):
+        raise CalibrationError(f"{what}: the adjustment gave a non-finite relative pose")
+    per = {sid: float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for sid, r in group.residuals.items()}
+    everything = np.concatenate([group.residuals[sid] for sid in ids])
+    mm, deg = group.sigma(camera2)
     return StereoResult(
         camera1=camera1,
         camera2=camera2,
-        model1=_model(K1, D1, model1),
-        model2=_model(K2, D2, model2),
-        T_cf2_from_cf1=make_transform(R, T.reshape(3)),
-        rms_px=float(rms),
-        per_sample_rms_px={sid: float(e) for sid, e in zip(ids, per, strict=True)},
+        model1=group.cameras[camera1],
+        model2=group.cameras[camera2],
+        T_cf2_from_cf1=invert(T_cf1_from_cf2),
+        rms_px=float(np.sqrt(np.mean(np.sum(everything**2, axis=1)))),
+        per_sample_rms_px={sid: per[sid] for sid in ids},
         rejected=rejected,
-    )
-
-
-def _model(K: Array, dist: Array, like: CameraModel) -> CameraModel:
-    n = len(like.dist)
-    d = tuple(float(x) for x in np.asarray(dist).reshape(-1)[:n])
-    return CameraModel(
-        float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), like.width, like.height, d
+        sigma_mm=mm,
+        sigma_deg=deg,
+        sigma_baseline_mm=group.sigma_distance(camera2),
+        intrinsics_sd=group.intrinsics_sd,
     )

@@ -269,3 +269,69 @@ def with_robot_error(
 def board_in_front(reach_mm: float = 1300.0) -> Array:
     """``T_rf_from_bf`` of a board flat on a table in front of the robot, printed face up."""
     return make_transform(zyx_to_matrix(30.0, 180.0, 0.0), [reach_mm, 150.0, -50.0])
+
+
+def station_placements(
+    rng: np.random.Generator,
+    board: BoardSpec,
+    cameras: dict[str, CameraModel],
+    T_rf_from_cf: dict[str, Array],
+    n_placements: int,
+    max_tilt_deg: float = 20.0,
+    min_corners: int = 12,
+) -> dict[str, Array]:
+    """Board placements ``T_rf_from_bf`` for fixed cameras, each seen by two or more of them:
+    aimed where a random pair's optical axes pass closest to each other, facing the pair (the
+    bisector of their viewing directions, tilted up to ``max_tilt_deg``, any roll). Pairs whose
+    axes never meet in front of both cameras are skipped; ``ValueError`` when no pair can share
+    a placement."""
+    ids = list(cameras)
+    pairs = [(a, b) for i, a in enumerate(ids) for b in ids[i + 1 :]]
+    aims: list[tuple[Array, Array]] = []
+    for a, b in pairs:
+        pa, pb = T_rf_from_cf[a][:3, 3], T_rf_from_cf[b][:3, 3]
+        da, db = T_rf_from_cf[a][:3, 2], T_rf_from_cf[b][:3, 2]
+        # Closest points of the two axes pa + s·da and pb + t·db.
+        M = np.array([[da @ da, -(da @ db)], [da @ db, -(db @ db)]])
+        if abs(np.linalg.det(M)) < 1e-9:
+            continue
+        s, t = np.linalg.solve(M, [(pb - pa) @ da, (pb - pa) @ db])
+        if s <= 0 or t <= 0:
+            continue
+        facing = -(da + db)
+        aims.append(((pa + s * da + pb + t * db) / 2, facing / np.linalg.norm(facing)))
+    if not aims:
+        raise ValueError("no two cameras look at a common point: no board placement can link them")
+    centre = board.object_points.mean(axis=0)
+    placements: dict[str, Array] = {}
+    tries = 0
+    while len(placements) < n_placements:
+        tries += 1
+        if tries > 400 * n_placements:
+            raise ValueError(
+                f"only {len(placements)} of {n_placements} board placements are seen by two "
+                "cameras at once; try a smaller board"
+            )
+        aim, facing = aims[rng.integers(len(aims))]
+        tilt = Rotation.from_rotvec(
+            np.radians(rng.uniform(0.0, max_tilt_deg)) * _unit_normal_to(facing, rng)
+        )
+        z = -tilt.apply(facing)  # the board's z points away from the cameras (printed face up)
+        x = np.cross(_unit_normal_to(z, rng), z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z], axis=1)
+        pos = aim + rng.normal(0.0, 50.0, 3)
+        T = make_transform(R, pos - R @ centre)
+        seen = [
+            exact_detection(board, cameras[c], compose(invert(T_rf_from_cf[c]), T), min_corners)
+            for c in ids
+        ]
+        if sum(d is not None for d in seen) >= 2:
+            placements[f"{len(placements) + 1:03d}"] = T
+    return placements
+
+
+def _unit_normal_to(v: Array, rng: np.random.Generator) -> Array:
+    """A random unit vector perpendicular to ``v``."""
+    w = np.cross(v, rng.normal(size=3))
+    return w / np.linalg.norm(w)

@@ -1,6 +1,6 @@
 """``mvpose calibrate intrinsics|stereo|handeye|station``: board images (+ robot poses) to a
-versioned calibration file, a text report and a residual plot; ``mvpose calibrate synthetic``:
-a rendered image set with robot poses and the truth, to rehearse the steps on a laptop.
+versioned calibration file, a text report and a residual plot. ``mvpose calibrate synthetic``
+and ``compare`` (rehearsing the steps on a laptop) live in :mod:`server.commands.rehearsal`.
 
 Images live in ``IMAGES/<camera id>/<sample id>.<png|bmp|tif|jpg>``; the file stem is the sample
 id that pairs an image with its robot pose (never the position in a list).
@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from server.cli import CliError
+from server.commands import rehearsal
 
 _EXTS = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -30,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "handeye": "cameras on the robot: intrinsics, stereo and T_gf_from_rig",
         "station": "fixed cameras: relations from images, then one rigid placement in RF",
     }
-    _add_synthetic(sub)
+    rehearsal.add_parsers(sub)
     for name, text in helps.items():
         p = sub.add_parser(name, help=text, description=text)
         p.add_argument(
@@ -81,39 +82,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                 type=Path,
                 help="board pose in RF per sample (measured), instead of --poses",
             )
-
-
-def _add_synthetic(sub: Any) -> None:
-    text = (
-        "render board images of a station's robot-mounted rig with the robot poses (exact or "
-        "with a chosen robot error) and the true hand-eye"
-    )
-    p = sub.add_parser("synthetic", help=text, description=text)
-    p.add_argument("--station", type=Path, required=True, help="station YAML (cameras, rig)")
-    p.add_argument("--out", type=Path, required=True, help="folder to write (images, poses)")
-    p.add_argument("--board", default="charuco:15x11:40:30", help="board (default %(default)s)")
-    p.add_argument("--rig", help="robot-mounted rig (default: the station's first)")
-    p.add_argument("--samples", type=int, default=18, help="robot poses (default 18)")
-    p.add_argument(
-        "--distance", type=float, default=1700.0, help="camera–board distance mm (±10 %%)"
-    )
-    p.add_argument(
-        "--robot-error",
-        nargs=2,
-        type=float,
-        default=(0.0, 0.0),
-        metavar=("MM", "DEG"),
-        help="1σ per axis of the written flange poses (default exact: 0 0)",
-    )
-    p.add_argument("--convention", help="robot convention of poses.csv (default: the recipe's)")
-    p.add_argument(
-        "--image-scale",
-        type=float,
-        default=1.0,
-        help="render at this fraction of the station's image size (e.g. 0.25 for a quick run)",
-    )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -277,6 +245,7 @@ def _step_stereo(args: argparse.Namespace) -> int:
         )
 
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, c1)]))
+    reports = _as_start(reports, "stereo")
     reports.append((stereo_report(res, depth, solve), None))
     models = {c1: res.model1, c2: res.model2}
     rig_id, T_rig_from_cf1 = _rig_frame(ctx, args, c1, "robot", allow_any=True)
@@ -347,11 +316,7 @@ def _step_handeye(args: argparse.Namespace) -> int:
         res = calibrate_handeye(problem, opt, T_rf_from_bf=T_rf_from_bf, rejected=rejected)
     except CalibrationError as err:
         raise CliError(f"{args.poses}: {err}") from None
-    # The steps before wrote start values; the file holds the hand-eye's, and says so.
-    reports = [
-        (replace(r, kind=f"{r.kind}, start of the hand-eye (the file holds the values below)"), x)
-        for r, x in reports
-    ]
+    reports = _as_start(reports, "hand-eye")
     reports.append((handeye_report(problem, res), res.residuals))
     models, rel = res.cameras, res.T_cfc_from_cf0
     rig_id, T_rig_from_ref = _rig_frame(ctx, args, ref, "robot")
@@ -405,11 +370,17 @@ def _step_station(args: argparse.Namespace) -> int:
         he = calibrate_handeye(problem, rejected=rejected)
         T_rf_from_bf = board_poses_from_robot(poses, he.Y)
         src = args.poses
-    res = calibrate_station(ctx["board"], models, ctx["dets"], T_rf_from_bf)
+    # Intrinsics from --base were chosen by the engineer: hold them (as the hand-eye does).
+    from_base = ctx["base"] is not None and all(c in ctx["base"].cameras for c in models)
+    res = calibrate_station(
+        ctx["board"], models, ctx["dets"], T_rf_from_bf, refine_intrinsics=not from_base
+    )
     residuals = {s: r for g in res.groups for s, r in g.residuals.items()}
     ref = next(iter(models))
     depth = float(np.median([T[2, 3] for T in _board_depths(ctx, models, ref)]))
+    reports = _as_start(reports, "station adjustment")
     reports.append((station_report(res, depth, models[ref].fx), residuals))
+    models = dict(res.cameras)  # adjusted with the relations: the file holds these
     station = ctx["station"]
     rigs = {}
     for rig in station.rigs:
@@ -424,6 +395,14 @@ def _step_station(args: argparse.Namespace) -> int:
             {rc.camera: invert(T_rf_from_rig) @ res.T_rf_from_cf[rc.camera] for rc in cams},
         )
     return _write(args, ctx, "station", models, rigs, reports, poses_file=src)
+
+
+def _as_start(reports: list, step: str) -> list:
+    """The steps before wrote start values; the file holds the last step's, and says so."""
+    return [
+        (replace(r, kind=f"{r.kind}, start of the {step} (the file holds the values below)"), x)
+        for r, x in reports
+    ]
 
 
 # --------------------------------------------------------------------------- outputs
@@ -517,107 +496,8 @@ def _write(
     return 0
 
 
-def _step_synthetic(args: argparse.Namespace) -> int:
-    import json
-
-    import cv2
-    from tqdm import tqdm
-
-    from mvpose_core.calibration.boards import BoardSpec, render
-    from mvpose_core.calibration.synthetic import (
-        CalibScene,
-        board_in_front,
-        view_poses,
-        with_robot_error,
-    )
-    from mvpose_core.camera import CameraModel
-    from mvpose_core.station import load_station
-    from mvpose_core.transforms import RobotConvention, invert, to_robot
-
-    try:
-        board = BoardSpec.parse(args.board)
-    except ValueError as err:
-        raise CliError(f"--board: {err}") from None
-    station = load_station(args.station)
-    rigs = [r for r in station.rigs if r.mount == "robot" and (args.rig in (None, r.id))]
-    if not rigs:
-        raise CliError(
-            f"station {station.name!r} has no robot-mounted rig"
-            + (f" {args.rig!r}" if args.rig else "")
-        )
-    rig = rigs[0]
-    if not (args.samples >= 3 and args.distance > 0 and 0 < args.image_scale <= 1):
-        raise CliError("--samples ≥ 3, --distance > 0 and 0 < --image-scale ≤ 1, please")
-    mm, deg = args.robot_error
-    if not (mm >= 0 and deg >= 0):
-        raise CliError(f"--robot-error: both values must be ≥ 0, got {mm:g} {deg:g}")
-    k = args.image_scale
-    cameras: dict[str, CameraModel] = {}
-    for rc in rig.cameras:
-        c = station.camera(rc.camera)
-        i = c.intrinsics
-        w, h = c.image_size
-        cameras[c.id] = CameraModel(
-            i.fx * k, i.fy * k, (i.cx + 0.5) * k - 0.5, (i.cy + 0.5) * k - 0.5,
-            round(w * k), round(h * k), tuple(c.distortion),
-        )  # fmt: skip
-    T_rig_from = {rc.camera: rc.T_rig_from_cf.matrix for rc in rig.cameras}
-    ref = rig.cameras[0].camera
-    assert rig.T_gf_from_rig is not None  # a robot-mounted rig has one (station model)
-    X = rig.T_gf_from_rig.matrix @ T_rig_from[ref]
-    rel = {c: invert(T_rig_from[c]) @ T_rig_from[ref] for c in cameras}
-    Y = board_in_front()
-    rng = np.random.default_rng(args.seed)
-    d = args.distance
-    try:
-        poses = view_poses(
-            rng, "robot", board, cameras, rel, X, Y, args.samples, (0.9 * d, 1.1 * d), 30.0
-        )
-    except ValueError as err:
-        raise CliError(f"synthetic: {err}; try another --distance or a smaller --board") from None
-    scene = CalibScene("robot", board, cameras, rel, X, Y, poses)
-    written = with_robot_error(rng, poses, mm, deg) if mm > 0 or deg > 0 else poses
-    conv = RobotConvention(args.convention or station.recipe().robot_convention)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    rows = [",".join(["id", *conv.labels])]
-    for sid, A in written.items():
-        rows.append(sid + "," + ",".join(f"{v:.6f}" for v in to_robot(A, conv)))
-    (out / "poses.csv").write_text("\n".join(rows) + "\n")
-    truth = {
-        "station": station.name,
-        "rig": rig.id,
-        "board": str(board),
-        "convention": conv.value,
-        "robot_error_per_axis": {"mm": mm, "deg": deg},
-        "seed": args.seed,
-        "image_scale": k,
-        "T_gf_from_rig": rig.T_gf_from_rig.matrix.tolist(),
-        "T_gf_from_cf": {c: (X @ invert(rel[c])).tolist() for c in cameras},
-        "T_rf_from_bf": Y.tolist(),
-        "T_rf_from_gf_exact": {sid: A.tolist() for sid, A in poses.items()},
-    }
-    (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
-    with tqdm(
-        total=len(poses) * len(cameras), desc="render", unit="img", file=sys.stderr,
-        disable=args.no_progress,
-    ) as bar:  # fmt: skip
-        for cid, cam in cameras.items():
-            (out / "images" / cid).mkdir(parents=True, exist_ok=True)
-            for sid in poses:
-                img = render(board, cam, scene.T_cf_from_bf(cid, sid), rng)
-                cv2.imwrite(str(out / "images" / cid / f"{sid}.png"), img)
-                bar.update(1)
-    print(
-        f"wrote {len(poses)} samples × {len(cameras)} cameras to {out / 'images'}, robot poses "
-        f"({conv.value}, error {mm:g} mm / {deg:g}° per axis) to {out / 'poses.csv'}, the truth "
-        f"to {out / 'truth.json'}"
-    )
-    return 0
-
-
 _STEPS = {
-    "synthetic": _step_synthetic,
+    **rehearsal.STEPS,
     "intrinsics": _step_intrinsics,
     "stereo": _step_stereo,
     "handeye": _step_handeye,

@@ -45,7 +45,8 @@ def station():
 
 def test_robot_error_does_not_bend_the_station(station) -> None:
     scene, det, rf = station
-    res = calibrate_station(scene.board, scene.cameras, det, rf)
+    # The true intrinsics, held: this is about the robot frame, not the camera model.
+    res = calibrate_station(scene.board, scene.cameras, det, rf, refine_intrinsics=False)
     assert len(res.groups) == 1
     naive = {}
     for c, cam in scene.cameras.items():

@@ -1,0 +1,88 @@
+"""docs/calibration.md's walkthrough, every ``$ mvpose …`` command run as the guide writes it (with
+fewer samples, see SMALLER), in a fresh folder: so the guide cannot rot. Each command must exit
+0 and print what the guide shows it printing, line by line up to the first number."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from stations import relaxed_deadline, station_file
+
+ROOT = Path(__file__).resolve().parents[2]
+DOC = ROOT / "docs" / "calibration.md"
+#: The guide's sizes, and the smaller ones this test runs (same commands otherwise). The fixed
+#: station keeps its 14 placements: each camera needs six of its own for its intrinsics.
+SMALLER = {"--samples 18": "--samples 10"}
+#: Lines that name samples: which samples an outlier or a missed board falls on changes with
+#: the set's size.
+PER_SAMPLE = ("  left out", "  partly used", "  OUTLIER", "  WARNING", "  solver")
+
+
+def walkthrough() -> list[tuple[str, list[str]]]:
+    """(command, the output lines the guide shows) for every ``$ mvpose`` line of the section."""
+    text = DOC.read_text()
+    start = text.index("\n## Walkthrough")
+    end = text.index("\n## ", start + 1)
+    steps: list[tuple[str, list[str]]] = []
+    lines = text[start:end].splitlines()
+    k = 0
+    while k < len(lines):
+        line = lines[k]
+        k += 1
+        if not line.startswith("$ mvpose "):
+            continue
+        cmd = line[2:]
+        while cmd.endswith("\\"):
+            cmd = cmd[:-1].rstrip() + " " + lines[k].strip()
+            k += 1
+        shown = []
+        while k < len(lines) and not lines[k].startswith(("$ ", "```")):
+            shown.append(lines[k])
+            k += 1
+        steps.append((cmd, shown))
+    return steps
+
+
+def _head(line: str) -> str:
+    """A line up to its first number (and its sign): the part a different run prints alike."""
+    return re.split(r"[-+]?\d", line, maxsplit=1)[0].rstrip()
+
+
+def test_the_guide_has_a_walkthrough() -> None:
+    cmds = [c for c, _ in walkthrough()]
+    kinds = [shlex.split(c)[1:3] for c in cmds]
+    for step in ("synthetic", "intrinsics", "stereo", "handeye", "station", "compare"):
+        assert ["calibrate", step] in kinds, (step, cmds)
+    assert any(k[:1] == ["gauge"] for k in kinds), cmds
+    assert all(shown for _, shown in walkthrough()), "every command shows its output"
+
+
+@pytest.mark.timeout(1800)
+def test_the_walkthrough_runs_as_written(tmp_path: Path) -> None:
+    (tmp_path / "deploy").symlink_to(ROOT / "deploy")
+    # Station 1 with the relaxed deadline for the demo (as the guide says): a loaded machine
+    # misses the 50 ms cycle deadline, and the gauge study would find no OK measurement.
+    relaxed = station_file(tmp_path, "station1", relaxed_deadline)
+    for cmd, shown in walkthrough():
+        for big, small in SMALLER.items():
+            cmd = cmd.replace(big, small)
+        if cmd.startswith(("mvpose demo", "mvpose gauge")):
+            cmd = cmd.replace("deploy/stations/station1.yaml", str(relaxed))
+        args = shlex.split(cmd)[1:]
+        run = subprocess.run(
+            [sys.executable, "-m", "server.cli", *args],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=1500,
+        )
+        assert run.returncode == 0, (cmd, run.stdout[-2000:], run.stderr[-2000:])
+        printed = {_head(line) for line in run.stdout.splitlines()}
+        for line in shown:
+            if _head(line) and not line.startswith(PER_SAMPLE) and "…" not in line:
+                assert _head(line) in printed, (cmd, line, run.stdout[-3000:])
