@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Literal, cast
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, computed_field
 from sqlalchemy import Connection, Engine, Table, func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
@@ -50,10 +50,12 @@ class Alarm(BaseModel):
     acked_at: datetime | None
     acked_by: str | None = Field(description="the user or token that acknowledged it")
 
+    @computed_field(description="its condition holds (not cleared)")  # type: ignore[prop-decorator]
     @property
     def active(self) -> bool:
         return self.cleared_at is None
 
+    @computed_field(description="an operator acknowledged it")  # type: ignore[prop-decorator]
     @property
     def acknowledged(self) -> bool:
         return self.acked_at is not None
@@ -63,6 +65,7 @@ class Alarm(BaseModel):
 class AlarmFilter:
     """Which alarms a list shows; None: any."""
 
+    standing: bool = False  # only the active or unacknowledged ones
     active: bool | None = None
     acknowledged: bool | None = None
     source: str | None = None  # exact, or a prefix ending in ':' (e.g. "link:")
@@ -108,7 +111,8 @@ class AlarmRepository:
                 existing = self._active(conn, source, code)
                 if existing is not None:
                     return existing, False
-                alarm_id = int(conn.execute(insert(A).values(**values)).inserted_primary_key[0])
+                done = conn.execute(insert(A).values(**values))
+                alarm_id = int(done.inserted_primary_key[0])  # type: ignore[index]
                 alarm = self._row(conn, alarm_id)
                 self._event(conn, alarm, "raised", None, at)
                 return alarm, True
@@ -150,10 +154,12 @@ class AlarmRepository:
         with self.engine.connect() as conn:
             return self._row(conn, alarm_id)
 
-    def list(self, filters: AlarmFilter, limit: int = 100) -> list[Alarm]:
+    def find(self, filters: AlarmFilter, limit: int = 100) -> list[Alarm]:
         """Matching alarms, newest first."""
         q = select(A).where(A.c.station == self.station)
         f = filters
+        if f.standing:
+            q = q.where(A.c.cleared_at.is_(None) | A.c.acked_at.is_(None))
         if f.active is not None:
             q = q.where(A.c.cleared_at.is_(None) if f.active else A.c.cleared_at.is_not(None))
         if f.acknowledged is not None:
@@ -175,11 +181,7 @@ class AlarmRepository:
 
     def standing(self) -> list[Alarm]:
         """The alarms an operator must see: active, or cleared and not yet acknowledged."""
-        with self.engine.connect() as conn:
-            rows = conn.execute(select(A).where(
-                A.c.station == self.station,
-                A.c.cleared_at.is_(None) | A.c.acked_at.is_(None)).order_by(A.c.id.desc())).all()
-        return [_alarm(r) for r in rows]
+        return self.find(AlarmFilter(standing=True), limit=1000)
 
     def counts(self) -> AlarmCounts:
         with self.engine.connect() as conn:
@@ -218,9 +220,9 @@ class AlarmRepository:
 
     def _event(self, conn: Connection, alarm: Alarm, kind: EventKind, by: str | None,
                at: datetime) -> None:
-        event_id = int(conn.execute(insert(E).values(
-            station=self.station, alarm_id=alarm.id, at=at, kind=kind, by=by)
-        ).inserted_primary_key[0])
+        done = conn.execute(insert(E).values(
+            station=self.station, alarm_id=alarm.id, at=at, kind=kind, by=by))
+        event_id = int(done.inserted_primary_key[0])  # type: ignore[index]
         if self.topic is None:
             return
         payload = alarm_payload(alarm, kind, event_id, at, by)

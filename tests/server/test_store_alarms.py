@@ -89,7 +89,7 @@ def test_filters_counts_and_standing(store: Store) -> None:
     store.alarms.acknowledge(drift.id, "alice")
 
     def ids(**kw: object) -> list[int]:
-        return [a.id for a in store.alarms.list(AlarmFilter(**kw))]  # type: ignore[arg-type]
+        return [a.id for a in store.alarms.find(AlarmFilter(**kw))]  # type: ignore[arg-type]
 
     assert ids() == [drift.id, cam.id, link.id]
     assert ids(active=True) == [drift.id, link.id]
