@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
+from drivers.links.base import AlarmNotice
 from server.store.alarms import AlarmFilter, AlarmRepository, Priority
 
 if TYPE_CHECKING:
@@ -77,6 +78,7 @@ class AlarmWatch:
         self._first_seen: dict[tuple[str, str], tuple[float, datetime]] = {}
         self._raised: set[tuple[str, str]] = set()
         self._loaded = False
+        self._told = 0  # the newest transition the links heard of
         self._events: list[Condition] = []  # one-shot alarms (raised, then cleared) to write
         self._reconnects: dict[str, int] = {}
         self._store_failed = 0
@@ -119,6 +121,7 @@ class AlarmWatch:
         if not self._loaded:  # alarms left active by the last run are this run's to clear
             active = self.repo.find(AlarmFilter(active=True), limit=1000)
             self._raised |= {(a.source, a.code) for a in active if a.code in CODES}
+            self._told = self.repo.last_transition()
             self._loaded = True
         now, at = time.monotonic(), datetime.now(UTC)
         conditions = {c.key: c for c in self.conditions()}
@@ -143,7 +146,22 @@ class AlarmWatch:
             self.repo.raise_(ev.source, ev.code, ev.priority, ev.text, ev.args, at=at)
             self.repo.clear(ev.source, ev.code, at=at)
             self._events.pop(0)
+        self._tell_links()
         self.last_error = None
+
+    def _tell_links(self) -> None:
+        """Every transition since the last round, this process's and others' (an operator's
+        acknowledgement through the API), to the links (OPC UA condition events)."""
+        for event_id, kind, by, at, alarm in self.repo.transitions_after(self._told):
+            # the alarm's state just after this transition, from its timestamps
+            active = alarm.cleared_at is None or alarm.cleared_at > at or kind == "raised"
+            acked = kind == "acknowledged" or (
+                kind == "cleared" and alarm.acked_at is not None and alarm.acked_at <= at)
+            self.station.host.alarm_changed(AlarmNotice(
+                kind, event_id, alarm.id, alarm.source, alarm.code, alarm.priority,
+                alarm.text, active and kind != "cleared", acked,
+                by if kind == "acknowledged" else alarm.acked_by if acked else None, at))
+            self._told = event_id
 
     def conditions(self) -> list[Condition]:
         """What every source says now."""

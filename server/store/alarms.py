@@ -204,6 +204,24 @@ class AlarmRepository:
                                 .where(E.c.alarm_id == alarm_id).order_by(E.c.id)).all()
         return [(r.at, r.kind, r.by) for r in rows]
 
+    def transitions_after(self, after_id: int, limit: int = 200
+                          ) -> list[tuple[int, EventKind, str | None, datetime, Alarm]]:
+        """Transitions with an id above ``after_id``, oldest first: (event id, kind, by, at,
+        the alarm as it is now)."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(
+                select(E.c.id.label("event_id"), E.c.kind, E.c.by, E.c.at, A)
+                .join(A, A.c.id == E.c.alarm_id)
+                .where(E.c.station == self.station, E.c.id > after_id)
+                .order_by(E.c.id).limit(limit)).all()
+        return [(r.event_id, r.kind, r.by, r.at, _alarm(r)) for r in rows]
+
+    def last_transition(self) -> int:
+        """The newest transition's id (0: none yet)."""
+        with self.engine.connect() as conn:
+            return int(conn.execute(select(func.coalesce(func.max(E.c.id), 0))
+                                    .where(E.c.station == self.station)).scalar_one())
+
     # ------------------------------------------------------------------ inside a transaction
     def _active(self, conn: Connection, source: str, code: str) -> Alarm | None:
         row = conn.execute(select(A).where(
