@@ -269,7 +269,8 @@ class AlarmWatch:
         if active is None or streak < active.config.nok_streak_warning:
             return []
         return [Condition("station", "NOK_STREAK", "medium",
-                          f"{streak} NOK results in a row (recipe {active.config.name})",
+                          f"{streak} NOK result{'' if streak == 1 else 's'} in a row (recipe "
+                          f"{active.config.name})",
                           {"count": streak, "recipe": active.config.name})]
 
     def _drift_now(self) -> list[Condition]:

@@ -408,7 +408,9 @@ async def test_a_second_client_stack_gets_the_stations_records_as_standard_event
 async def test_the_stations_alarms_are_condition_events(tmp_path: Path) -> None:
     """The station's alarm watch raises LINK_NO_PLC (its Modbus link has no PLC); the OPC UA
     link, in its own process, publishes it as OPC 40100's VisionErrorConditionType event, and
-    an operator's acknowledgement (written by another process: the API's) follows."""
+    an operator's acknowledgement (written by another process: the API's) follows. node-opcua,
+    subscribed as a generic client (OfType VisionConditionType), gets NOK_STREAK (the recipe
+    warns after one NOK here) raised by its own Measure call as a warning condition event."""
     pki = tmp_path / "pki"
     key, cert = tmp_path / "client.pem", tmp_path / "client.der"
     await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
@@ -422,7 +424,11 @@ async def test_the_stations_alarms_are_condition_events(tmp_path: Path) -> None:
             "users": {"olga": {"role": "operator",
                                "password_hash": hash_password("pw", 10_000)}}}
 
-    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline, opcua),
+    def one_nok(data: dict[str, Any]) -> None:
+        for recipe in data["recipes"]:
+            recipe["nok_streak_warning"] = 1
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline, opcua, one_nok),
                             tmp_path / "var")
     async with running_server(settings, runtime_options(), http_port=None) as lb:
         station = lb.runtime
@@ -468,3 +474,27 @@ async def test_the_stations_alarms_are_condition_events(tmp_path: Path) -> None:
             await sub.delete()
         finally:
             await client.disconnect()
+
+        # node-opcua: its Measure call (nothing in front of the cameras: NOK) raises NOK_STREAK
+        got = await node_opcua.run({
+            "url": f"opc.tcp://127.0.0.1:{link.port}/mvpose", "mode": "SignAndEncrypt",
+            "policy": "Basic256Sha256", "cert": str(cert), "key": str(key),
+            "pki": str(tmp_path / "node-pki"), "applicationUri": CLIENT_URI, "user": "olga",
+            "password": "pw", "steps": [
+                {"do": "subscribe", "label": "vs", "node": ["mv:VisionSystem"],
+                 "fields": ["mv:ErrorCode", "mv:ErrorString", "ConditionName", "SourceName",
+                            "Retain", "Severity"],
+                 "ofType": ["ConditionType", "AcknowledgeableConditionType",
+                            "mv:VisionConditionType"]},
+                {"do": "call", "object": ["mv:VisionSystem"], "method": "mvpose:Measure",
+                 "args": [{"type": "String", "value": "VIN-NOK"},
+                          {"type": "UInt16", "value": 0}, {"type": "UInt32", "value": 71}]},
+                {"do": "wait_events", "label": "vs", "count": 1, "timeout_ms": 30000}]})
+        assert "error" not in got, got
+        call, on_vs = got["results"][1:]
+        assert call["outputs"][1] != 0, call  # NOK
+        streak = alarms.find(AlarmFilter(source="station"))[0]
+        # node-opcua reads a UInt64 as [high 32 bits, low 32 bits]
+        assert on_vs == [{"mv:ErrorCode": [0, streak.id], "mv:ErrorString": streak.text,
+                          "ConditionName": "NOK_STREAK", "SourceName": "station",
+                          "Retain": True, "Severity": 500}], on_vs
