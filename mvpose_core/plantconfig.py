@@ -47,3 +47,7 @@ class PlantConfig(_Model):
     area: TopicLevel
     line: TopicLevel
     mqtt: MqttConfig | None = Field(None, description="stream results to this broker")
+
+    def topic_prefix(self, station: str) -> str:
+        """``<enterprise>/<site>/<area>/<line>/<station>/mvpose``: the station's topic root."""
+        return f"{self.enterprise}/{self.site}/{self.area}/{self.line}/{station}/mvpose"

@@ -502,6 +502,9 @@ class StationConfig(_Model):
                                               "operator page's times)")
     page: PageConfig = Field(PageConfig(), description="the operator page: idle logout, kiosk, "
                                                        "the plant's language")
+    calibration_max_age_days: float | None = Field(
+        None, gt=0, le=3650, description="an alarm when the active calibration is older "
+        "(docs/alarms.md); none: no limit")
 
     @model_validator(mode="after")
     def _check_shifts(self) -> StationConfig:

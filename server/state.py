@@ -58,6 +58,9 @@ def open_services(settings: Settings, *, seed: bool = True, bootstrap: bool = Tr
     station = load_station(settings.station) if settings.station else None
     name = station.name if station else settings.station_name
     store = open_store(settings.resolved_database_url, name, settings.sqlite_synchronous)
+    if station is not None and station.plant is not None and station.plant.mqtt is not None:
+        # every alarm transition, from either process, queues its message in the outbox
+        store.alarms.topic = f"{station.plant.topic_prefix(station.name)}/alarms"
     try:
         if station is not None and seed:
             seed_recipes(store, station, str(settings.station))

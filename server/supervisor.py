@@ -29,10 +29,14 @@ class Child:
     ready: Callable[[], bool]  # True once the child serves (control socket, HTTP)
     proc: subprocess.Popen[bytes] | None = None
     started_at: float = 0.0
-    was_ready: bool = False
+    was_ready: bool = False  # ever: a child that dies before it is a start-up error
+    up: bool = False  # ready since its last start
     restarts: int = 0
     backoff_s: float = 0.5
     history: list[tuple[float, int]] = field(default_factory=list)  # (time, exit code)
+    # told when the child ends (False, its exit code) and when it is ready (True, None); called
+    # on the supervisor's thread: hand slow work (a database write) to a thread of its own
+    on_change: Callable[[bool, int | None], None] | None = None
 
 
 class Supervisor:
@@ -66,11 +70,15 @@ class Supervisor:
         assert child.proc is not None
         rc = child.proc.poll()
         if rc is None:
-            if not child.was_ready and child.ready():
-                child.was_ready = True
+            if not child.up and child.ready():
+                child.was_ready = child.up = True
                 log.info("%s process ready (pid %d)", child.name, child.proc.pid)
+                self._tell(child, True, None)
             return 0
         child.history.append((time.time(), rc))
+        if child.up:
+            child.up = False
+            self._tell(child, False, rc)
         if not child.was_ready:
             print(f"mvpose serve: the {child.name} process stopped with exit code {rc} before "
                   f"it was ready (its error is above)", file=sys.stderr, flush=True)
@@ -85,6 +93,15 @@ class Supervisor:
         child.restarts += 1
         self._spawn(child)
         return 0
+
+    @staticmethod
+    def _tell(child: Child, up: bool, rc: int | None) -> None:
+        if child.on_change is None:
+            return
+        try:
+            child.on_change(up, rc)
+        except Exception:
+            log.exception("%s process: its watcher failed", child.name)
 
     def _stop_all(self) -> None:
         running = [c.proc for c in self.children if c.proc is not None and c.proc.poll() is None]

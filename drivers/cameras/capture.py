@@ -185,6 +185,12 @@ class CaptureGroup:
             for cid, w in self._workers.items()
         }
 
+    def health(self) -> dict[str, tuple[bool, str | None, int]]:
+        """Per camera: (up, why it is down or None, reconnects so far)."""
+        return {cid: (w.ready.is_set(), None if w.ready.is_set() or w.down_reason is None
+                      else str(w.down_reason), w.reconnects)
+                for cid, w in self._workers.items()}
+
     def status(self) -> dict[str, str]:
         """One line per camera: up, or down with the reason and the reconnects so far."""
         out = {}

@@ -90,6 +90,32 @@ class VerifyOutcome:
 
 
 @dataclass(frozen=True)
+class AlarmNotice:
+    """One transition of a station alarm (raised, acknowledged, cleared), as the station's store
+    keeps it (docs/alarms.md); a link that shows alarms (OPC UA conditions) gets each one
+    through :meth:`Link.alarm_changed`."""
+
+    event: str  # raised | acknowledged | cleared
+    event_id: int  # the transition's id: increasing, never reused
+    alarm_id: int
+    source: str  # e.g. link:modbus, camera:left1, store
+    code: str  # e.g. LINK_DOWN
+    priority: str  # high | medium | low
+    text: str
+    active: bool
+    acknowledged: bool
+    acked_by: str | None
+    at: datetime  # when the transition happened (UTC)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "at": self.at.isoformat()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> AlarmNotice:
+        return cls(**{**data, "at": datetime.fromisoformat(data["at"])})
+
+
+@dataclass(frozen=True)
 class ResultQuery:
     """Which stored records a link asks for: every filter optional (None), oldest first from
     ``start`` (0-based), at most ``limit``."""
@@ -253,3 +279,6 @@ class Link(ABC):
 
     def recipe_changed(self) -> None:  # noqa: B027 - optional hook
         """The selected recipe (or its robot convention) changed outside this link."""
+
+    def alarm_changed(self, notice: AlarmNotice) -> None:  # noqa: B027 - optional hook
+        """A station alarm was raised, acknowledged or cleared (on the link's loop)."""

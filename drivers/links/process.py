@@ -42,7 +42,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .base import Link, LinkOutcome, LinkRequest, StationHandler, VerifyOutcome
+from .base import AlarmNotice, Link, LinkOutcome, LinkRequest, StationHandler, VerifyOutcome
 from .result import ResultEvent
 
 log = logging.getLogger(__name__)
@@ -166,6 +166,10 @@ class ProcessLink(Link):
     def recipe_changed(self) -> None:
         if self._wire is not None:
             self._send(self._wire, "recipe_changed", self._snapshot())
+
+    def alarm_changed(self, notice: AlarmNotice) -> None:
+        if self._wire is not None:
+            self._send(self._wire, "alarm", notice.to_dict())
 
     # ------------------------------------------------------------------ the child
     async def _spawn(self) -> None:
@@ -495,6 +499,8 @@ async def _child(sock: socket.socket) -> int:
                 handler.answered(*message[1:])
             elif kind == "result":
                 handler.tell(ResultEvent.from_json(message[1]))
+            elif kind == "alarm":
+                link.alarm_changed(AlarmNotice.from_dict(message[1]))
             elif kind == "recipe_changed":
                 handler.snapshot(message[1])
                 link.recipe_changed()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from server.api import (
+    alarms,
     drift,
     gauge,
     health,
@@ -39,4 +40,5 @@ def api_router() -> APIRouter:
     # Verify names a measurement that may not exist or have no pose, or measures through the
     # station (503 without one).
     router.include_router(drift.router, responses=problem_responses(404, 409))
+    router.include_router(alarms.router, responses=problem_responses(404))
     return router

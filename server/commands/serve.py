@@ -25,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from drivers.links import link_settings
     from server.commands.api import API_ADDRESS_FILE
+    from server.station.alarms import ProcessAlarms
     from server.station.client import StationClient, StationDownError
     from server.supervisor import Child, Supervisor, python_argv
 
@@ -69,10 +70,18 @@ def run(args: argparse.Namespace) -> int:
                     if getattr(cfg, "enabled", True))
     print(f"mvpose: station {station.name!r}: REST http://{host}:{port}/api/v1 (docs /docs)"
           f"{links}", flush=True)
-    return Supervisor([
-        Child("station", python_argv("station", station_argv), station_ready),
-        Child("api", python_argv("api", api_argv), api_ready),
-    ]).run()
+    mqtt = station.plant is not None and station.plant.mqtt is not None
+    alarms = ProcessAlarms(settings.resolved_database_url, station.name,
+                           f"{station.plant.topic_prefix(station.name)}/alarms"
+                           if mqtt and station.plant is not None else None)
+    try:
+        return Supervisor([
+            Child("station", python_argv("station", station_argv), station_ready,
+                  on_change=alarms),
+            Child("api", python_argv("api", api_argv), api_ready),
+        ]).run()
+    finally:
+        alarms.close()
 
 
 def _connect_host(host: str) -> str:

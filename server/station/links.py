@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.links import Link, StationHandler, link_settings, open_links
+from drivers.links.base import AlarmNotice
 from mvpose_core.station import StationConfig
 
 log = logging.getLogger(__name__)
@@ -97,6 +98,13 @@ class LinkHost:
             return
         for link in self.links:
             self._loop.call_soon_threadsafe(link.recipe_changed)
+
+    def alarm_changed(self, notice: AlarmNotice) -> None:
+        """Every link hears of a station alarm's transition (OPC UA: a condition event)."""
+        if self._loop is None:
+            return
+        for link in self.links:
+            self._loop.call_soon_threadsafe(link.alarm_changed, notice)
 
     # ------------------------------------------------------------------ status
     def link(self, name: str) -> Link | None:

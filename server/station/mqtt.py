@@ -48,7 +48,7 @@ _PRUNE_EVERY_S = 600.0
 
 def topic_prefix(plant: PlantConfig, station: str) -> str:
     """``<enterprise>/<site>/<area>/<line>/<station>/mvpose``: the station's ISA-95 topic root."""
-    return f"{plant.enterprise}/{plant.site}/{plant.area}/{plant.line}/{station}/mvpose"
+    return plant.topic_prefix(station)
 
 
 class MqttPublisher:
@@ -63,6 +63,7 @@ class MqttPublisher:
         prefix = topic_prefix(plant, station)
         self.result_topic = f"{prefix}/result"
         self.state_topic = f"{prefix}/state"
+        self.alarm_topic = f"{prefix}/alarms"  # written by server.store.alarms (server/state.py)
         self._outbox: Outbox | None = None
         self._station: Station | None = None
         self._client: paho.Client | None = None

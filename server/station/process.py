@@ -14,6 +14,7 @@ from typing import Any
 from mvpose_core.station import StationConfig
 from server.settings import Settings
 from server.state import Services, open_services
+from server.station.alarms import AlarmWatch, AlarmWatchOptions
 from server.station.control import ControlServer
 from server.station.core import Station, StationOptions
 from server.station.mqtt import MqttPublisher
@@ -25,11 +26,14 @@ class StationProcess:
     """A started station with its control channel (``mvpose station``; tests run it in-process)."""
 
     def __init__(self, settings: Settings, station: StationConfig,
-                 options: StationOptions | None = None) -> None:
+                 options: StationOptions | None = None,
+                 alarm_options: AlarmWatchOptions | None = None) -> None:
         self.settings = settings
         self.station = Station(station, options)
         self.control: ControlServer | None = None
         self.publisher: MqttPublisher | None = None  # only with a plant.mqtt block
+        self.alarm_options = alarm_options
+        self.alarms: AlarmWatch | None = None
         self._services: Services | None = None
 
     def start(self) -> None:
@@ -43,6 +47,9 @@ class StationProcess:
             if self.publisher is not None:
                 self.publisher.start(self.station)
                 self.station.status_parts["mqtt"] = self.publisher.status
+            self.alarms = AlarmWatch(self.station, services.store.alarms, self.alarm_options)
+            self.alarms.start()
+            self.station.status_parts["alarms"] = self.alarms.status
             control = ControlServer(self.station, self.settings.resolved_control_socket)
             self.station.run_on_loop(control.start(), timeout=10)
             self.control = control
@@ -57,6 +64,9 @@ class StationProcess:
             except Exception:
                 log.exception("the control channel did not stop cleanly")
         self.control = None
+        if self.alarms is not None:
+            self.alarms.stop()
+            self.alarms = None
         if self.publisher is not None:
             self.publisher.stop()
             self.publisher = None

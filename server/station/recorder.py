@@ -58,8 +58,10 @@ class Recorder:
         self._loop_of = loop_of  # the station loop, on which listeners are called
         self.sink: RecordSink | None = None
         self.services: Services | None = None
-        self.counts: dict[str, int] = {"triggers": 0, "ok": 0, "nok": 0, "views": 0}
+        self.counts: dict[str, int] = {"triggers": 0, "ok": 0, "nok": 0, "views": 0,
+                                       "store_failed": 0}
         self.last: dict[str, Any] | None = None
+        self.store_error: str | None = None  # the last append that failed, why
         self._lock = threading.Lock()  # last result and counts, read by the control channel
         self._listeners: list[Callable[[ResultEvent], None]] = []
         self._archive_exec: ThreadPoolExecutor | None = None
@@ -128,6 +130,9 @@ class Recorder:
             done = self.sink.append(record)
         except Exception as err:
             log.exception("trigger %d: the record could not be stored", record.trigger_id)
+            with self._lock:  # the alarm watch (server.station.alarms) raises STORE_FAILED
+                self.counts["store_failed"] += 1
+                self.store_error = f"{type(err).__name__}: {str(err)[:200]}"
             code = int(Reason.STORE_FAILED)
             return Answer(LinkOutcome(code, 0, processing_ms=(time.monotonic() - t0) * 1e3),
                           None, f"the record could not be stored: {err}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from sqlalchemy import Engine
 
+from server.store.alarms import AlarmRepository
 from server.store.archive import ImageRepository
 from server.store.db import create_store_engine, current_revision, migrate, ping
 from server.store.gauge import GaugeStudyRepository
@@ -20,8 +21,8 @@ __all__ = ["DurableWriter", "Sealed", "Store", "StoreFailedError", "WriterStatus
 
 class Store:
     """The station's database: ``measurements``, ``images``, ``versions``, ``tokens``,
-    ``gauge`` (the gauge studies), ``users`` (the operator page's people) and ``shifts`` (the
-    line view's figures over ``measurements``).
+    ``gauge`` (the gauge studies), ``users`` (the operator page's people), ``shifts`` (the
+    line view's figures over ``measurements``) and ``alarms``.
 
     Every method is blocking (SQLAlchemy Core on a pooled connection): call it from a worker
     thread, never on the event loop (FastAPI runs ``def`` endpoints in its threadpool).
@@ -37,6 +38,7 @@ class Store:
         self.tokens = TokenRepository(engine)
         self.gauge = GaugeStudyRepository(engine, station)
         self.users = UserRepository(engine, station)
+        self.alarms = AlarmRepository(engine, station)
 
     @property
     def dialect(self) -> str:

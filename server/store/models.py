@@ -14,6 +14,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -211,3 +212,45 @@ class UserEventRow(Base):
     event: Mapped[str] = mapped_column(String(16))
     actor: Mapped[str] = mapped_column(String(64))  # who did it: the user, an engineer, "cli"
     detail: Mapped[str] = mapped_column(Text)
+
+
+class AlarmRow(Base):
+    """One alarm (docs/alarms.md): raised by a source, cleared when its condition ends,
+    acknowledged by an operator. At most one active row per (station, source, code): the
+    partial unique index makes raising idempotent. Its history is in ``alarm_events``."""
+
+    __tablename__ = "alarms"
+    __table_args__ = (
+        Index("uq_alarms_active", "station", "source", "code", unique=True,
+              sqlite_where=text("cleared_at IS NULL"),
+              postgresql_where=text("cleared_at IS NULL")),
+        Index("ix_alarms_station_raised", "station", "raised_at"),
+    )
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64))
+    source: Mapped[str] = mapped_column(String(64))
+    code: Mapped[str] = mapped_column(String(32))
+    priority: Mapped[str] = mapped_column(String(8))
+    text: Mapped[str] = mapped_column(String(400))
+    text_key: Mapped[str] = mapped_column(String(64))
+    text_args: Mapped[str] = mapped_column(Text)  # JSON object
+    raised_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    cleared_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    acked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+    acked_by: Mapped[str | None] = mapped_column(String(64))
+
+
+class AlarmEventRow(Base):
+    """One transition of an alarm (raised, acknowledged, cleared), by whom: the alarms' audit
+    trail. Append-only (database triggers); its id is the MQTT message's ``seq``."""
+
+    __tablename__ = "alarm_events"
+    __table_args__ = (Index("ix_alarm_events_alarm", "alarm_id"),)
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64))
+    alarm_id: Mapped[int] = mapped_column(ForeignKey("alarms.id"))
+    at: Mapped[datetime] = mapped_column(UTCDateTime())
+    kind: Mapped[str] = mapped_column(String(16))
+    by: Mapped[str | None] = mapped_column(String(64))

@@ -42,7 +42,8 @@ _UNITS = {
 
 TABS = [("/", N_("Live")), ("/line", N_("Line")), ("/history", N_("History")),
         ("/spc", N_("SPC")), ("/calibration", N_("Calibration")), ("/recipes", N_("Recipes")),
-        ("/gauge", N_("Gauge"))]
+        ("/gauge", N_("Gauge")),
+        ("/alarms", "Alarms")]  # wrapped for translation by the i18n work
 
 
 def esc(x: object) -> str:
@@ -97,6 +98,9 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
            ) if user else ""
     # A logged-in page reports its user's actions and leaves when the session ends.
     scripts = [*scripts, "/static/session.js"] if user else list(scripts)
+    # the standing alarms' count, loaded and refreshed by htmx (server/web/alarms.py)
+    alarms = ('<a id="alarm-count" href="/alarms" aria-live="polite" hx-get="/web/alarms/count"'
+              ' hx-trigger="load, every 5s"></a>') if user else ""
     extra = "".join(f'<script src="{esc(s)}" defer></script>' for s in scripts)
     shown = user is not None if choose_language is None else choose_language
     chooser = language_selector() if shown else ""
@@ -111,7 +115,7 @@ def layout(title: str, user: Principal | None, body: str, active: str = "",
 <script src="/static/vendor/uPlot.iife.min.js" defer></script>
 <script src="/static/app.js" defer></script>{extra}{js_messages()}
 </head><body{f' class="{esc(body_class)}"' if body_class else ""}>
-<header><span class="brand">mvpose</span><h1>{esc(title)}</h1><nav>{tabs}</nav>{who}\
+<header><span class="brand">mvpose</span><h1>{esc(title)}</h1><nav>{tabs}</nav>{alarms}{who}\
 {chooser}</header>
 <main>{body}</main>
 <footer>""" + esc(_("mvpose operator page")) + """ ·

@@ -13,7 +13,7 @@ read-only (a kiosk).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Request
@@ -22,6 +22,7 @@ from fastapi.responses import HTMLResponse, Response
 from mvpose_core.shifts import ShiftWindow
 from server.auth import Principal, Role
 from server.errors import NotFoundError, UnauthenticatedError
+from server.store.alarms import Alarm
 from server.store.schemas import MAX_ID, MeasurementFilter, MeasurementSummary
 from server.store.shifts import ShiftCounts
 from server.web import html, i18n
@@ -58,6 +59,7 @@ class LineFigures:
     streak_limit: int
     recipe: str | None
     noks: list[tuple[MeasurementSummary, str | None]]  # and a thumbnail's URL
+    alarms: list[Alarm] = field(default_factory=list)  # standing, newest first
 
 
 def read_figures(reader: Reader, app: Any) -> LineFigures:
@@ -76,7 +78,8 @@ def read_figures(reader: Reader, app: Any) -> LineFigures:
                  if on_disk else None)
         strip.append((m, thumb))
     return LineFigures(page[0] if page else None, status, window, counts,
-                       store.shifts.nok_streak(), limit, active[0] if active else None, strip)
+                       store.shifts.nok_streak(), limit, active[0] if active else None, strip,
+                       store.alarms.standing())
 
 
 def kiosk(request: Request) -> bool:
@@ -137,7 +140,7 @@ def render(f: LineFigures, zone: str) -> str:
     return f"""<div id="line-view" hx-get="/web/line/fragment" hx-trigger="every {POLL_S}s"
  hx-swap="outerHTML" data-newest="{f.newest.id if f.newest else ''}">
 <div class="line-grid"><section aria-label=\"""" + e(_("last result")) + f"""">{tile(f)}{states(f)}\
-{streak(f)}</section>
+{streak(f)}{alarm_banner(f)}</section>
 <section class="panel shift" aria-label=\"""" + e(_("this shift")) + """">
 <h2>""" + e(_("This shift")) + f"""</h2>
 {shift_table(f, zone)}</section></div>
@@ -203,6 +206,20 @@ def streak(f: LineFigures) -> str:
     return (f'<p class="streak" role="alert" data-streak="{f.streak}">⚠ '
             f"{e(words.format(n=f.streak, limit=f.streak_limit, recipe=f.recipe or '—'))}"
             f"{hint}</p>")
+
+
+def alarm_banner(f: LineFigures) -> str:
+    """The standing alarms: how many, and the newest active one in words."""
+    if not f.alarms:
+        return ""
+    active = [a for a in f.alarms if a.active]
+    unacked = sum(1 for a in f.alarms if not a.acknowledged)
+    top = max(f.alarms, key=lambda a: ({"high": 3, "medium": 2}.get(a.priority, 1), a.id))
+    newest = active[0] if active else f.alarms[0]
+    return (f'<p id="alarm-banner" class="alarm-banner {html.esc(top.priority)}" role="alert" '
+            f'data-active="{len(active)}" data-unacked="{unacked}">⚠ <a href="/alarms">'
+            f'{len(active)} active alarm{"" if len(active) == 1 else "s"}, {unacked} '
+            f'unacknowledged</a>: {html.esc(newest.text)}</p>')
 
 
 def shift_table(f: LineFigures, zone: str) -> str:

@@ -9,6 +9,7 @@ SignAndEncrypt, the client's certificate trusted the way an engineer trusts one 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import shutil
 import socket
@@ -30,6 +31,7 @@ from waiting import until
 
 from drivers.links import link_class, link_settings
 from drivers.links.base import (
+    AlarmNotice,
     LinkOutcome,
     LinkRequest,
 )
@@ -881,3 +883,45 @@ async def test_management_calls_are_spaced_whichever_client_calls(served: Served
         served.link.management.spacing_s = 0.0
         for c in clients:
             await c.disconnect()
+
+
+@MODULE_LOOP
+async def test_station_alarms_are_machine_vision_condition_events(served: Served) -> None:
+    """OPC 40100-1 §11.4: an error (high priority) is a VisionErrorConditionType event, a
+    warning a VisionWarningConditionType one, each with ErrorCode and ErrorString and Part 9's
+    condition state; a generic client subscribing to VisionConditionType gets both."""
+    client = await served.client()
+    try:
+        await client.load_data_type_definitions()
+        vs, mv, _ = await _vision_system(client)
+        etype = await client.nodes.base_event_type.get_child(
+            ["0:ConditionType", "0:AcknowledgeableConditionType", f"{mv}:VisionConditionType"])
+        events = Events(timeout_s=10.0)
+        sub = await client.create_subscription(50, events)
+        await sub.subscribe_events(vs, etype)
+        raised = AlarmNotice("raised", 41, 7, "link:modbus", "LINK_NO_PLC", "high",
+                             "link modbus: no PLC heartbeat", True, False, None, AT)
+        served.link.alarm_changed(raised)
+        ev = await events.next()
+        error = await client.nodes.base_event_type.get_child(
+            ["0:ConditionType", "0:AcknowledgeableConditionType", f"{mv}:VisionConditionType",
+             f"{mv}:VisionErrorConditionType"])
+        assert ev.EventType == error.nodeid
+        assert (ev.ConditionName, ev.SourceName, ev.ErrorCode, ev.ErrorString) == (
+            "LINK_NO_PLC", "link:modbus", 7, "link modbus: no PLC heartbeat")
+        assert (ev.Severity, ev.Retain, ev.Message.Text, ev.Time) == (
+            800, True, "link modbus: no PLC heartbeat", AT)
+        acked = dataclasses.replace(raised, event="acknowledged", event_id=42,
+                                    acknowledged=True, acked_by="alice", priority="medium")
+        served.link.alarm_changed(acked)
+        ev = await events.next()
+        assert ev.EventType != error.nodeid  # a warning: VisionWarningConditionType
+        assert (ev.Severity, ev.Retain, ev.ClientUserId) == (500, True, "alice")
+        cleared = dataclasses.replace(acked, event="cleared", event_id=43, active=False)
+        served.link.alarm_changed(cleared)
+        ev = await events.next()
+        assert (ev.Retain, ev.Comment.Text) == (False, "cleared")
+        assert served.link.status()["alarms_published"] >= 3
+        await sub.delete()
+    finally:
+        await client.disconnect()

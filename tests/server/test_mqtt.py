@@ -32,6 +32,9 @@ from server.station.messages import TriggerAnswer
 START_S = 120.0  # migrations, four simulated 4 MP cameras and their warm-up on a loaded machine
 PLANT = {"enterprise": "acme", "site": "wob", "area": "body", "line": "l3"}
 TOPICS = ["acme/wob/body/l3/+/mvpose/#"]
+# the results' outbox rows (a station without a PLC also queues its LINK_NO_PLC alarm's)
+UNPUBLISHED = "SELECT count(*) FROM outbox WHERE topic LIKE '%/result' AND published_at IS NULL"
+FIRST_RESULT = "SELECT payload FROM outbox WHERE topic LIKE '%/result' ORDER BY id LIMIT 1"
 
 
 def _plant(port: int, poll_s: float = 0.05) -> Any:
@@ -102,13 +105,13 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
         # before that loses it in the broker, docs/integration.md): triggers are answered as
         # before, the outbox keeps them
         wait_until("the 5 outbox rows marked published", lambda: _rows(
-            url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0)
+            url, UNPUBLISHED)[0][0] == 0)
         broker.stop(signal.SIGKILL)
         t = time.monotonic()
         trigger(5)
         assert time.monotonic() - t < 30
         wait_until("the 5 records in the outbox, unpublished", lambda: _rows(
-            url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 5)
+            url, UNPUBLISHED)[0][0] == 5)
         assert len(sub.results()) == 5
         broker.start()
         wait_until("10 results after the broker's restart", lambda: len(sub.results()) == 10)
@@ -117,7 +120,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
         broker.stop()
         trigger(3)
         wait_until("3 records in the outbox", lambda: _rows(
-            url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 3)
+            url, UNPUBLISHED)[0][0] == 3)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0, log.read_text()[-3000:]
         broker.start()
@@ -127,7 +130,7 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
                    30)
         # each marked published once its PUBACK came (a SIGKILL before that: published again)
         wait_until("every outbox row marked published", lambda: _rows(
-            url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0)
+            url, UNPUBLISHED)[0][0] == 0)
 
         # SIGKILL: the broker publishes the last will, retained
         pid = client.status().pid
@@ -170,8 +173,8 @@ def test_every_record_once_through_outage_restart_and_will(tmp_path: Path) -> No
         assert p["residual_rms_px"] > 0 and set(ResultEvent.__dataclass_fields__) <= set(p)
         assert p["convention"] == p["offset"]["convention"] and p["processing_ms"] > 0
     assert [a.result_id for a in answers] == sorted(p["result_id"] for p in got.values())
-    assert _rows(url, "SELECT count(*) FROM outbox WHERE published_at IS NULL")[0][0] == 0
-    body = json.loads(_rows(url, "SELECT payload FROM outbox ORDER BY id LIMIT 1")[0][0])
+    assert _rows(url, UNPUBLISHED)[0][0] == 0
+    body = json.loads(_rows(url, FIRST_RESULT)[0][0])
     assert body == got[("station1", 1)]
 
 

@@ -28,6 +28,7 @@ from drivers.links.opcua.settings import hash_password
 from drivers.links.process import ProcessLink
 from mvpose_core.reasons import Reason
 from server.loopback import move_part, running_server, running_station, trigger
+from server.store.alarms import AlarmFilter
 from server.store.schemas import MeasurementFilter
 
 CLIENT_URI = "urn:mvpose:test:station-client"
@@ -402,3 +403,98 @@ async def test_a_second_client_stack_gets_the_stations_records_as_standard_event
         assert ev["mv:InternalConfigurationId"]["id"] == ""  # the station file has none
         assert ev["mv:ProcessingTimes"]["startTime"] == ev["mv:CreationTime"]
         assert state["value"]["state"] == 2  # SBY_2 once the job is done
+
+
+async def test_the_stations_alarms_are_condition_events(tmp_path: Path) -> None:
+    """The station's alarm watch raises LINK_NO_PLC (its Modbus link has no PLC); the OPC UA
+    link, in its own process, publishes it as OPC 40100's VisionErrorConditionType event, and
+    an operator's acknowledgement (written by another process: the API's) follows. node-opcua,
+    subscribed as a generic client (OfType VisionConditionType), gets NOK_STREAK (the recipe
+    warns after one NOK here) raised by its own Measure call as a warning condition event."""
+    pki = tmp_path / "pki"
+    key, cert = tmp_path / "client.pem", tmp_path / "client.der"
+    await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
+                                        [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "t"})
+    (pki / "trusted").mkdir(parents=True)
+    (pki / "trusted" / "client.der").write_bytes(cert.read_bytes())
+
+    def opcua(data: dict[str, Any]) -> None:
+        data.setdefault("links", {})["opcua"] = {
+            "port": 0, "pki_dir": str(pki), "security": ["Basic256Sha256_SignAndEncrypt"],
+            "users": {"olga": {"role": "operator",
+                               "password_hash": hash_password("pw", 10_000)}}}
+
+    def one_nok(data: dict[str, Any]) -> None:
+        for recipe in data["recipes"]:
+            recipe["nok_streak_warning"] = 1
+
+    settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline, opcua, one_nok),
+                            tmp_path / "var")
+    async with running_server(settings, runtime_options(), http_port=None) as lb:
+        station = lb.runtime
+        link = _opcua_link(station)
+        assert await asyncio.to_thread(link.started.wait, 120), link.status()
+        client = Client(f"opc.tcp://127.0.0.1:{link.port}/mvpose", timeout=15,
+                        watchdog_intervall=15)
+        client.application_uri = CLIENT_URI
+        await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
+                                  private_key=str(key),
+                                  mode=ua.MessageSecurityMode.SignAndEncrypt)
+        client.set_user("olga")
+        client.set_password("pw")
+        await client.connect()
+        try:
+            await client.load_data_type_definitions()
+            mv = await client.get_namespace_index(MV_URI)
+            vs = await client.nodes.objects.get_child(f"{mv}:VisionSystem")
+            etype = await client.nodes.base_event_type.get_child(
+                ["0:ConditionType", "0:AcknowledgeableConditionType",
+                 f"{mv}:VisionConditionType"])
+            events = Events(timeout_s=30)
+            sub = await client.create_subscription(50, events)
+            await sub.subscribe_events(vs, etype)
+            alarms = station.services.store.alarms
+            # raised by the watch after its on-delay (or before we subscribed: then acknowledge
+            # it anyway, and the acknowledgement is the first event we see)
+            await until(lambda: alarms.find(AlarmFilter(source="link:modbus")),
+                        "LINK_NO_PLC in the store", 30)
+            alarm = alarms.find(AlarmFilter(source="link:modbus"))[0]
+            assert alarm.code == "LINK_NO_PLC"
+            await asyncio.to_thread(alarms.acknowledge, alarm.id, "alice")
+            seen = []
+            while not seen or seen[-1].Comment.Text != "acknowledged":
+                seen.append(await events.next())
+            ev = seen[-1]
+            assert (ev.ConditionName, ev.SourceName, ev.ErrorCode) == (
+                "LINK_NO_PLC", "link:modbus", alarm.id)
+            assert (ev.Severity, ev.Retain, ev.AckedState.Text, ev.ClientUserId) == (
+                800, True, "Acknowledged", "alice")
+            assert [e.Comment.Text for e in seen][-2:] in (["raised", "acknowledged"],
+                                                           ["acknowledged"])
+            await sub.delete()
+        finally:
+            await client.disconnect()
+
+        # node-opcua: its Measure call (nothing in front of the cameras: NOK) raises NOK_STREAK
+        got = await node_opcua.run({
+            "url": f"opc.tcp://127.0.0.1:{link.port}/mvpose", "mode": "SignAndEncrypt",
+            "policy": "Basic256Sha256", "cert": str(cert), "key": str(key),
+            "pki": str(tmp_path / "node-pki"), "applicationUri": CLIENT_URI, "user": "olga",
+            "password": "pw", "steps": [
+                {"do": "subscribe", "label": "vs", "node": ["mv:VisionSystem"],
+                 "fields": ["mv:ErrorCode", "mv:ErrorString", "ConditionName", "SourceName",
+                            "Retain", "Severity"],
+                 "ofType": ["ConditionType", "AcknowledgeableConditionType",
+                            "mv:VisionConditionType"]},
+                {"do": "call", "object": ["mv:VisionSystem"], "method": "mvpose:Measure",
+                 "args": [{"type": "String", "value": "VIN-NOK"},
+                          {"type": "UInt16", "value": 0}, {"type": "UInt32", "value": 71}]},
+                {"do": "wait_events", "label": "vs", "count": 1, "timeout_ms": 30000}]})
+        assert "error" not in got, got
+        call, on_vs = got["results"][1:]
+        assert call["outputs"][1] != 0, call  # NOK
+        streak = alarms.find(AlarmFilter(source="station"))[0]
+        # node-opcua reads a UInt64 as [high 32 bits, low 32 bits]
+        assert on_vs == [{"mv:ErrorCode": [0, streak.id], "mv:ErrorString": streak.text,
+                          "ConditionName": "NOK_STREAK", "SourceName": "station",
+                          "Retain": True, "Severity": 500}], on_vs

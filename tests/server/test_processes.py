@@ -139,6 +139,17 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
                 found = (await http.get("/measurements", params={"result_id": rid})).json()
                 assert [(m["trigger_id"], m["reason_code"]) for m in found["items"]] == [
                     (k, code)]
+            # the supervisor raised STATION_DOWN when the process died, cleared it when ready
+            # (written on a thread of its own: waited for)
+            deadline = time.monotonic() + 10
+            while True:
+                down = (await http.get("/alarms", params={"source": "station"})).json()["items"]
+                if [a["active"] for a in down] == [False]:
+                    break
+                assert time.monotonic() < deadline, f"STATION_DOWN not cleared: {down}"
+                await asyncio.sleep(0.05)
+            assert [(a["code"], a["text_args"]["exit_code"]) for a in down] == [
+                ("STATION_DOWN", -signal.SIGKILL)], down
     finally:
         t = time.monotonic()
         serve.send_signal(signal.SIGTERM)

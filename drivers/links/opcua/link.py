@@ -52,11 +52,20 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from mvpose_core.reasons import Reason, reason_name
 
-from ..base import Link, LinkOutcome, LinkRequest, RecipeInfo, StationHandler, VerifyOutcome
+from ..base import (
+    AlarmNotice,
+    Link,
+    LinkOutcome,
+    LinkRequest,
+    RecipeInfo,
+    StationHandler,
+    VerifyOutcome,
+)
 from ..result import ResultEvent
 from . import values as v
 from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
 from .arguments import check_arguments
+from .conditions import AlarmConditions
 from .events import standard_event_filters
 from .management import Management
 from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
@@ -96,6 +105,7 @@ class OpcUaLink(Link):
         self._nodes: dict[str, Node] = {}
         self._state_ids: dict[str, ua.NodeId] = {}
         self._evgen: Any = None
+        self.conditions = AlarmConditions()  # the station's alarms as condition events
         self._lock = asyncio.Lock()  # variable writes and events in order
         self._t0 = 0.0
         self._order: list[Path] = []
@@ -202,10 +212,19 @@ class OpcUaLink(Link):
             "running": True, "port": self.port_bound, "security": list(self.config.security),
             "state": self.state, "automatic_mode": self.auto_state, "triggers": self.triggers,
             "continuous": self._continuous is not None,
-            "results_published": self.results, "start_s": {k: round(v, 2)
-                                                           for k, v in self.load_s.items()},
+            "results_published": self.results, "alarms_published": self.conditions.sent,
+            "start_s": {k: round(v, 2) for k, v in self.load_s.items()},
             "last_errors": self.last_errors[-5:],
         }
+
+    def alarm_changed(self, notice: AlarmNotice) -> None:
+        if self.server is not None:
+            self._spawn(self._publish_alarm(notice))
+
+    async def _publish_alarm(self, notice: AlarmNotice) -> None:
+        async with self._lock:
+            if self.server is not None:
+                await self.conditions.publish(self.server, notice)
 
     def recipe_changed(self) -> None:
         if self.server is not None:
@@ -332,6 +351,7 @@ class OpcUaLink(Link):
         etype = await server.create_custom_event_type(idx, "MvposeResultReadyEventType",
                                                       rre.nodeid, props)
         self._evgen = await server.get_event_generator(etype, vs.nodeid)
+        await self.conditions.build(server, vs, mv)
         await check_arguments(server, vs)
         # the Server object notifies every event of the VisionSystem too (OPC 10000-3 §7.16:
         # the notifier hierarchy), and OfType filters match subtypes (.events)

@@ -81,8 +81,9 @@ function setupActions() {
     btn.disabled = true;
     postJSON(btn.dataset.action, btn.dataset.body ? JSON.parse(btn.dataset.body) : {})
       .then((data) => {
-        say(btn, data.message || t("done"), data.passed !== false);
+        say(btn, data.message || (data.acked_by ? "acknowledged by " + data.acked_by : t("done")), data.passed !== false);
         if (btn.dataset.action.endsWith("/activate")) setTimeout(() => window.location.reload(), 800);
+        if (btn.dataset.reload) window.location.reload();
       })
       .catch((err) => say(btn, err.message, false))
       .finally(() => { btn.disabled = false; });
