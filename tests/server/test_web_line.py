@@ -248,11 +248,14 @@ def test_a_station_that_goes_down_turns_the_tile_grey(line: Line) -> None:
     page = line.page()
     assert page.locator("#verdict").get_attribute("data-verdict") in ("OK", "NOK")
     line.stop_station()
+    # htmx sets the new data-verdict at the swap and the new class only when the swap settles
+    # (its attributesToSettle), so the colour is waited for after the verdict, not read at once
     page.wait_for_function(
         "document.querySelector('#verdict').dataset.verdict === 'DOWN'", timeout=20000)
-    tile = page.locator("#verdict")
+    page.wait_for_function(
+        "getComputedStyle(document.querySelector('#verdict')).backgroundColor"
+        " === 'rgb(75, 85, 99)'", timeout=5000)
     assert page.locator("#verdict .verdict-word").inner_text() == "STATION DOWN"
-    assert tile.evaluate("(t) => getComputedStyle(t).backgroundColor") == "rgb(75, 85, 99)"
     assert page.locator("#station-state").inner_text() == "station down"
     assert_accessible(page, "/line, station down")
     _shot(page, "line-down-1366x768")
