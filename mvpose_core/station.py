@@ -487,6 +487,9 @@ class StationConfig(_Model):
     recipes: list[RecipeConfig] = Field(min_length=1)
     default_recipe: Identifier | None = None
     calibration: str | None = Field(None, description="calibration file this station uses")
+    calibration_board: str | None = Field(
+        None, description="the calibration board a robot-driven hand-eye session looks at, as "
+        "mvpose calibrate's --board writes it (e.g. charuco:15x11:40:30); docs/calibration.md")
     links: dict[str, Any] = Field(
         default_factory=dict,
         description="PLC and controller links: backend name → its settings, each block checked by "
@@ -557,6 +560,15 @@ class StationConfig(_Model):
         }:
             raise ValueError(f"default_recipe {self.default_recipe!r} is not a recipe")
         return self
+
+    @field_validator("calibration_board")
+    @classmethod
+    def _check_board(cls, value: str | None) -> str | None:
+        if value is not None:
+            from mvpose_core.calibration.boards import BoardSpec
+
+            BoardSpec.parse(value)  # its ValueError names what is wrong with the text
+        return value
 
     @model_validator(mode="after")
     def _check_uncertainty(self) -> StationConfig:

@@ -23,6 +23,7 @@ from server.settings import Settings
 from server.state import Services, open_services
 from server.station.messages import (
     ArmTeachAnswer,
+    HandEyeAnswer,
     MovePartAnswer,
     RecipeAnswer,
     StationStatus,
@@ -54,6 +55,11 @@ class StationHandle(Protocol):
 
     def verify(self, by: str) -> VerifyAnswer:
         """Measure the taught reference part now and judge it (the verify record)."""
+        ...
+
+    def handeye(self, step: str, by: str, holdout: int | None = None,
+                robot_pose: list[float] | None = None) -> HandEyeAnswer:
+        """A step of the robot-driven hand-eye session: begin, pose, calculate or status."""
         ...
 
     def arm_teach(self, by: str) -> ArmTeachAnswer:

@@ -116,6 +116,25 @@ class AlarmNotice:
 
 
 @dataclass(frozen=True)
+class HandEyeOutcome:
+    """The station's answer to a step of a robot-driven hand-eye session (begin, add pose,
+    calculate): the code (``mvpose_core.calibration.session.HandEyeCode``, 0 = done), how many
+    poses the session holds, the pose the step was about (1-based; 0: none), and after a
+    calculate the stored calibration version waiting for activation with its figures."""
+
+    code: int
+    poses: int = 0
+    pose: int = 0
+    version: int = 0  # the stored calibration version (0: none yet)
+    sigma_mm: float = 0.0  # 1σ of the hand-eye translation (RSS) and rotation
+    sigma_deg: float = 0.0
+    holdout_rms_px: float = 0.0  # the held-out poses' reprojection RMS
+    holdout_mm: float = 0.0  # largest held-out flange pose error (mm, deg)
+    holdout_deg: float = 0.0
+    message: str = ""
+
+
+@dataclass(frozen=True)
 class ResultQuery:
     """Which stored records a link asks for: every filter optional (None), oldest first from
     ``start`` (0-based), at most ``limit``."""
@@ -184,6 +203,23 @@ class StationHandler(Protocol):
     async def verify(self, link: str, by: str) -> VerifyOutcome:
         """Measure the taught reference part now (a trigger recorded as the verify record) and
         judge its difference to the taught pose."""
+        ...
+
+    async def handeye_begin(self, link: str, by: str, holdout: int | None = None
+                            ) -> HandEyeOutcome:
+        """Begin a robot-driven hand-eye session (any earlier one is dropped); ``holdout``
+        poses are kept out of the solve to check it (None: the default, 3)."""
+        ...
+
+    async def handeye_add_pose(self, link: str, by: str, robot_pose: tuple[float, ...] | None
+                               ) -> HandEyeOutcome:
+        """Capture the board from every camera of the rig at the robot's actual flange pose
+        (recipe convention, as a trigger's) and keep it in the session."""
+        ...
+
+    async def handeye_calculate(self, link: str, by: str) -> HandEyeOutcome:
+        """Solve the session and store the result as a calibration version waiting for an
+        engineer's activation."""
         ...
 
     def convention(self) -> RobotConvention:

@@ -42,7 +42,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .base import AlarmNotice, Link, LinkOutcome, LinkRequest, StationHandler, VerifyOutcome
+from .base import (
+    AlarmNotice,
+    HandEyeOutcome,
+    Link,
+    LinkOutcome,
+    LinkRequest,
+    StationHandler,
+    VerifyOutcome,
+)
 from .result import ResultEvent
 
 log = logging.getLogger(__name__)
@@ -57,7 +65,7 @@ _HEADER = struct.Struct("!I")
 _MAX_FRAME = 64 << 20
 # the StationHandler calls a child may make (its answers go back as replies)
 CALLS = frozenset({"measure", "record_failure", "select_recipe", "teach_reference", "reset",
-                   "verify",
+                   "verify", "handeye_begin", "handeye_add_pose", "handeye_calculate",
                    "unselect_recipe", "recipes", "get_result", "find_results", "calibrations",
                    "activate_calibration"})
 
@@ -436,6 +444,20 @@ class RemoteHandler:
 
     async def verify(self, link: str, by: str) -> VerifyOutcome:
         result: VerifyOutcome = await self._ask("verify", link, by)
+        return result
+
+    async def handeye_begin(self, link: str, by: str, holdout: int | None = None
+                            ) -> HandEyeOutcome:
+        result: HandEyeOutcome = await self._ask("handeye_begin", link, by, holdout)
+        return result
+
+    async def handeye_add_pose(self, link: str, by: str, robot_pose: tuple[float, ...] | None
+                               ) -> HandEyeOutcome:
+        result: HandEyeOutcome = await self._ask("handeye_add_pose", link, by, robot_pose)
+        return result
+
+    async def handeye_calculate(self, link: str, by: str) -> HandEyeOutcome:
+        result: HandEyeOutcome = await self._ask("handeye_calculate", link, by)
         return result
 
     def convention(self) -> Any:

@@ -8,6 +8,7 @@ from server.api import (
     alarms,
     drift,
     gauge,
+    handeye,
     health,
     measurements,
     metrics,
@@ -41,4 +42,6 @@ def api_router() -> APIRouter:
     # station (503 without one).
     router.include_router(drift.router, responses=problem_responses(404, 409))
     router.include_router(alarms.router, responses=problem_responses(404))
+    # A hand-eye step the station refuses is a 409 naming its code (503 without a station).
+    router.include_router(handeye.router, responses=problem_responses(409))
     return router

@@ -31,6 +31,8 @@ from server.station.messages import (
     ActivateRecipeRequest,
     ArmTeachAnswer,
     ArmTeachRequest,
+    HandEyeAnswer,
+    HandEyeRequest,
     Message,
     MetricsAnswer,
     MetricsRequest,
@@ -155,6 +157,12 @@ class StationClient:
 
     def verify(self, by: str) -> VerifyAnswer:
         return self.ask(_build(VerifyRequest, by=by), VerifyAnswer, timeout_s=35.0)
+
+    def handeye(self, step: str, by: str, holdout: int | None = None,
+                robot_pose: list[float] | None = None) -> HandEyeAnswer:
+        # a calculate solves and writes its report (tens of seconds with many poses)
+        return self.ask(_build(HandEyeRequest, step=step, by=by, holdout=holdout,
+                               robot_pose=robot_pose), HandEyeAnswer, timeout_s=300.0)
 
     def arm_teach(self, by: str) -> ArmTeachAnswer:
         return self.ask(_build(ArmTeachRequest, by=by), ArmTeachAnswer)

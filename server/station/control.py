@@ -29,6 +29,7 @@ import json
 import logging
 import os
 from collections.abc import Callable, Mapping
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -42,6 +43,8 @@ from server.station.messages import (
     ArmTeachAnswer,
     ArmTeachRequest,
     ErrorBody,
+    HandEyeAnswer,
+    HandEyeRequest,
     Message,
     MetricsAnswer,
     MetricsRequest,
@@ -224,8 +227,25 @@ class ControlServer:
                 self.station.verify_report("rest", request.by), 30.0)
             return VerifyAnswer(result_code=out.result_code, result_id=out.result_id,
                                 message=out.message, report=report)
+        if isinstance(request, HandEyeRequest):
+            return await self._handeye(request)
         work = self._work(request)
         return await asyncio.to_thread(work)
+
+    async def _handeye(self, request: HandEyeRequest) -> HandEyeAnswer:
+        """A hand-eye step on the station loop, as a link's command runs."""
+        he = self.station.handeye
+        by = request.by
+        if request.step == "begin":
+            out = await he.begin("rest", by, request.holdout)
+        elif request.step == "pose":
+            pose = tuple(request.robot_pose) if request.robot_pose is not None else None
+            out = await he.add_pose("rest", by, pose)
+        elif request.step == "calculate":
+            out = await he.calculate("rest", by)
+        else:
+            out = he.last
+        return HandEyeAnswer(**asdict(out), session=he.status())
 
     def _work(self, request: Request) -> Callable[[], Message]:
         """The blocking operations, run in a worker thread (never on the station loop)."""

@@ -28,7 +28,13 @@ from datetime import UTC, datetime
 from typing import Any
 
 from drivers.links import Link, LinkOutcome, LinkRequest
-from drivers.links.base import CalibrationInfo, RecipeInfo, ResultQuery, VerifyOutcome
+from drivers.links.base import (
+    CalibrationInfo,
+    HandEyeOutcome,
+    RecipeInfo,
+    ResultQuery,
+    VerifyOutcome,
+)
 from drivers.links.result import ResultEvent
 from mvpose_core.reasons import Reason
 from mvpose_core.station import StationConfig
@@ -37,6 +43,7 @@ from server.drift import VerifyReport
 from server.pipeline import Pipeline
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
+from server.station.handeye import HandEye
 from server.station.links import LinkHost
 from server.station.measuring import Measuring
 from server.station.options import StationOptions
@@ -64,6 +71,7 @@ class Station:
         self.triggers = Triggers(self.measuring, self.recorder, self.options,
                                  self._recipe_changed)
         self.queries: StationQueries | None = None
+        self.handeye = HandEye(self)
         self.services: Services | None = None
         self.started_at: datetime | None = None
         # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
@@ -243,6 +251,17 @@ class Station:
                             ) -> tuple[VerifyOutcome, VerifyReport | None, Answer | None]:
         """:meth:`verify` with the report and the trigger's answer (the control channel's)."""
         return await verify_now(self, link, by)
+
+    async def handeye_begin(self, link: str, by: str, holdout: int | None = None
+                            ) -> HandEyeOutcome:
+        return await self.handeye.begin(link, by, holdout)
+
+    async def handeye_add_pose(self, link: str, by: str, robot_pose: tuple[float, ...] | None
+                               ) -> HandEyeOutcome:
+        return await self.handeye.add_pose(link, by, robot_pose)
+
+    async def handeye_calculate(self, link: str, by: str) -> HandEyeOutcome:
+        return await self.handeye.calculate(link, by)
 
     async def unselect_recipe(self) -> int:
         return await self._queries().unselect_recipe()

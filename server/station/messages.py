@@ -14,7 +14,7 @@ refused naming the argument.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
@@ -147,6 +147,23 @@ class VerifyAnswer(Message):
     report: VerifyReport | None
 
 
+class HandEyeAnswer(Message):
+    """A hand-eye session's step as the station answered it (drivers.links.base.HandEyeOutcome)
+    and the session as it is now (server.station.handeye.HandEye.status)."""
+
+    code: int
+    poses: int
+    pose: int
+    version: int
+    sigma_mm: float
+    sigma_deg: float
+    holdout_rms_px: float
+    holdout_mm: float
+    holdout_deg: float
+    message: str
+    session: dict[str, Any]
+
+
 class ArmTeachAnswer(Message):
     armed: bool
     recipe: str
@@ -234,6 +251,18 @@ class VerifyRequest(Request):
     by: Name
 
 
+class HandEyeRequest(Request):
+    """A step of the robot-driven hand-eye session (server.station.handeye)."""
+
+    op = "handeye"
+    answer = HandEyeAnswer
+
+    step: Literal["begin", "pose", "calculate", "status"]
+    by: Name
+    holdout: int | None = Field(None, ge=0, le=50)
+    robot_pose: list[float] | None = Field(None, min_length=6, max_length=7)
+
+
 class TeachRequest(Request):
     op = "teach"
     answer = RecipeAnswer
@@ -276,10 +305,11 @@ class MovePartRequest(Request):
 REQUESTS: dict[str, type[Request]] = {r.op: r for r in (
     PingRequest, StatusRequest, ReadinessRequest, TriggerRequest, ArmTeachRequest, TeachRequest,
     ActivateRecipeRequest, ReloadRecipesRequest, MetricsRequest, MovePartRequest,
-    VerifyRequest)}
+    VerifyRequest, HandEyeRequest)}
 
 __all__ = ["REQUESTS", "ActivateRecipeRequest", "ArmTeachAnswer", "ArmTeachRequest",
-           "CalibrationStatus", "ErrorBody", "Message", "MetricsAnswer", "MetricsRequest",
+           "CalibrationStatus", "ErrorBody", "HandEyeAnswer", "HandEyeRequest", "Message",
+           "MetricsAnswer", "MetricsRequest",
            "MovePartAnswer", "MovePartRequest", "PingAnswer", "PingRequest", "Readiness",
            "ReadinessRequest", "RecipeAnswer", "RecipeStatus", "ReloadAnswer",
            "ReloadRecipesRequest", "Request", "StationStatus", "StatusRequest",

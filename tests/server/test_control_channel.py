@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 from stations import relaxed_deadline, runtime_options, settings_for, station_file
 
+from mvpose_core.calibration.session import HandEyeCode
 from mvpose_core.reasons import Reason
 from mvpose_core.station import load_station
 from server.errors import InvalidInputError, StationFailedError
@@ -26,6 +27,7 @@ from server.station.core import Station
 from server.station.messages import (
     REQUESTS,
     ArmTeachAnswer,
+    HandEyeAnswer,
     MovePartAnswer,
     PingAnswer,
     RecipeAnswer,
@@ -38,7 +40,7 @@ from server.station.messages import (
 )
 
 OPS = {"ping", "status", "readiness", "trigger", "arm_teach", "teach", "activate_recipe",
-       "reload_recipes", "metrics", "move_part", "verify"}
+       "reload_recipes", "metrics", "move_part", "verify", "handeye"}
 
 
 async def test_every_operation_round_trips_through_its_models(tmp_path: Path) -> None:
@@ -92,6 +94,12 @@ async def test_every_operation_round_trips_through_its_models(tmp_path: Path) ->
             assert isinstance(verified, VerifyAnswer) and verified.result_code == 0
             assert verified.report is not None and verified.report.passed, verified.message
             assert verified.report.result_id == verified.result_id > event.result_id
+
+            # station 1's cameras are fixed: a hand-eye session is refused, naming why
+            he = client.handeye("begin", "tester")
+            assert isinstance(he, HandEyeAnswer) and he.code == HandEyeCode.NOT_AVAILABLE
+            assert "calibration_board" in he.message and not he.session["active"]
+            assert client.handeye("status", "tester").code == HandEyeCode.NOT_AVAILABLE
 
             armed = client.arm_teach("tester")
             assert armed == ArmTeachAnswer(armed=True, recipe=recipe)
