@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import csv
 import json
+import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,8 +26,14 @@ import httpx
 import numpy as np
 import pytest
 import pytest_asyncio
+from asyncua import Client, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography.x509.oid import ExtendedKeyUsageOID
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
+from drivers.links.opcua import MV_URI, MVPOSE_URI
+from drivers.links.opcua.settings import hash_password
 from mvpose_core.calibration.files import CalibrationFile, load_calibration
 from mvpose_core.calibration.session import HandEyeCode
 from mvpose_core.transforms import transform_error
@@ -36,6 +43,8 @@ from server.loopback import RunningServer, running_server
 pytestmark = [pytest.mark.asyncio(loop_scope="module"), pytest.mark.timeout(900)]
 
 BOARD = "charuco:15x11:40:30"
+CLIENT_URI = "urn:mvpose:test:handeye"
+PASSWORD = "engineer-pw"
 SAMPLES = 12
 
 
@@ -49,6 +58,18 @@ def _half_size_with_board(data: dict[str, Any]) -> None:
         cam["intrinsics"] = {"fx": i["fx"] / 2, "fy": i["fy"] / 2,
                              "cx": (i["cx"] + 0.5) / 2 - 0.5, "cy": (i["cy"] + 0.5) / 2 - 0.5}
     data["calibration_board"] = BOARD
+
+
+def _links(tmp: Path) -> Callable[[dict[str, Any]], None]:
+    def edit(data: dict[str, Any]) -> None:
+        data.setdefault("links", {})["opcua"] = {
+            "port": 0, "pki_dir": str(tmp / "pki"), "measure_timeout_s": 30.0,
+            "security": ["Basic256Sha256_SignAndEncrypt"], "query_spacing_s": 0.0,
+            "users": {"erik": {"role": "engineer",
+                               "password_hash": hash_password(PASSWORD, 10_000)},
+                      "olga": {"role": "operator",
+                               "password_hash": hash_password(PASSWORD, 10_000)}}}
+    return edit
 
 
 @dataclass
@@ -73,6 +94,8 @@ class Rehearsal:
 @dataclass
 class Env:
     rs: RunningServer
+    tmp: Path
+    cert: tuple[Path, Path]  # an OPC UA client certificate the station trusts (key, cert)
     set: Rehearsal
     cli_error: tuple[float, float]  # mvpose calibrate handeye on the same images
 
@@ -100,7 +123,12 @@ class Env:
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
 async def env(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
     tmp = tmp_path_factory.mktemp("handeye")
-    path = station_file(tmp, "lab", relaxed_deadline, _half_size_with_board)
+    key, cert = tmp / "client.pem", tmp / "client.der"
+    await setup_self_signed_certificate(key, cert, CLIENT_URI, socket.gethostname(),
+                                        [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "t"})
+    (tmp / "pki" / "trusted").mkdir(parents=True)
+    (tmp / "pki" / "trusted" / "client.der").write_bytes(cert.read_bytes())
+    path = station_file(tmp, "lab", relaxed_deadline, _half_size_with_board, _links(tmp))
     root = tmp / "rehearsal"
     code = await asyncio.to_thread(main, [
         "calibrate", "synthetic", "--station", str(path), "--out", str(root), "--board", BOARD,
@@ -120,7 +148,9 @@ async def env(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
     assert code == 0
     cli_error = rehearsal.error(load_calibration(out))
     async with running_server(settings_for(path, tmp / "var"), runtime_options(3)) as rs:
-        yield Env(rs, rehearsal, cli_error)
+        lk = rs.runtime.link("opcua")  # the Machine Vision NodeSet loads in the background
+        assert await asyncio.to_thread(lk.started.wait, 120), lk.status()
+        yield Env(rs, tmp, (key, cert), rehearsal, cli_error)
 
 
 # --------------------------------------------------------------------------- one session
@@ -130,9 +160,10 @@ Step = Callable[..., Awaitable[tuple[int, dict[str, Any]]]]
 async def run_session(env: Env, begin: Step, add: Step, calculate: Step,
                       holdout: int) -> dict[str, Any]:
     """Every refusal a robot program meets, then a whole session: the calculate's answer."""
-    code, _ = await add(env.set.poses["001"])
-    assert code == HandEyeCode.NO_SESSION
-    code, _ = await begin(holdout)
+    if not env.station.handeye.status()["active"]:  # the module's first session
+        code, _ = await add(env.set.poses["001"])
+        assert code == HandEyeCode.NO_SESSION
+    code, _ = await begin(holdout)  # drops the session before, if any
     assert code == 0
     code, out = await calculate()
     assert code == HandEyeCode.TOO_FEW_POSES, out
@@ -215,3 +246,51 @@ async def test_rest_session_stores_a_version_waiting_for_activation(env: Env) ->
                            f"{out['version']}/activate")
         assert r.status_code == 200 and r.json()["active"], r.text
         assert calib.sha256 == env.stored(out["version"])[1].sha256
+
+
+# --------------------------------------------------------------------------- OPC UA
+FIELDS = ("code", "poses", "pose", "version", "sigma_mm", "sigma_deg", "holdout_rms_px",
+          "holdout_mm", "holdout_deg", "message")
+
+
+@contextlib.asynccontextmanager
+async def opcua(env: Env, user: str) -> AsyncIterator[tuple[Any, int]]:
+    key, cert = env.cert
+    port = env.station.link_port("opcua")
+    client = Client(f"opc.tcp://127.0.0.1:{port}/mvpose", timeout=300, watchdog_intervall=15)
+    client.application_uri = CLIENT_URI
+    await client.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert),
+                              private_key=str(key), mode=ua.MessageSecurityMode.SignAndEncrypt)
+    client.set_user(user)
+    client.set_password(PASSWORD)
+    await client.connect()
+    try:
+        mv = await client.get_namespace_index(MV_URI)
+        own = await client.get_namespace_index(MVPOSE_URI)
+        yield await client.nodes.objects.get_child(f"{mv}:VisionSystem"), own
+    finally:
+        await client.disconnect()
+
+
+async def test_opcua_methods_drive_a_session(env: Env) -> None:
+    async with opcua(env, "olga") as (vs, own):  # an operator may not calibrate
+        with pytest.raises(ua.UaError) as err:
+            await vs.call_method(f"{own}:HandEyeBegin", ua.Variant(2, ua.VariantType.UInt16))
+        assert "BadUserAccessDenied" in repr(err.value), err.value
+    async with opcua(env, "erik") as (vs, own):
+        async def call(method: str, *args: ua.Variant) -> tuple[int, dict[str, Any]]:
+            out = dict(zip(FIELDS, await vs.call_method(f"{own}:{method}", *args), strict=True))
+            assert isinstance(out["message"], str) and out["message"], out
+            return out["code"], out
+
+        async def begin(holdout: int) -> tuple[int, dict[str, Any]]:
+            return await call("HandEyeBegin", ua.Variant(holdout, ua.VariantType.UInt16))
+
+        async def add(pose: list[float]) -> tuple[int, dict[str, Any]]:
+            return await call("HandEyeAddPose", ua.Variant(pose, ua.VariantType.Double))
+
+        async def calculate() -> tuple[int, dict[str, Any]]:
+            return await call("HandEyeCalculate")
+
+        out = await run_session(env, begin, add, calculate, holdout=2)
+        check_result(env, out, 2)

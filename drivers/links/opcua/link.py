@@ -67,6 +67,7 @@ from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
 from .arguments import check_arguments
 from .conditions import AlarmConditions
 from .events import standard_event_filters
+from .handeye import HandEyeMethods
 from .management import Management
 from .nodesets import MACHINE_VISION, MV_URI, MVPOSE_URI, complete_definitions, import_order
 from .settings import OpcUaLinkConfig
@@ -345,6 +346,11 @@ class OpcUaLink(Link):
              v.arg("Difference", ua.ObjectIds.Double, rank=1),
              v.arg("DisplacementMm", ua.ObjectIds.Double),
              v.arg("RotationDeg", ua.ObjectIds.Double), v.arg("Message", ua.ObjectIds.String)])
+        handeye = HandEyeMethods(
+            self.handler, lambda: None if self.state == "Operational"
+            else f"the vision system is {self.state}", self._spawn,
+            self.config.measure_timeout_s or 30.0)
+        self._roles.engineer_methods.update(await handeye.add(vs, idx))
         rre = await types.get_child(["0:BaseEventType", f"{mv}:ResultReadyEventType"])
         props = [(name, vt) for name, _, vt in self._result_fields()
                  if name not in ("PartId", "CreationTime")]
