@@ -64,7 +64,16 @@ IR_VERIFY_RESERVED_53: Final = 53
 IR_VERIFY_DIFFERENCE: Final = 54  # 6 × float32: the difference to the taught pose (PLC form)
 IR_VERIFY_DISPLACEMENT: Final = 66  # float32 mm at the grasp point
 IR_VERIFY_ROTATION: Final = 68  # float32 deg
-IR_COUNT: Final = 70
+# the hand-eye session (commands HANDEYE_*), published before each step's COMMAND_DONE/FAILED
+IR_HANDEYE_POSES: Final = 70  # poses the session holds
+IR_HANDEYE_POSE: Final = 71  # the pose the last step was about (1-based; "not found in pose k")
+IR_HANDEYE_VERSION: Final = 72  # u32, the stored calibration version waiting for activation
+IR_HANDEYE_SIGMA_TRANS: Final = 74  # float32 mm, 1σ of the hand-eye translation
+IR_HANDEYE_SIGMA_ROT: Final = 76  # float32 deg
+IR_HANDEYE_HOLDOUT_PX: Final = 78  # float32 px, the held-out poses' reprojection RMS
+IR_HANDEYE_HOLDOUT_MM: Final = 80  # float32 mm, largest held-out flange pose error
+IR_HANDEYE_HOLDOUT_DEG: Final = 82  # float32 deg
+IR_COUNT: Final = 84
 
 TEST_FLOAT: Final = 123.45
 TEST_INT: Final = 123456789
@@ -127,6 +136,11 @@ class Command(IntEnum):
     TEACH_REFERENCE = 2  # the next final result becomes the zero offset
     RESET = 3  # drop a half-done multi-view sequence
     VERIFY = 4  # measure the taught reference part and judge it (registers 50-69)
+    # the robot-driven hand-eye (docs/calibration.md): answers in register 5 (0 or the
+    # session's code, 201-213) and registers 70-83
+    HANDEYE_BEGIN = 5  # argument: poses held out to check the result (0: the default, 3)
+    HANDEYE_ADD_POSE = 6  # the flange pose in registers 8-19 with ROBOT_POSE_VALID
+    HANDEYE_CALCULATE = 7  # solve; the result is stored as a calibration version
 
 
 class VerifyVerdict(IntEnum):
@@ -158,7 +172,8 @@ class WordOrder(IntEnum):
 
 #: bytes of the output block (PLC outputs: control, heartbeat, command, trigger, pose, part id)
 OUTPUT_SIZE: Final = 2 * HR_WRITABLE_COUNT
-#: bytes of the input block (PLC inputs: status, ids, result code, offset, 1σ, verify block)
+#: bytes of the input block (PLC inputs: status, ids, result code, offset, 1σ, verify block,
+#: hand-eye block)
 INPUT_SIZE: Final = 2 * IR_COUNT
 
 
@@ -290,6 +305,20 @@ INPUT_FIELDS: Final = (
        "the verify part's difference to its taught pose"),
     _f("verify_displacement", IR_VERIFY_DISPLACEMENT, "REAL", 1, "mm", "at the grasp point"),
     _f("verify_rotation", IR_VERIFY_ROTATION, "REAL", 1, "deg", "rotation angle"),
+    _f("handeye_poses", IR_HANDEYE_POSES, "UINT", 1, "", "poses the hand-eye session holds"),
+    _f("handeye_pose", IR_HANDEYE_POSE, "UINT", 1, "", "the pose the last hand-eye step was about"),
+    _f("handeye_version", IR_HANDEYE_VERSION, "UDINT", 1, "",
+       "the calibration version a calculate stored (waits for activation)"),
+    _f("handeye_sigma_translation", IR_HANDEYE_SIGMA_TRANS, "REAL", 1, "mm",
+       "1σ of the hand-eye translation"),
+    _f("handeye_sigma_rotation", IR_HANDEYE_SIGMA_ROT, "REAL", 1, "deg",
+       "1σ of the hand-eye rotation"),
+    _f("handeye_holdout_rms", IR_HANDEYE_HOLDOUT_PX, "REAL", 1, "px",
+       "reprojection RMS of the held-out poses"),
+    _f("handeye_holdout_translation", IR_HANDEYE_HOLDOUT_MM, "REAL", 1, "mm",
+       "largest held-out flange pose error"),
+    _f("handeye_holdout_rotation", IR_HANDEYE_HOLDOUT_DEG, "REAL", 1, "deg",
+       "largest held-out flange rotation error"),
 )
 
 #: the PLC's outputs (mvpose reads them)

@@ -166,6 +166,25 @@ class PlcStatus:
     def verify_rotation_deg(self) -> float:
         return float(self._conv(r.IR_VERIFY_ROTATION, "f"))
 
+    @property
+    def handeye_poses(self) -> int:
+        return self.regs[r.IR_HANDEYE_POSES]
+
+    @property
+    def handeye_pose(self) -> int:
+        return self.regs[r.IR_HANDEYE_POSE]
+
+    @property
+    def handeye_version(self) -> int:
+        return int(self._conv(r.IR_HANDEYE_VERSION, "I"))
+
+    @property
+    def handeye_figures(self) -> tuple[float, ...]:
+        """1σ mm and deg, hold-out RMS px, hold-out mm and deg of the last calculate."""
+        return tuple(float(self._conv(a, "f")) for a in (
+            r.IR_HANDEYE_SIGMA_TRANS, r.IR_HANDEYE_SIGMA_ROT, r.IR_HANDEYE_HOLDOUT_PX,
+            r.IR_HANDEYE_HOLDOUT_MM, r.IR_HANDEYE_HOLDOUT_DEG))
+
 
 class PlcTwin:
     """A PLC program on a :class:`PlcPort`. Every wait polls the device with a deadline."""
@@ -359,6 +378,20 @@ class PlcTwin:
             "command clear",
         )
         return done
+
+    async def command_with_pose(self, code: int, pose_counts: Sequence[int],
+                                timeout: float = 5.0) -> PlcStatus:
+        """Run a command that takes the robot pose (HANDEYE_ADD_POSE): the pose registers with
+        ROBOT_POSE_VALID, as a trigger sends them, then the command."""
+        regs: list[int] = []
+        for count in pose_counts:
+            regs += self._regs32(int(count), "i")
+        await self.write(r.HR_ROBOT_POSE, regs)
+        await self.set_control(self.control | Control.ROBOT_POSE_VALID)
+        try:
+            return await self.command(code, 0, timeout)
+        finally:
+            await self.set_control(self.control & ~Control.ROBOT_POSE_VALID)
 
     async def reset_error(self, timeout: float = 2.0) -> PlcStatus:
         await self.set_control(self.control & ~Control.ERROR_RESET)

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Any
 
 import numpy as np
 
 from mvpose_core.calibration.boards import BoardSpec, Detection
+from mvpose_core.calibration.codes import HandEyeCode
 from mvpose_core.calibration.errors import CalibrationError
 from mvpose_core.calibration.files import (
     CalibrationFile,
@@ -51,30 +51,14 @@ from mvpose_core.transforms import (
     transform_error,
 )
 
-
-class HandEyeCode(IntEnum):
-    """The answer to each step of a hand-eye session (a link's command result)."""
-
-    OK = 0
-    NO_SESSION = 201  # add or calculate without a begun session
-    TOO_FEW_POSES = 202  # fewer poses than the solve plus the hold-out need
-    TOO_LITTLE_ROTATION = 203  # pure translations, or rotations about one axis only
-    UNIT_SUSPICIOUS = 204  # mm vs m, or degrees vs radians
-    BOARD_NOT_FOUND = 205  # no camera of the rig found the board in this pose (not kept)
-    OUTLIERS = 206  # too few poses left after leaving out the outliers
-    BOARD_SCALE = 207  # the robot's motion says the board is not its declared size
-    POSES_DO_NOT_FIT = 208  # wrong convention, inverted poses, poses paired wrongly
-    BAD_POSE = 209  # the pose is not a pose (missing, non-finite, zero quaternion)
-    CAPTURE_FAILED = 210  # a camera of the rig gave no image
-    SESSION_FULL = 211  # MAX_POSES poses added already
-    NOT_AVAILABLE = 212  # the station cannot run one (no robot-mounted rig, no board defined)
-    FAILED = 213  # the solve failed otherwise (the message says how)
-
-
 #: the most poses one session keeps
 MAX_POSES = 200
 # degrees-convention rotation values all within this of zero: radians where degrees belong
 _RADIAN_LIKE = np.pi + 0.01
+
+
+__all__ = ["HandEyeCode", "HandEyeSession", "HoldOut", "Sample", "SessionError",
+           "SessionResult", "holdout_text"]
 
 
 class SessionError(ValueError):

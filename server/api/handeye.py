@@ -12,7 +12,7 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
-from mvpose_core.calibration.session import HandEyeCode
+from mvpose_core.calibration.codes import HandEyeCode
 from server.api.deps import EngineerUser, ReadUser, need_station
 from server.errors import ConflictError
 from server.station.messages import HandEyeAnswer

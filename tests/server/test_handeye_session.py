@@ -32,13 +32,15 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
+from drivers.links.codecs import int_scales
+from drivers.links.layout import Command, Status
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
 from mvpose_core.calibration.files import CalibrationFile, load_calibration
 from mvpose_core.calibration.session import HandEyeCode
 from mvpose_core.transforms import transform_error
 from server.cli import main
-from server.loopback import RunningServer, running_server
+from server.loopback import RunningServer, attach_twin, detach_twin, running_server
 
 pytestmark = [pytest.mark.asyncio(loop_scope="module"), pytest.mark.timeout(900)]
 
@@ -294,3 +296,43 @@ async def test_opcua_methods_drive_a_session(env: Env) -> None:
 
         out = await run_session(env, begin, add, calculate, holdout=2)
         check_result(env, out, 2)
+
+
+# --------------------------------------------------------------------------- Modbus (the PLC)
+async def test_plc_commands_drive_a_session(env: Env) -> None:
+    """The robot program's sequence through the PLC: HANDEYE_BEGIN, HANDEYE_ADD_POSE with the
+    pose in the robot pose registers (ROBOT_POSE_VALID), HANDEYE_CALCULATE; every answer in the
+    command result register and the hand-eye block."""
+    twin, beat = await attach_twin(env.station.link_port("modbus"), 0.002)
+    scales = int_scales("fanuc")
+
+    def answer(st: Any) -> tuple[int, dict[str, Any]]:
+        done = st.has(Status.COMMAND_DONE)
+        assert done != st.has(Status.COMMAND_FAILED), st
+        assert done == (st.command_result == 0), st
+        figures = dict(zip(("sigma_mm", "sigma_deg", "holdout_rms_px", "holdout_mm",
+                            "holdout_deg"), st.handeye_figures, strict=True))
+        return st.command_result, {"poses": st.handeye_poses, "pose": st.handeye_pose,
+                                   "version": st.handeye_version, **figures}
+
+    async def begin(holdout: int) -> tuple[int, dict[str, Any]]:
+        return answer(await twin.command(Command.HANDEYE_BEGIN, holdout, timeout=30))
+
+    async def add(pose: list[float]) -> tuple[int, dict[str, Any]]:
+        counts = [round(v * k) for v, k in zip(pose, scales, strict=True)]
+        return answer(await twin.command_with_pose(Command.HANDEYE_ADD_POSE, counts, 60))
+
+    async def calculate() -> tuple[int, dict[str, Any]]:
+        return answer(await twin.command(Command.HANDEYE_CALCULATE, timeout=300))
+
+    try:
+        # without ROBOT_POSE_VALID an add has no pose: refused, nothing kept
+        await begin(2)
+        code, out = answer(await twin.command(Command.HANDEYE_ADD_POSE, timeout=30))
+        assert code == HandEyeCode.BAD_POSE and out["poses"] == 0, out
+        out = await run_session(env, begin, add, calculate, holdout=2)
+        check_result(env, out, 2)
+        # the station's trigger handshake still works after the session
+        assert (await twin.read_status()).has(Status.READY)
+    finally:
+        await detach_twin(twin, beat)

@@ -22,7 +22,7 @@ from mvpose_core.transforms import RobotConvention
 
 from .. import codecs
 from .. import layout as r
-from ..base import LinkOutcome, LinkRequest, VerifyOutcome
+from ..base import HandEyeOutcome, LinkOutcome, LinkRequest, VerifyOutcome
 from ..layout import Command, Control, ErrorCode, State, Status, VerifyVerdict
 from .config import HandshakeConfig
 
@@ -39,6 +39,10 @@ class Measure:
 class RunCommand:
     command: Command
     argument: int
+    # HANDEYE_ADD_POSE: the flange pose (recipe convention) read with ROBOT_POSE_VALID at the
+    # command's edge, or why it cannot be read
+    robot_pose: tuple[float, ...] | None = None
+    refused: str | None = None
 
 
 @dataclass(frozen=True)
@@ -227,7 +231,22 @@ class Handshake:
         self.image[r.IR_COMMAND_RESULT] = 0
         if command is Command.VERIFY:  # the block's verdict is the running verify's, once done
             self.image[r.IR_VERIFY_VERDICT] = int(VerifyVerdict.NONE)
+        if command is Command.HANDEYE_ADD_POSE:  # the pose comes as a trigger's does
+            pose, refused = self._robot_pose(self.holding[r.HR_CONTROL])
+            return [RunCommand(command, arg, pose, refused)]
         return [RunCommand(command, arg)]
+
+    def _robot_pose(self, control: int) -> tuple[tuple[float, ...] | None, str | None]:
+        """The robot pose registers in the recipe's convention when ROBOT_POSE_VALID is set
+        (None otherwise), or why they cannot be read."""
+        if not control & Control.ROBOT_POSE_VALID:
+            return None, None
+        regs = self.holding[r.HR_ROBOT_POSE : r.HR_ROBOT_POSE + 12]
+        plc_form = codecs.decode_pose_int(regs, self._convention, self.order)
+        try:
+            return codecs.plc_to_pose(plc_form, self._convention), None
+        except ValueError as err:
+            return None, f"robot pose {plc_form}: {err}"
 
     def _command_failed(self, code: Reason) -> list[Effect]:
         self.stats.commands_failed += 1
@@ -242,15 +261,7 @@ class Handshake:
             return []
         h = self.holding
         trigger_id = codecs.decode_uint32(h[r.HR_TRIGGER_ID : r.HR_TRIGGER_ID + 2], self.order)
-        pose = None
-        refused = None
-        if control & Control.ROBOT_POSE_VALID:
-            pose_regs = h[r.HR_ROBOT_POSE : r.HR_ROBOT_POSE + 12]
-            plc_form = codecs.decode_pose_int(pose_regs, self._convention, self.order)
-            try:
-                pose = codecs.plc_to_pose(plc_form, self._convention)
-            except ValueError as err:
-                refused = f"robot pose {plc_form}: {err}"
+        pose, refused = self._robot_pose(control)
         part_id = codecs.decode_ascii(h[r.HR_PART_ID : r.HR_PART_ID + r.PART_ID_CHARS // 2])
         request = LinkRequest(link=self.link, trigger_id=trigger_id, view_index=h[r.HR_VIEW_INDEX],
                               robot_pose=pose, part_id=part_id, recipe=self._recipe)
@@ -400,6 +411,22 @@ class Handshake:
             figures[0], order)
         img[r.IR_VERIFY_ROTATION : r.IR_VERIFY_ROTATION + 2] = codecs.encode_float32(
             figures[1], order)
+
+    def handeye_done(self, outcome: HandEyeOutcome) -> None:
+        """Publish a hand-eye step's block (registers 70-83); :meth:`command_done` follows
+        with its code. Figures that are not finite go out as 0."""
+        img = self.image
+        order = self.order
+        img[r.IR_HANDEYE_POSES] = max(0, min(int(outcome.poses), 0xFFFF))
+        img[r.IR_HANDEYE_POSE] = max(0, min(int(outcome.pose), 0xFFFF))
+        img[r.IR_HANDEYE_VERSION : r.IR_HANDEYE_VERSION + 2] = codecs.encode_uint32(
+            int(outcome.version) & 0xFFFFFFFF, order)
+        for at, x in ((r.IR_HANDEYE_SIGMA_TRANS, outcome.sigma_mm),
+                      (r.IR_HANDEYE_SIGMA_ROT, outcome.sigma_deg),
+                      (r.IR_HANDEYE_HOLDOUT_PX, outcome.holdout_rms_px),
+                      (r.IR_HANDEYE_HOLDOUT_MM, outcome.holdout_mm),
+                      (r.IR_HANDEYE_HOLDOUT_DEG, outcome.holdout_deg)):
+            img[at : at + 2] = codecs.encode_float32(x if math.isfinite(x) else 0.0, order)
 
     def pipeline_reset_failed(self) -> None:
         if not self._error:

@@ -18,14 +18,19 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
+from mvpose_core.calibration.codes import HandEyeCode
 from mvpose_core.reasons import Reason
 
-from ..base import LinkOutcome, LinkRequest, StationHandler
+from ..base import HandEyeOutcome, LinkOutcome, LinkRequest, StationHandler
 from ..layout import INPUT, OUTPUT, ByteOrder, Command
 from .config import HandshakeConfig
 from .machine import Effect, Handshake, HandshakeStats, Measure, ResetPipeline, RunCommand
 
 log = logging.getLogger(__name__)
+
+_HANDEYE = (Command.HANDEYE_BEGIN, Command.HANDEYE_ADD_POSE, Command.HANDEYE_CALCULATE)
+#: the longest a hand-eye calculate may take (a solve and its leave-one-out report)
+CALCULATE_S = 300.0
 
 
 @dataclass
@@ -221,6 +226,8 @@ class HandshakeRunner:
                 result = await asyncio.wait_for(h.select_recipe(effect.argument), timeout)
             elif effect.command is Command.TEACH_REFERENCE:
                 result = await asyncio.wait_for(h.teach_reference("plc"), timeout)
+            elif effect.command in _HANDEYE:
+                result = await self._handeye(effect, timeout)
             elif effect.command is Command.VERIFY:
                 # a measurement: the measure timeout bounds it, as it bounds a trigger
                 limit = max(self.config.measure_timeout_s, timeout or 0.0) or None
@@ -243,6 +250,27 @@ class HandshakeRunner:
             self.note(f"command {effect.command.name} raised {err!r}")
             result = int(Reason.HANDLER_FAILED)
         self.machine.command_done(effect.command, effect.argument, result)
+
+    async def _handeye(self, effect: RunCommand, timeout: float | None) -> int:
+        """A hand-eye step: its block, then its code as the command result."""
+        h = self.handler
+        if effect.command is Command.HANDEYE_BEGIN:
+            call = h.handeye_begin(self.link, "plc", effect.argument or None)
+        elif effect.command is Command.HANDEYE_ADD_POSE:
+            if effect.refused is not None:  # not a pose: refused as the session would
+                self.note(f"HANDEYE_ADD_POSE: {effect.refused}")
+                outcome = HandEyeOutcome(int(HandEyeCode.BAD_POSE), message=effect.refused)
+                self.machine.handeye_done(outcome)
+                return outcome.code
+            # a capture and a detection: the measure timeout bounds it, as it bounds a trigger
+            timeout = max(self.config.measure_timeout_s, timeout or 0.0) or None
+            call = h.handeye_add_pose(self.link, "plc", effect.robot_pose)
+        else:  # a solve and its report: minutes at most
+            timeout = max(CALCULATE_S, timeout or 0.0)
+            call = h.handeye_calculate(self.link, "plc")
+        outcome = await asyncio.wait_for(call, timeout)
+        self.machine.handeye_done(outcome)
+        return outcome.code
 
     async def _reset(self, _effect: ResetPipeline) -> None:
         try:
