@@ -7,7 +7,7 @@ from the tables at the end; docs/plc-interface.md explains the handshake). Two b
 - the **input** block (PLC inputs, written by mvpose): ``INPUT_SIZE`` bytes.
 
 Addresses below are 16-bit word indices: word ``n`` is bytes ``2n, 2n+1`` of its block. Modbus
-shows the output block as holding registers 0..39 and the input block as input registers 0..69;
+shows the output block as holding registers 0..39 and the input block as input registers 0..83;
 EtherNet/IP as its output and input assemblies, S7 as two data blocks, PROFINET as submodules.
 Every bus carries the same bytes; only the byte order differs (:class:`ByteOrder`). Once
 released, change nothing here except by adding at the end.

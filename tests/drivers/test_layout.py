@@ -29,7 +29,7 @@ def test_fields_tile_the_block_without_gaps(block: layout.Block) -> None:
 
 def test_sizes_are_the_modbus_map_in_bytes() -> None:
     want = (2 * layout.HR_WRITABLE_COUNT, 2 * layout.IR_COUNT)
-    assert (OUTPUT.size, INPUT.size) == want == (80, 140)
+    assert (OUTPUT.size, INPUT.size) == want == (80, 168)
 
 
 def test_little_endian_values_and_text_in_order() -> None:

@@ -425,7 +425,7 @@ async def test_pymodbustcp_sees_the_exceptions(plc: ServerFactory) -> None:
             ("read coils", b"\x01\x00\x00\x00\x01"),
             ("read 0 registers", b"\x03\x00\x00\x00\x00"),
             ("read 126 registers", b"\x04\x00\x00\x00\x7e"),
-            ("read past the map", b"\x04\x00\x46\x00\x01"),  # input 70
+            ("read past the map", b"\x04\x00\x54\x00\x01"),  # input 84
             ("read the test values", b"\x04\x00\x2e\x00\x04"),
         ]:
             got = client.custom_request(pdu)
@@ -469,7 +469,7 @@ async def test_mbpoll_reads_input_and_writes_holding_registers(plc: ServerFactor
         ("write the mirror", ["-a", "1", "-t", "4", "-r", "100", host, "5"]),
         ("coils", ["-a", "1", "-t", "0", "-r", "0", host]),
         ("discrete inputs", ["-a", "1", "-t", "1", "-r", "0", host]),
-        ("past the map", ["-a", "1", "-t", "3", "-r", "0", "-c", "71", host]),
+        ("past the map", ["-a", "1", "-t", "3", "-r", "0", "-c", "85", host]),
     ]
 
     def master() -> dict[str, tuple[int, str]]:

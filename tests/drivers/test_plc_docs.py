@@ -62,8 +62,8 @@ async def test_worked_example_matches_the_server(plc: ServerFactory, order: Word
     status = await twin.wait_for(lambda s: s.has(Status.RESULT_VALID), what="result")
     got = [f"{v:04X}" for v in status.regs]
     want = _dump(order)
-    assert len(want) == 50 and len(got) == 70
-    assert got[50:] == ["0000"] * 20  # the verify block: no verify yet
+    assert len(want) == 50 and len(got) == 84
+    assert got[50:] == ["0000"] * 34  # the verify and hand-eye blocks: neither ran yet
     got = got[:50]
     assert want[1] == "hhhh"
     assert got[:1] + got[2:] == want[:1] + want[2:]

@@ -247,7 +247,7 @@ def test_verify_publishes_its_block_before_the_command_ends(order: WordOrder) ->
     assert p.status() & Status.COMMAND_FAILED
     assert img[r.IR_COMMAND_RESULT] == Reason.MARKS_MISSING
     assert p.u32(r.IR_VERIFY_RESULT_ID) == 42 and img[r.IR_VERIFY_VERDICT] == 0
-    assert img[r.IR_VERIFY_DIFFERENCE : r.IR_COUNT] == [0] * 16
+    assert img[r.IR_VERIFY_DIFFERENCE : r.IR_HANDEYE_POSES] == [0] * 16
 
 
 def test_command_while_busy_is_refused() -> None:

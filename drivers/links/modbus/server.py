@@ -36,7 +36,7 @@ _WRITE_FCS = frozenset({6, 16, 23})
 _READ_FCS = frozenset({3, 4, 6, 23})
 
 
-#: Holding registers 100..169 mirror the input registers 0..69 (read-only) for PLCs that cannot
+#: Holding registers 100..183 mirror the input registers 0..83 (read-only) for PLCs that cannot
 #: read input registers (function code 4).
 HR_MIRROR = 100
 
