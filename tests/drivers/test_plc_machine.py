@@ -8,7 +8,7 @@ import pytest
 
 from drivers.links import codecs as c
 from drivers.links import layout as r
-from drivers.links.base import LinkOutcome, VerifyOutcome
+from drivers.links.base import HandEyeOutcome, LinkOutcome, VerifyOutcome
 from drivers.links.handshake import Handshake, HandshakeConfig, Measure, ResetPipeline, RunCommand
 from drivers.links.layout import (
     Command,
@@ -248,6 +248,38 @@ def test_verify_publishes_its_block_before_the_command_ends(order: WordOrder) ->
     assert img[r.IR_COMMAND_RESULT] == Reason.MARKS_MISSING
     assert p.u32(r.IR_VERIFY_RESULT_ID) == 42 and img[r.IR_VERIFY_VERDICT] == 0
     assert img[r.IR_VERIFY_DIFFERENCE : r.IR_HANDEYE_POSES] == [0] * 16
+
+
+@pytest.mark.parametrize("order", [WordOrder.ABCD, WordOrder.CDAB])
+def test_handeye_add_pose_reads_the_pose_as_a_trigger_does(order: WordOrder) -> None:
+    p = Plc(order).ready()
+    pose = (1210.5, -302.125, 905.75, 175.0, -20.0, 10.0)
+    p.m.write(r.HR_ROBOT_POSE, c.encode_pose_int(pose, "fanuc", order), p.t)
+    p.m.write(r.HR_COMMAND, [Command.HANDEYE_ADD_POSE, 0], p.t)
+    (effect,) = p.ctl(EN | Control.EXECUTE_COMMAND | Control.ROBOT_POSE_VALID)
+    assert effect.command is Command.HANDEYE_ADD_POSE and effect.refused is None
+    assert effect.robot_pose == pytest.approx(pose, abs=1e-6)
+    out = HandEyeOutcome(205, poses=7, pose=8, message="board not found")
+    p.m.handeye_done(out)
+    p.m.command_done(Command.HANDEYE_ADD_POSE, 0, out.code)
+    img = p.m.image
+    assert p.status() & Status.COMMAND_FAILED and img[r.IR_COMMAND_RESULT] == 205
+    assert (img[r.IR_HANDEYE_POSES], img[r.IR_HANDEYE_POSE]) == (7, 8)
+    # without ROBOT_POSE_VALID the command carries no pose (the session refuses it)
+    p.ctl(EN)
+    (effect,) = p.ctl(EN | Control.EXECUTE_COMMAND)
+    assert effect == RunCommand(Command.HANDEYE_ADD_POSE, 0)
+    p.m.command_done(Command.HANDEYE_ADD_POSE, 0, 209)
+    # a calculate's figures; what is not finite goes out as 0
+    p.ctl(EN)
+    p.m.write(r.HR_COMMAND, [Command.HANDEYE_CALCULATE, 0], p.t)
+    (effect,) = p.ctl(EN | Control.EXECUTE_COMMAND)
+    p.m.handeye_done(HandEyeOutcome(0, 18, 0, 70000, 0.12, 0.01, 0.4, math.nan, 0.02))
+    p.m.command_done(effect.command, 0, 0)
+    assert p.status() & Status.COMMAND_DONE and p.u32(r.IR_HANDEYE_VERSION) == 70000
+    figures = [c.decode_float32(img[a : a + 2], order) for a in range(
+        r.IR_HANDEYE_SIGMA_TRANS, r.IR_COUNT, 2)]
+    assert figures == pytest.approx([0.12, 0.01, 0.4, 0.0, 0.02])
 
 
 def test_command_while_busy_is_refused() -> None:
