@@ -195,7 +195,10 @@ def check_result(env: Env, out: dict[str, Any], holdout: int) -> CalibrationFile
     # the station's session holds the station's intrinsics, the command estimated its own
     assert mm <= max(1.5 * cli_mm, 0.3) and deg <= max(1.5 * cli_deg, 0.03), \
         (mm, deg, env.cli_error)
-    assert 0 < out["sigma_mm"] < 2.0 and out["holdout_mm"] < 1.0, out
+    # the held-out poses: their reprojection carries the robot's pose error (0.01° at 1.7 m is
+    # about 0.5 px here), their implied flange pose one image's PnP error along the lens axis
+    assert 0 < out["sigma_mm"] < 2.0 and 0 < out["holdout_rms_px"] < 2.0, out
+    assert out["holdout_mm"] < 3.0 and out["holdout_deg"] < 0.2, out
     return calib
 
 
