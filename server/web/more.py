@@ -25,6 +25,7 @@ from server.web.context import (
     reader_of,
     station_up,
 )
+from server.web.handeye import handeye_panel
 from server.web.i18n import N_, _, ngettext
 from server.web.pages import Html, disabled_down, to_login
 from server.web.reader import age_words
@@ -176,8 +177,9 @@ async def calibration_page(request: Request) -> Html:
                   f'data-action="{VERIFY_ENDPOINT}">'
                   + e(_("Measure the reference part and verify"))
                   + '</button><p class="msg" role="status"></p>')
+    handeye = await handeye_panel(request.app, user)
     extra = """<section class="panel"><h2>""" + e(_("Drift warnings")) + f"""</h2>{drift}</section>
-<section class="panel"><h2>""" + e(_("Calibration age")) + f"""</h2>{ages}</section>"""
+<section class="panel"><h2>""" + e(_("Calibration age")) + f"""</h2>{ages}</section>""" + handeye
     intro = "<p>" + e(_(
         "Per camera, the mean reprojection residual of each result (du, dv in px: the marks' "
         "detected minus reprojected centres) and its RMS. A calibration that has stopped "

@@ -447,6 +447,8 @@ def test_spc_and_calibration_draw_thousands_of_points(site: Site) -> None:
     # while the station is down
     verify = page.locator("button", has_text="Measure the reference part and verify")
     assert verify.count() == 1 and verify.is_disabled()
+    # the hand-eye session panel says why it shows no session (the station is down)
+    assert "The station is down: no session to show." in page.inner_text("#handeye")
     site.shot(page, "calibration")
     page.context.close()
 
