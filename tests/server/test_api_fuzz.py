@@ -33,7 +33,8 @@ MAX_EXAMPLES = int(os.environ.get("MVPOSE_FUZZ_EXAMPLES", "5"))
 # be refused with a documented 4xx: an opaque cursor this API did not hand out (400), a recipe
 # that is a JSON object but not a valid recipe (400) or does not fit the station (422), an empty
 # calibration (400), a gauge study whose selection cannot make the study (400). Without a
-# station process the station routes and a measuring verify answer 503 (documented).
+# station process the station routes, a measuring verify and the hand-eye steps answer 503
+# (documented).
 ACCEPTED = '"2xx", "3xx", "401", "403", "404", "409", "429", "5xx"'  # schemathesis' default
 CONFIG = f"""
 # the engineer's token through the document's security scheme, so that cases without it
@@ -54,7 +55,7 @@ include-name = "POST /api/v1/gauge/studies"
 checks.positive_data_acceptance.expected-statuses = [{ACCEPTED}, "400"]
 
 [[operations]]
-include-path-regex = "^/api/v1/(station/|calibration/verify$)"
+include-path-regex = "^/api/v1/(station/|calibration/verify$|calibration/handeye)"
 checks.not_a_server_error.expected-statuses = ["2xx", "3xx", "4xx", "503"]
 """
 
