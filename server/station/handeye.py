@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Awaitable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -71,11 +72,22 @@ class HandEye:
     async def add_pose(self, link: str, by: str, robot_pose: tuple[float, ...] | None
                        ) -> HandEyeOutcome:
         async with self._lock:
-            return self._note(await self._add(link, robot_pose))
+            return self._note(await self._guarded(self._add(link, robot_pose)))
 
     async def calculate(self, link: str, by: str) -> HandEyeOutcome:
         async with self._lock:
-            return self._note(await self._calculate(link, by))
+            return self._note(await self._guarded(self._calculate(link, by)))
+
+    async def _guarded(self, step: Awaitable[HandEyeOutcome]) -> HandEyeOutcome:
+        """A step that failed unexpectedly (a detector, the store, a bug) is answered FAILED
+        with what went wrong, never left to the link as an exception."""
+        try:
+            return await step
+        except Exception as err:  # noqa: BLE001 - the caller gets the reason, the log the trace
+            log.exception("hand-eye step failed")
+            poses = len(self._open.session.samples) if self._open is not None else 0
+            return HandEyeOutcome(int(HandEyeCode.FAILED), poses,
+                                  message=f"hand-eye: {type(err).__name__}: {err}")
 
     def status(self) -> dict[str, Any]:
         """The session as the page and REST show it."""
@@ -194,10 +206,8 @@ class HandEye:
                                   message="hand-eye: begin a session and add poses first")
         s = o.session
         n = len(s.samples)
-        base = self.station.measuring._active_calibration()
         try:
-            res = await asyncio.to_thread(s.calculate, by, base[1] if base else None,
-                                          str(o.folder))
+            res = await asyncio.to_thread(self._solve, s, by, o.folder)
         except SessionError as err:
             return HandEyeOutcome(int(err.code), n, message=str(err))
         version = await asyncio.to_thread(self._store, o, res, by, link)
@@ -210,6 +220,11 @@ class HandEye:
                 f"{len(res.result.per_sample_rms_px)} poses solved, {len(res.holdout)} held out:"
                 f" RMS {res.holdout_rms_px:.3f} px, at most {res.holdout_mm:.3f} mm / "
                 f"{res.holdout_deg:.4f}°; report {o.folder / 'report.txt'}"))
+
+    def _solve(self, session: HandEyeSession, by: str, folder: Path) -> SessionResult:
+        """Off the loop: the station's calibration (the file's base) and the solve."""
+        base = self.station.measuring.active_calibration()
+        return session.calculate(by, base[1] if base else None, str(folder))
 
     def _store(self, o: _Open, res: SessionResult, by: str, link: str) -> int:
         """Write the report beside the images and store the version (off the loop)."""

@@ -112,6 +112,11 @@ class Measuring:
             return None
         return info.version, CalibrationFile.model_validate(content)
 
+    def active_calibration(self) -> tuple[int, Any] | None:
+        """(version, CalibrationFile) of the store's active calibration, None without one.
+        Blocking: it reads the store."""
+        return self._active_calibration()
+
     def _apply_calibration(self) -> tuple[str, str] | None:
         """Put the active calibration into the station model (from the station file's model,
         so one calibration never stacks on another)."""

@@ -119,3 +119,25 @@ def test_poses_of_another_convention_do_not_fit(scene: CalibScene) -> None:
         s.calculate()
     assert err.value.code in (HandEyeCode.POSES_DO_NOT_FIT, HandEyeCode.OUTLIERS,
                               HandEyeCode.TOO_LITTLE_ROTATION), err.value
+
+
+def test_a_board_declared_one_percent_small_is_refused(scene: CalibScene) -> None:
+    from mvpose_core.calibration.boards import BoardSpec
+
+    b = scene.board
+    small = BoardSpec.parse(f"{b.kind}:{b.cols}x{b.rows}:{b.square_mm * 0.99:.4f}")
+    s = HandEyeSession("lab", "stereo", small, CONV, dict(scene.cameras),
+                       dict(scene.T_cfc_from_cf0), np.eye(4))
+    _fill(s, scene, scene.robot_poses)
+    assert "declared size" in _refused(HandEyeCode.BOARD_SCALE, s.calculate)
+
+
+def test_a_pose_recorded_at_the_wrong_moment_is_left_out(scene: CalibScene) -> None:
+    s = _session(scene, holdout=0)
+    poses = with_robot_error(np.random.default_rng(4), scene.robot_poses, 0.05, 0.01)
+    bad = sorted(poses)[4]
+    poses[bad] = poses[bad] @ make_transform(zyx_to_matrix(0.0, 0.3, 0.0), [3.0, -2.0, 0.0])
+    _fill(s, scene, poses)
+    out = s.calculate()
+    assert bad in out.result.left_out and bad not in out.result.per_sample_rms_px
+    assert any(bad in w for w in out.report.warnings)
