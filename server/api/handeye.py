@@ -13,6 +13,7 @@ from fastapi import APIRouter, Body, Request
 from pydantic import BaseModel, Field
 
 from mvpose_core.calibration.codes import HandEyeCode
+from mvpose_core.reasons import Reason
 from server.api.deps import EngineerUser, ReadUser, need_station
 from server.errors import ConflictError
 from server.station.messages import HandEyeAnswer
@@ -35,8 +36,8 @@ def _answer(out: HandEyeAnswer) -> HandEyeAnswer:
     if out.code != 0:
         try:
             name = HandEyeCode(out.code).name
-        except ValueError:
-            name = "UNKNOWN"
+        except ValueError:  # a link's own code (BAD_ARGUMENT, ...)
+            name = Reason(out.code).name if out.code in Reason._value2member_map_ else "UNKNOWN"
         raise ConflictError(out.message, code=out.code, code_name=name, poses=out.poses,
                             pose=out.pose)
     return out

@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.cameras.base import Frame
 from drivers.links.base import HandEyeOutcome
+from mvpose_core.calibration.handeye import HandEyeOptions
 from mvpose_core.calibration.session import (
     HandEyeCode,
     HandEyeSession,
@@ -33,6 +34,7 @@ from mvpose_core.calibration.session import (
     SessionResult,
     holdout_text,
 )
+from mvpose_core.reasons import Reason
 
 if TYPE_CHECKING:
     from server.station.core import Station
@@ -113,8 +115,9 @@ class HandEye:
         st = self.station
         station = st.station
         fail = int(HandEyeCode.NOT_AVAILABLE)
-        if not 0 <= holdout <= 50:
-            return HandEyeOutcome(fail, message=f"hand-eye: holdout must be 0..50, got {holdout}")
+        if not 0 <= holdout <= 50:  # the PLC's and OPC UA's argument range error
+            return HandEyeOutcome(int(Reason.BAD_ARGUMENT),
+                                  message=f"hand-eye: holdout must be 0..50, got {holdout}")
         if station.calibration_board is None:
             return HandEyeOutcome(fail, message=(
                 f"hand-eye: station {station.name!r} defines no calibration_board in its "
@@ -137,7 +140,8 @@ class HandEye:
             station.name, rig.id, BoardSpec.parse(station.calibration_board),
             st.active.config.robot_convention,
             {c: station.camera(c).model for c in T_rig},
-            {c: invert(T_rig[c]) @ T_rig[ref] for c in T_rig}, T_rig[ref], holdout=holdout)
+            {c: invert(T_rig[c]) @ T_rig[ref] for c in T_rig}, T_rig[ref], holdout=holdout,
+            options=_options(station))
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
         folder = Path(services.settings.data_dir) / "handeye" / stamp
         self._open = _Open(session, folder, views[0], by, HandEyeOutcome(0))
@@ -246,6 +250,17 @@ class HandEye:
                 f"{len(res.result.per_sample_rms_px)} poses, hold-out RMS "
                 f"{res.holdout_rms_px:.3f} px"))
         return info.version
+
+
+def _options(station: Any) -> HandEyeOptions:
+    """The solve's options: the station's intrinsics held, the robot's per-axis 1σ as ``mvpose
+    calibrate handeye`` takes it from a station file (``uncertainty.robot_repeatability``, an
+    RSS over three axes), else a good robot's."""
+    rep = station.uncertainty.robot_repeatability
+    mm, deg = 0.05, 0.01
+    if rep is not None and rep.mm > 0 and rep.deg > 0:
+        mm, deg = rep.mm / float(np.sqrt(3.0)), rep.deg / float(np.sqrt(3.0))
+    return HandEyeOptions(refine_intrinsics=False, robot_sigma_mm=mm, robot_sigma_deg=deg)
 
 
 def _as_dict(o: HandEyeOutcome) -> dict[str, Any]:
