@@ -136,7 +136,7 @@ def test_the_shipped_eds_is_the_generated_one(capsys: pytest.CaptureFixture[str]
     shipped = Path(enip_pkg.__file__).with_name("mvpose.eds").read_text()
     assert shipped == eds_text(config().identity(), config().assemblies())
     assert main([]) == 0 and capsys.readouterr().out == shipped
-    assert "Assem100" in shipped and "\n                140," in shipped
+    assert "Assem100" in shipped and f"\n                {r.INPUT_SIZE}," in shipped
     assert '"20 04 24 97 2C 96 2C 64"' in shipped
     # every field of the layout is a parameter, in order
     for f in (*r.INPUT_FIELDS, *r.OUTPUT_FIELDS):

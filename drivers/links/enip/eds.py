@@ -133,7 +133,8 @@ def eds_text(identity: Identity, assemblies: Assemblies | None = None) -> str:
         "[Capacity]",
         "        MaxIOConnections = 1;",
         "        MaxMsgConnections = 7;",
-        "        TSpec1 = TxRx, 142, 500;",
+        # the larger connection's size with its 2-byte sequence count
+        f"        TSpec1 = TxRx, {max(a.input_size, a.output_size) + 2}, 500;",
         "",
     ]
     return "\n".join(lines)
