@@ -64,7 +64,9 @@ def _half_size_with_board(data: dict[str, Any]) -> None:
 
 def _links(tmp: Path) -> Callable[[dict[str, Any]], None]:
     def edit(data: dict[str, Any]) -> None:
-        data.setdefault("links", {})["opcua"] = {
+        data.setdefault("links", {})["enip"] = {"port": 0, "io_port": 0,
+                                                "allowlist": ["127.0.0.1"], "watchdog_s": 10.0}
+        data["links"]["opcua"] = {
             "port": 0, "pki_dir": str(tmp / "pki"), "measure_timeout_s": 30.0,
             "security": ["Basic256Sha256_SignAndEncrypt"], "query_spacing_s": 0.0,
             "users": {"erik": {"role": "engineer",
@@ -301,12 +303,14 @@ async def test_opcua_methods_drive_a_session(env: Env) -> None:
         check_result(env, out, 2)
 
 
-# --------------------------------------------------------------------------- Modbus (the PLC)
-async def test_plc_commands_drive_a_session(env: Env) -> None:
-    """The robot program's sequence through the PLC: HANDEYE_BEGIN, HANDEYE_ADD_POSE with the
-    pose in the robot pose registers (ROBOT_POSE_VALID), HANDEYE_CALCULATE; every answer in the
-    command result register and the hand-eye block."""
-    twin, beat = await attach_twin(env.station.link_port("modbus"), 0.002)
+# --------------------------------------------------------------------------- the PLC's fieldbus
+@pytest.mark.parametrize("link", ["modbus", "enip"])
+async def test_plc_commands_drive_a_session(env: Env, link: str) -> None:
+    """The robot program's sequence through the PLC, over Modbus/TCP and EtherNet/IP class 1
+    I/O (the handshake is the same on every cyclic bus): HANDEYE_BEGIN, HANDEYE_ADD_POSE with
+    the pose in the robot pose words (ROBOT_POSE_VALID), HANDEYE_CALCULATE; every answer in the
+    command result word and the hand-eye block."""
+    twin, beat = await attach_twin(env.station.link_port(link), 0.002, link=link)
     scales = int_scales("fanuc")
 
     def answer(st: Any) -> tuple[int, dict[str, Any]]:
