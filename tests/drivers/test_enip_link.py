@@ -40,7 +40,7 @@ async def link() -> AsyncIterator[tuple[EnipLink, ArithmeticHandler]]:
     await lk.stop()
 
 
-async def attached(lk: EnipLink, rpi_ms: float = 4.0, multiplier: int = 5) -> PlcTwin:
+async def attached(lk: EnipLink, rpi_ms: float = 4.0, multiplier: int = 7) -> PlcTwin:
     twin = await enip_twin("127.0.0.1", lk.port, rpi_ms=rpi_ms, multiplier=multiplier).connect()
     await twin.enable()
     return twin
@@ -74,10 +74,10 @@ async def test_triggers_over_class1_io(link: tuple[EnipLink, ArithmeticHandler])
 async def test_a_scanner_that_stops_is_reported_as_a_lost_plc(
         link: tuple[EnipLink, ArithmeticHandler]) -> None:
     lk, handler = link
-    twin = await attached(lk, rpi_ms=10.0, multiplier=3)
+    twin = await attached(lk, rpi_ms=10.0, multiplier=5)
     check_result(await twin.cycle(3, timeout=10.0), 3)
-    twin.abort()  # no Forward Close: the connection times out (10 ms × 32)
-    await until(lambda: lk.server is not None and lk.server.stats.timeouts == 1,
+    twin.abort()  # no Forward Close: the connection times out (10 ms × 128)
+    await until(lambda: lk.server is not None and lk.server.stats.timeouts >= 1,
                 "the connection timed out")
     await until(lambda: lk.line_state() == "ERROR", "the watchdog")
     assert lk.runner is not None and lk.runner.machine.error is ErrorCode.WATCHDOG

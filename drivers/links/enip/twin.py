@@ -123,8 +123,9 @@ class EnipPort:
     async def read_inputs(self) -> bytes:
         """The input image as the PLC holds it: a newer one than the last read's, as a PLC
         program's next scan after the next RPI sees it (so a program that polls does not spin).
-        EnipPortError when none comes within 50 RPIs (at least 1 s): the adapter is gone."""
-        limit = max(1.0, 50 * self.rpi_s)
+        EnipPortError when none comes within 50 RPIs (at least 5 s, past a loaded machine's
+        stalls): the adapter is gone."""
+        limit = max(5.0, 50 * self.rpi_s)
         while self.inputs is None or self._images == self._read:
             self._fresh.clear()
             try:
@@ -225,10 +226,10 @@ class EnipPort:
         return response, items[2:]
 
 
-def enip_twin(host: str, port: int, *, rpi_ms: float = 4.0, multiplier: int = 5,
+def enip_twin(host: str, port: int, *, rpi_ms: float = 4.0, multiplier: int = 7,
               poll_s: float = 0.0, change_of_state: bool = True) -> PlcTwin:
     """A PLC twin on EtherNet/IP class 1 I/O (RPI ``rpi_ms``, timeout RPI × 4 << multiplier:
-    512 ms by default, past the stalls of a loaded test machine, as a PLC's 100 ms floor is
+    2.048 s by default, past the stalls of a loaded test machine, as a PLC's 100 ms floor is
     past a busy network's)."""
     return PlcTwin(EnipPort(host, port, rpi_ms=rpi_ms, multiplier=multiplier,
                             change_of_state=change_of_state), poll_s=poll_s)
