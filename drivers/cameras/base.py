@@ -210,6 +210,17 @@ class Camera(ABC):
             self._t_trigger = math.nan
         return Frame(self.camera_id, image, frame_id, t_trigger, t_received, ts)
 
+    def abort(self) -> None:
+        """Drop a frame in flight (an exposure a software trigger started, not yet grabbed)
+        and every frame waiting, so that the next trigger's frame is its own. The live camera
+        view calls it when a station trigger preempts its grab (docs/cameras.md)."""
+        with self._lock:
+            if not self._open or self._armed is None:
+                return
+            armed = self._armed
+            self._call("abort", lambda: self._abort(armed))
+            self._t_trigger = math.nan
+
     def at_view(self, view: int) -> None:  # noqa: B027 - a no-op but for simulated cameras
         """The next trigger is for ``view`` (where a robot-mounted rig is held). A real camera
         sees whatever is in front of it; the simulated one shows that view of its scene."""
@@ -266,6 +277,14 @@ class Camera(ABC):
 
     def _flush(self) -> None:  # noqa: B027 - optional hook, most backends override it
         """Drop frames that are already waiting (called right before a software trigger)."""
+
+    def _abort(self, armed: TriggerMode) -> None:
+        """Drop the frame in flight and those waiting. By default acquisition is stopped and
+        started again (what discards an exposure on GigE Vision and USB3 Vision devices);
+        backends with nothing in flight between calls only flush."""
+        self._disarm()
+        self._arm(armed)
+        self._flush()
 
     @abstractmethod
     def _trigger(self) -> None:

@@ -5,6 +5,12 @@ grab_all returns by the deadline (plus a small grace for the threads to report) 
 a DriverError for every camera. A camera whose device is lost is closed and opened again by its
 worker in the background, with exponential backoff; until it is back its result is an immediate
 DeviceLostError that says when the next attempt is due, and the trigger path never waits for it.
+
+Between triggers, :meth:`CaptureGroup.preview` grabs a frame of each camera for the live
+camera view. A trigger preempts it: grab_all tells each camera with a preview in flight to give
+way, the preview stops waiting within :data:`PREVIEW_SLICE_S`, drops the exposure it started
+(:meth:`Camera.abort`, so that frame never becomes the trigger's) and the trigger's job runs
+next on that camera's thread.
 """
 
 from __future__ import annotations
@@ -24,6 +30,13 @@ from drivers.errors import DeviceLostError, DriverError, DriverOperationError, D
 log = logging.getLogger(__name__)
 
 Result = Frame | DriverError
+
+#: how long a preview waits for its frame between looks at whether a trigger wants the camera
+PREVIEW_SLICE_S = 0.002
+
+
+class PreviewPreemptedError(DriverOperationError):
+    """A preview grab gave way to a trigger (its exposure, if it had started one, dropped)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +63,7 @@ class _Job:
     t_end: float
     trigger: bool
     future: Future[Result]
+    preview: bool = False
 
 
 class _Worker:
@@ -60,7 +74,9 @@ class _Worker:
         self.trigger_mode = trigger
         self.backoff = backoff
         self.jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
-        self.current: Future[Result] | None = None
+        self.current: Future[Result] | None = None  # the last trigger's grab
+        self.preview_current: Future[Result] | None = None  # the last preview's grab
+        self.preempt = threading.Event()  # a trigger wants the camera: a preview gives way
         self.ready = threading.Event()
         self.down_reason: DriverError | None = None
         self.failures = 0
@@ -86,15 +102,22 @@ class _Worker:
                 return
             if not job.future.set_running_or_notify_cancel():
                 continue
-            job.future.set_result(self._grab(job))
+            if job.preview:
+                job.future.set_result(self._preview(job))
+            else:
+                self.preempt.clear()  # the trigger's job has the camera now
+                job.future.set_result(self._grab(job))
+
+    def _down(self) -> DeviceLostError:
+        wait_s = max(0.0, self.next_attempt - time.monotonic())
+        return DeviceLostError(
+            f"camera {self.cam.camera_id!r}: reconnecting after: {self.down_reason} "
+            f"(attempt {self.failures + 1} in {wait_s:.2f} s)"
+        )
 
     def _grab(self, job: _Job) -> Result:
         if self.down_reason is not None:
-            wait_s = max(0.0, self.next_attempt - time.monotonic())
-            return DeviceLostError(
-                f"camera {self.cam.camera_id!r}: reconnecting after: {self.down_reason} "
-                f"(attempt {self.failures + 1} in {wait_s:.2f} s)"
-            )
+            return self._down()
         try:
             if job.trigger and self.cam.armed == "software":
                 self.cam.trigger()
@@ -106,6 +129,43 @@ class _Worker:
             return err
         except Exception as err:  # a bug must reach the caller as a result, not kill the thread
             wrapped = DriverOperationError(f"camera {self.cam.camera_id!r}: grab failed: {err!r}")
+            wrapped.__cause__ = err
+            return wrapped
+
+    def _preview(self, job: _Job) -> Result:
+        """A frame between triggers: looks every PREVIEW_SLICE_S whether a trigger wants the
+        camera, and drops its own exposure when one does (or when the frame is late)."""
+        cam = self.cam
+        if self.down_reason is not None:
+            return self._down()
+        if self.preempt.is_set():
+            return PreviewPreemptedError(f"camera {cam.camera_id!r}: a trigger came first")
+        mode = cam.armed
+        if mode == "hardware":
+            # Its frames come with the line's hardware triggers: a preview frame would be one.
+            return DriverOperationError(
+                f"camera {cam.camera_id!r}: hardware-triggered, no frames between triggers"
+            )
+        try:
+            if mode == "software":
+                cam.trigger()
+            while True:
+                left = job.t_end - time.monotonic()
+                if self.preempt.is_set() or left <= 0:
+                    if mode == "software":
+                        cam.abort()
+                    if left <= 0:
+                        return DriverTimeout(f"camera {cam.camera_id!r}: no preview frame in time")
+                    return PreviewPreemptedError(f"camera {cam.camera_id!r}: gave way to a trigger")
+                with contextlib.suppress(DriverTimeout):
+                    return cam.grab(min(left, PREVIEW_SLICE_S))
+        except DeviceLostError as err:
+            self._went_down(err)
+            return err
+        except DriverError as err:
+            return err
+        except Exception as err:  # a bug must reach the caller as a result, not kill the thread
+            wrapped = DriverOperationError(f"camera {cam.camera_id!r}: preview failed: {err!r}")
             wrapped.__cause__ = err
             return wrapped
 
@@ -161,6 +221,9 @@ class CaptureGroup:
         self.grace_s = grace_s
         self._workers = {c.camera_id: _Worker(c, trigger, backoff or Backoff()) for c in cameras}
         self._closed = False
+        # grab_all and preview look at and queue jobs under it: a preview is either queued
+        # before a trigger's job (and told to give way) or sees the trigger's job and stays out
+        self._queueing = threading.Lock()
         for w in self._workers.values():
             w.thread.start()
 
@@ -225,24 +288,68 @@ class CaptureGroup:
                 self._workers[cid].cam.at_view(view)
         results: dict[str, Result] = {}
         pending: dict[str, Future[Result]] = {}
-        for cid in ids:
-            w = self._workers[cid]
-            if w.current is not None and not w.current.done():
-                # The previous grab is stuck in a vendor call; queueing behind it would hang.
-                results[cid] = DriverOperationError(
-                    f"camera {cid!r}: still busy with the previous grab"
-                )
-                continue
-            fut: Future[Result] = Future()
-            w.current = fut
-            w.jobs.put(_Job(t_end, trigger, fut))
-            pending[cid] = fut
+        with self._queueing:
+            for cid in ids:
+                w = self._workers[cid]
+                if w.current is not None and not w.current.done():
+                    # The previous grab is stuck in a vendor call; queueing behind it would hang.
+                    results[cid] = DriverOperationError(
+                        f"camera {cid!r}: still busy with the previous grab"
+                    )
+                    continue
+                if w.preview_current is not None and not w.preview_current.done():
+                    w.preempt.set()  # the preview gives way; this job runs right after it
+                fut: Future[Result] = Future()
+                w.current = fut
+                w.jobs.put(_Job(t_end, trigger, fut))
+                pending[cid] = fut
         wait(pending.values(), timeout=max(0.0, t_end + self.grace_s - time.monotonic()))
         for cid, fut in pending.items():
             if fut.done():
                 results[cid] = fut.result()
             else:
                 results[cid] = DriverTimeout(f"camera {cid!r}: no answer within {deadline_s:.3f} s")
+        return {cid: results[cid] for cid in ids}
+
+    def preview(
+        self, deadline_s: float, camera_ids: Sequence[str] | None = None
+    ) -> dict[str, Result]:
+        """A frame of every camera (or ``camera_ids``) for the live view, by the deadline.
+
+        A camera busy with a trigger's grab or an earlier preview is left out (its result says
+        so); a trigger that comes while a preview waits preempts it (PreviewPreemptedError). A
+        software-triggered camera is triggered, a free-running one gives its next frame, a
+        hardware-triggered one gives none (its frames belong to the line's triggers).
+        """
+        if self._closed:
+            raise DriverOperationError("capture group is closed")
+        ids = list(self._workers) if camera_ids is None else list(camera_ids)
+        unknown = [cid for cid in ids if cid not in self._workers]
+        if unknown:
+            raise ValueError(
+                f"capture group has no cameras {unknown}; it has {list(self._workers)}"
+            )
+        t_end = time.monotonic() + deadline_s
+        results: dict[str, Result] = {}
+        pending: dict[str, Future[Result]] = {}
+        with self._queueing:
+            for cid in ids:
+                w = self._workers[cid]
+                busy = [f for f in (w.current, w.preview_current) if f is not None and not f.done()]
+                if busy:
+                    results[cid] = PreviewPreemptedError(f"camera {cid!r}: busy with a trigger")
+                    continue
+                fut: Future[Result] = Future()
+                w.preview_current = fut
+                w.jobs.put(_Job(t_end, True, fut, preview=True))
+                pending[cid] = fut
+        wait(pending.values(), timeout=max(0.0, t_end + self.grace_s - time.monotonic()))
+        for cid, fut in pending.items():
+            results[cid] = (
+                fut.result()
+                if fut.done()
+                else DriverTimeout(f"camera {cid!r}: no preview frame within {deadline_s:.3f} s")
+            )
         return {cid: results[cid] for cid in ids}
 
     def close(self, timeout_s: float = 5.0) -> None:

@@ -125,6 +125,9 @@ class FilesCamera(Camera):
     def _flush(self) -> None:
         self._pending = []
 
+    def _abort(self, armed: TriggerMode) -> None:
+        self._pending = []  # nothing is in flight between calls: the queue is all there is
+
     def _trigger(self) -> None:
         self._pending.append(self._next)
         self._next += 1

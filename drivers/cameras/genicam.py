@@ -223,6 +223,12 @@ class GenICamCamera(Camera):
                 return
             buf.queue()
 
+    def _abort(self, armed: TriggerMode) -> None:
+        if self._emulated_trigger:
+            self._flush()  # a free-running device: no exposure of ours in flight, only frames
+        else:
+            super()._abort(armed)
+
     def _trigger(self) -> None:
         if self._emulated_trigger:
             self._emulated_pending += 1

@@ -211,6 +211,9 @@ class SimCamera(Camera):
     def _flush(self) -> None:
         self._pending = []
 
+    def _abort(self, armed: TriggerMode) -> None:
+        self._pending = []  # nothing is in flight between calls: the queue is all there is
+
     def _trigger(self) -> None:
         self._pending.append(time.monotonic())
 

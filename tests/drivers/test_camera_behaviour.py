@@ -102,6 +102,17 @@ class CameraBehaviour:
         if expected is not None:
             np.testing.assert_array_equal(f.image, expected[1 % len(expected)])
 
+    def test_abort_drops_the_frame_in_flight(self, cam: Camera) -> None:
+        cam.arm("software")
+        cam.trigger()
+        self.settle(cam)
+        cam.abort()  # the live view's preview gives way to a trigger
+        with pytest.raises(DriverTimeout):
+            cam.grab(0.2)
+        t = cam.trigger()
+        f = cam.grab(2.0)
+        assert f.t_trigger == t and f.image.shape == (H, W)
+
     def test_free_run(self, cam: Camera) -> None:
         cam.arm("free_run")
         a, b = cam.grab(2.0), cam.grab(2.0)

@@ -27,6 +27,7 @@ from drivers.cameras import (
     make_camera,
 )
 from drivers.cameras.base import Image, TriggerMode
+from drivers.cameras.capture import PreviewPreemptedError
 
 SLACK_S = 0.5  # what a loaded machine may add to a deadline; tells "at the deadline" from "hung"
 
@@ -113,6 +114,62 @@ def test_a_grab_for_a_view_shows_the_simulated_cameras_that_view() -> None:
                 np.testing.assert_array_equal(f.image, scene.truth(cid, view).image)
                 other = 3 - view
                 assert not np.array_equal(f.image, scene.truth(cid, other).image)
+
+
+def test_a_preview_gives_each_cameras_frame_between_triggers(scene: SimScene) -> None:
+    with CaptureGroup(sim_cameras(scene, latency_ms=10.0)) as group:
+        assert all(e is None for e in group.wait_ready(5.0).values())
+        frames = group.preview(2.0)
+        assert list(frames) == [c.id for c in scene.station.cameras]
+        for cid, f in frames.items():
+            assert isinstance(f, Frame), f
+            np.testing.assert_array_equal(f.image, scene.truth(cid).image)
+        # the preview left nothing behind: the next trigger's frames are the trigger's own
+        t = time.monotonic()
+        for f in group.grab_all(2.0).values():
+            assert isinstance(f, Frame) and f.t_trigger >= t
+
+
+def test_a_trigger_preempts_a_preview_and_gets_its_own_frame(scene: SimScene) -> None:
+    """The preview's exposure is in flight when the trigger comes: the preview gives way, its
+    exposure is dropped, and the trigger's frame is exposed after the trigger (never the
+    preview's frame handed over as the trigger's)."""
+    latency_s = 0.3
+    cams = sim_cameras(scene, latency_ms=latency_s * 1000)
+    with CaptureGroup(cams) as group:
+        assert all(e is None for e in group.wait_ready(5.0).values())
+        out: dict[str, Any] = {}
+        previewer = threading.Thread(target=lambda: out.update(group.preview(10.0)))
+        previewer.start()
+        # every camera has had its preview trigger (the simulated exposure is now in flight)
+        assert _poll(lambda: all(c._pending for c in cams), 5.0)  # type: ignore[attr-defined]
+        t = time.monotonic()
+        frames = group.grab_all(5.0)
+        previewer.join(10.0)
+        assert not previewer.is_alive()
+        for cam in cams:
+            f = frames[cam.camera_id]
+            assert isinstance(f, Frame), f
+            assert f.t_trigger >= t  # its own trigger ...
+            assert f.t_received >= f.t_trigger + latency_s  # ... and its own exposure
+            assert isinstance(out[cam.camera_id], PreviewPreemptedError)
+        # nothing of the dropped preview is left to be taken for a later frame
+        late = group.grab_all(0.05, trigger=False)
+        assert all(isinstance(r, DriverTimeout) for r in late.values())
+
+
+def test_a_preview_stays_out_of_a_running_trigger(scene: SimScene) -> None:
+    cams = sim_cameras(scene, latency_ms=300.0)
+    with CaptureGroup(cams) as group:
+        assert all(e is None for e in group.wait_ready(5.0).values())
+        out: dict[str, Any] = {}
+        trig = threading.Thread(target=lambda: out.update(group.grab_all(5.0)))
+        trig.start()
+        assert _poll(lambda: all(c._pending for c in cams), 5.0)  # type: ignore[attr-defined]
+        busy = group.preview(1.0)
+        trig.join(10.0)
+        assert all(isinstance(r, PreviewPreemptedError) for r in busy.values())
+        assert all(isinstance(f, Frame) for f in out.values())
 
 
 def test_slow_camera_times_out_alone(scene: SimScene) -> None:
