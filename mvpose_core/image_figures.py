@@ -98,5 +98,5 @@ def downscale(image: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
     if w <= width:
         return image
     height = max(1, round(h * width / w))
-    out: NDArray[np.uint8] = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-    return out
+    out = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    return out.astype(np.uint8, copy=False)

@@ -23,6 +23,7 @@ from server.settings import Settings
 from server.state import Services, open_services
 from server.station.messages import (
     ArmTeachAnswer,
+    CameraViewAnswer,
     HandEyeAnswer,
     MovePartAnswer,
     RecipeAnswer,
@@ -84,6 +85,10 @@ class StationHandle(Protocol):
 
     def move_part(self, offset: list[float]) -> MovePartAnswer:
         """Rehearsal on simulated cameras: the part at ``offset`` from the active reference."""
+        ...
+
+    def camera_view(self, width: int = 640) -> CameraViewAnswer:
+        """The live camera view's newest frames with focus and light figures."""
         ...
 
 

@@ -31,6 +31,8 @@ from server.station.messages import (
     ActivateRecipeRequest,
     ArmTeachAnswer,
     ArmTeachRequest,
+    CameraViewAnswer,
+    CameraViewRequest,
     HandEyeAnswer,
     HandEyeRequest,
     Message,
@@ -182,6 +184,10 @@ class StationClient:
     def move_part(self, offset: list[float]) -> MovePartAnswer:
         """Rehearsal on simulated cameras: the part at ``offset`` from the active reference."""
         return self.ask(_build(MovePartRequest, offset=offset), MovePartAnswer, timeout_s=35.0)
+
+    def camera_view(self, width: int = 640) -> CameraViewAnswer:
+        """The live camera view's newest frames (grabbed between triggers, at most 2 a s)."""
+        return self.ask(_build(CameraViewRequest, width=width), CameraViewAnswer, timeout_s=5.0)
 
     def reload_recipes(self) -> None:
         with contextlib.suppress(StationDownError):

@@ -42,6 +42,7 @@ from server.station.messages import (
     ActivateRecipeRequest,
     ArmTeachAnswer,
     ArmTeachRequest,
+    CameraViewRequest,
     ErrorBody,
     HandEyeAnswer,
     HandEyeRequest,
@@ -229,6 +230,9 @@ class ControlServer:
                                 message=out.message, report=report)
         if isinstance(request, HandEyeRequest):
             return await self._handeye(request)
+        if isinstance(request, CameraViewRequest):
+            # on the camera view's own niced thread: its JPEGs never hold a pool thread
+            return await self.station.camera_view.frames(request.width)
         work = self._work(request)
         return await asyncio.to_thread(work)
 

@@ -43,6 +43,7 @@ from server.drift import VerifyReport
 from server.pipeline import Pipeline
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
+from server.station.camera_view import CameraView
 from server.station.handeye import HandEye
 from server.station.links import LinkHost
 from server.station.measuring import Measuring
@@ -70,12 +71,14 @@ class Station:
                                  lambda: self.host.loop)
         self.triggers = Triggers(self.measuring, self.recorder, self.options,
                                  self._recipe_changed)
+        self.camera_view = CameraView(self.measuring, lambda: self.triggers.running > 0)
         self.queries: StationQueries | None = None
         self.handeye = HandEye(self)
         self.services: Services | None = None
         self.started_at: datetime | None = None
         # more parts of the status page, by name (e.g. "mqtt": the plant publisher's status)
-        self.status_parts: dict[str, Callable[[], dict[str, Any]]] = {}
+        self.status_parts: dict[str, Callable[[], dict[str, Any]]] = {
+            "camera_view": self.camera_view.status}
 
     # ------------------------------------------------------------------ life cycle
     def start(self, services: Services, sink: RecordSink | None = None) -> None:
@@ -113,6 +116,7 @@ class Station:
     def stop(self) -> None:
         """Stop the links, finish the running trigger and archive writes, close the cameras."""
         self.host.stop()
+        self.camera_view.close()
         self.triggers.stop()
         self.recorder.stop_archive()
         self.measuring.close()

@@ -199,6 +199,33 @@ class MovePartAnswer(Message):
     T_rf_from_pf: list[list[float]]
 
 
+class CameraViewFrame(Message):
+    """One camera's newest frame for the live camera view, with its focus and light figures
+    (mvpose_core.image_figures). ``note`` says why the frame is not new (a trigger came first,
+    the camera is down or hardware-triggered); the figures are those of the frame shown."""
+
+    camera_id: str
+    jpeg_base64: str | None  # the downscaled frame as JPEG; None: none grabbed yet
+    width: int  # of the downscaled frame (0 without one)
+    height: int
+    grabbed_at: str | None  # UTC, ISO 8601
+    focus: float | None  # variance of the Laplacian, grey levels²
+    focus_area: str  # "mark windows" or "whole image"
+    mean: float | None  # mean grey level 0-255
+    saturated_pct: float | None  # pixels at 255, %
+    dark_pct: float | None  # pixels at 0, %
+    note: str
+
+
+class CameraViewAnswer(Message):
+    """The live camera view's newest frame set: ``seq`` grows with every set grabbed."""
+
+    seq: int
+    period_s: float  # the station grabs at most one set per period
+    cameras: list[CameraViewFrame]
+    note: str
+
+
 class ErrorBody(Message):
     """Why an operation failed: ``kind`` is not_found, invalid, conflict, busy or internal."""
 
@@ -301,14 +328,25 @@ class MovePartRequest(Request):
         min_length=1, max_length=16)
 
 
+class CameraViewRequest(Request):
+    """The live camera view's frames: grabbed between triggers when the newest set is older
+    than the station's period (at most 2 per second), else the newest set again."""
+
+    op = "camera_view"
+    answer = CameraViewAnswer
+
+    width: StrictInt = Field(640, ge=160, le=1280)
+
+
 #: every operation's request model, by its name
 REQUESTS: dict[str, type[Request]] = {r.op: r for r in (
     PingRequest, StatusRequest, ReadinessRequest, TriggerRequest, ArmTeachRequest, TeachRequest,
     ActivateRecipeRequest, ReloadRecipesRequest, MetricsRequest, MovePartRequest,
-    VerifyRequest, HandEyeRequest)}
+    VerifyRequest, HandEyeRequest, CameraViewRequest)}
 
 __all__ = ["REQUESTS", "ActivateRecipeRequest", "ArmTeachAnswer", "ArmTeachRequest",
-           "CalibrationStatus", "ErrorBody", "HandEyeAnswer", "HandEyeRequest", "Message",
+           "CalibrationStatus", "CameraViewAnswer", "CameraViewFrame", "CameraViewRequest",
+           "ErrorBody", "HandEyeAnswer", "HandEyeRequest", "Message",
            "MetricsAnswer", "MetricsRequest",
            "MovePartAnswer", "MovePartRequest", "PingAnswer", "PingRequest", "Readiness",
            "ReadinessRequest", "RecipeAnswer", "RecipeStatus", "ReloadAnswer",

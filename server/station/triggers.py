@@ -60,6 +60,7 @@ class Triggers:
         self.services: Services | None = None
         self.executor: ThreadPoolExecutor | None = None  # the trigger thread
         self._record_exec: ThreadPoolExecutor | None = None
+        self.running = 0  # triggers started and not yet done (changed on the station loop)
 
     # ------------------------------------------------------------------ life cycle
     def start(self, services: Services) -> None:
@@ -110,6 +111,8 @@ class Triggers:
         ticket = _Ticket()
         out: asyncio.Future[Answer] = loop.create_future()
         work = loop.run_in_executor(self.executor, self._run, request, t0, at, ticket)
+        self.running += 1
+        work.add_done_callback(lambda _: self._done())
         margin_s = self.options.answer_margin_s
 
         def expire() -> None:
@@ -131,6 +134,9 @@ class Triggers:
         work.add_done_callback(lambda _: watchdog.cancel())
         relay(work, out, lambda answer: answer)  # None: the watchdog has answered
         return out
+
+    def _done(self) -> None:
+        self.running -= 1
 
     async def record_failure(self, request: LinkRequest, code: int, message: str,
                              processing_ms: float) -> int:

@@ -27,6 +27,7 @@ from server.station.core import Station
 from server.station.messages import (
     REQUESTS,
     ArmTeachAnswer,
+    CameraViewAnswer,
     HandEyeAnswer,
     MovePartAnswer,
     PingAnswer,
@@ -40,7 +41,7 @@ from server.station.messages import (
 )
 
 OPS = {"ping", "status", "readiness", "trigger", "arm_teach", "teach", "activate_recipe",
-       "reload_recipes", "metrics", "move_part", "verify", "handeye"}
+       "reload_recipes", "metrics", "move_part", "verify", "handeye", "camera_view"}
 
 
 async def test_every_operation_round_trips_through_its_models(tmp_path: Path) -> None:
@@ -70,6 +71,11 @@ async def test_every_operation_round_trips_through_its_models(tmp_path: Path) ->
                                           "recipe": True}
 
             assert "mvpose_" in client.metrics_text()  # the station's Prometheus text
+
+            view = client.camera_view(320)  # the live camera view's frames
+            assert isinstance(view, CameraViewAnswer) and view.seq >= 1
+            assert [c.camera_id for c in view.cameras] == list(status.cameras)
+            assert all(c.jpeg_base64 and c.width == 320 for c in view.cameras), view.note
 
             moved = client.move_part([0.0] * 6)  # the part at the reference: a zero offset
             assert isinstance(moved, MovePartAnswer)
