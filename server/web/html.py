@@ -43,7 +43,8 @@ _UNITS = {
 TABS = [("/", N_("Live")), ("/line", N_("Line")), ("/history", N_("History")),
         ("/spc", N_("SPC")), ("/calibration", N_("Calibration")), ("/recipes", N_("Recipes")),
         ("/gauge", N_("Gauge")),
-        ("/alarms", "Alarms")]  # wrapped for translation by the i18n work
+        ("/alarms", "Alarms"),  # wrapped for translation by the i18n work
+        ("/cameras", "Cameras")]  # likewise
 
 
 def esc(x: object) -> str:

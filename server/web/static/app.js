@@ -142,6 +142,64 @@ function setupLive() {
   events.addEventListener("open", () => { live.dataset.connected = "1"; });
 }
 
+// ------------------------------------------------------------------------- live camera view
+function setupCameraView() {
+  const view = document.getElementById("camera-view");
+  if (!view || !window.EventSource) return;
+  const grid = document.getElementById("camera-grid");
+  const note = document.getElementById("camera-note");
+  const peaks = {};  // the highest focus figure of each camera while the page is open
+  const events = new EventSource(view.dataset.events);
+  const figure = (cid) => {
+    let fig = grid.querySelector(`figure[data-camera="${CSS.escape(cid)}"]`);
+    if (fig) return fig;
+    fig = document.createElement("figure");
+    fig.dataset.camera = cid;
+    fig.innerHTML = '<img alt=""><figcaption><h2></h2><p class="focus"></p>' +
+      '<meter min="0" max="1" value="0"></meter><dl></dl><p class="note"></p></figcaption>';
+    fig.querySelector("h2").textContent = "Camera " + cid;
+    fig.querySelector("img").alt = "camera " + cid + ", newest frame";
+    fig.querySelector("meter").setAttribute("aria-label", "focus of camera " + cid + " against its peak");
+    grid.appendChild(fig);
+    return fig;
+  };
+  events.addEventListener("frames", (ev) => {
+    const d = JSON.parse(ev.data);
+    d.cameras.forEach((c) => {
+      const fig = figure(c.camera_id);
+      const img = fig.querySelector("img");
+      if (c.src) { img.src = c.src; img.width = c.width; img.height = c.height; }
+      if (c.focus !== null) peaks[c.camera_id] = Math.max(peaks[c.camera_id] || 0, c.focus);
+      const peak = peaks[c.camera_id];
+      fig.dataset.focus = c.focus === null ? "" : String(c.focus);
+      fig.querySelector(".focus").textContent = "Focus " + fmt(c.focus, 1) +
+        (peak ? " (peak " + fmt(peak, 1) + ")" : "");
+      const meter = fig.querySelector("meter");
+      meter.value = peak && c.focus !== null ? c.focus / peak : 0;
+      const dl = fig.querySelector("dl");
+      dl.replaceChildren();
+      [["focus over", c.focus_area || "—"], ["mean grey", fmt(c.mean, 1)],
+       ["saturated", fmt(c.saturated_pct, 2) + " %"], ["dark", fmt(c.dark_pct, 2) + " %"],
+       ["taken", c.grabbed_at ? new Date(c.grabbed_at).toLocaleTimeString() : "—"]]
+        .forEach(([k, v]) => {
+          const dt = document.createElement("dt"); dt.textContent = k;
+          const dd = document.createElement("dd"); dd.textContent = v;
+          dl.append(dt, dd);
+        });
+      fig.querySelector(".note").textContent = c.note;
+    });
+    note.textContent = d.note || "Frame set " + d.seq + ", at most one every " + d.period_s + " s.";
+    note.classList.toggle("error", false);
+    view.dataset.seq = String(d.seq);
+    view.dataset.updates = String(Number(view.dataset.updates || 0) + 1);
+  });
+  events.addEventListener("down", (ev) => {
+    note.textContent = ev.data;
+    note.classList.toggle("error", true);
+  });
+  events.addEventListener("open", () => { view.dataset.connected = "1"; });
+}
+
 // ------------------------------------------------------------------------------------ charts
 const COLORS = ["#1d4ed8", "#b91c1c", "#15803d", "#a16207", "#7c3aed", "#0e7490", "#be185d", "#4b5563"];
 
@@ -465,5 +523,5 @@ function setupDrift() {
 
 document.addEventListener("DOMContentLoaded", () => {
   setupLanguage(); setupLogin(); setupLogout(); setupActions(); setupHtmxErrors(); setupLive(); setupCharts();
-  setupDrift();
+  setupDrift(); setupCameraView();
 });

@@ -1,0 +1,162 @@
+"""The live camera view (/cameras): each camera's newest frame with its focus and light figures,
+for setting focus and light by hand.
+
+It needs the operator role: an open view makes the station grab frames (its cameras expose
+between triggers), an action on the station like "Trigger now", which a read-only screen must
+not cause. The page holds one EventSource on :func:`events`; one :class:`CameraFeed` per
+process asks the station (control channel ``camera_view``) for the newest frame set while at
+least one browser listens, and only then: the last one to leave stops it, and the station grabs
+nothing more (it grabs on request only, at most once per its period, and only between
+triggers; server/station/camera_view.py). Each new set goes to every listener as one ``frames``
+event (JSON: the JPEGs as data URLs and the figures).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import anyio.to_thread
+from fastapi import APIRouter, Request
+from fastapi.responses import HTMLResponse, StreamingResponse
+
+from server.auth import Role
+from server.web import html
+from server.web.context import need, page_user, runtime_of
+from server.web.live import KEEPALIVE_S, QUEUE, STREAM_S, sse
+from server.web.pages import Html, to_login
+
+router = APIRouter(include_in_schema=False)
+#: the frames' width in the page, px (the station downscales to it)
+WIDTH = 640
+#: how long the feed waits before asking a station that did not answer again
+DOWN_RETRY_S = 2.0
+
+
+@dataclass
+class CameraFeed:
+    """Fan-out of the station's newest frame set to every open camera view of this process."""
+
+    app: Any
+    _queues: set[asyncio.Queue[str]] = field(default_factory=set)
+    _task: asyncio.Task[None] | None = None
+    last: str = ""  # the newest "frames" (or "down") event, for a browser that joins
+    asks: int = 0  # requests to the station so far (the tests count them)
+
+    @property
+    def listeners(self) -> int:
+        return len(self._queues)
+
+    @property
+    def running(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    async def stream(self) -> AsyncIterator[str]:
+        queue: asyncio.Queue[str] = asyncio.Queue(QUEUE)
+        self._queues.add(queue)
+        if not self.running:
+            self._task = asyncio.create_task(self._watch(), name="web-camera-feed")
+        try:
+            yield "retry: 2000\n\n"
+            if self.last:
+                yield self.last
+            loop = asyncio.get_running_loop()
+            end = loop.time() + STREAM_S
+            while (left := end - loop.time()) > 0:
+                try:
+                    yield await asyncio.wait_for(queue.get(), min(KEEPALIVE_S, left))
+                except TimeoutError:
+                    yield ": keep-alive\n\n"
+        finally:
+            self._queues.discard(queue)
+            if not self._queues and self._task is not None:
+                self._task.cancel()  # nobody looks: the station is asked no more
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await self._task
+                self._task = None
+
+    def _publish(self, message: str) -> None:
+        self.last = message
+        for q in list(self._queues):
+            if q.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    q.get_nowait()
+            q.put_nowait(message)
+
+    async def _watch(self) -> None:
+        seq: int | None = None
+        while True:
+            station = runtime_of(self.app)
+            if station is None:
+                self._publish(sse("down", "this server has no station process"))
+                return
+            self.asks += 1
+            try:
+                answer = await anyio.to_thread.run_sync(station.camera_view, WIDTH)
+            except Exception as err:  # noqa: BLE001 - a station that cannot answer is down
+                seq = None
+                self._publish(sse("down", f"the station does not answer: {err}"))
+                await asyncio.sleep(DOWN_RETRY_S)
+                continue
+            if answer.seq != seq or not self.last.startswith("event: frames"):
+                seq = answer.seq
+                self._publish(sse("frames", json.dumps(_payload(answer.model_dump(mode="json")),
+                                                       separators=(",", ":"))))
+            await asyncio.sleep(answer.period_s)
+
+
+def _payload(answer: dict[str, Any]) -> dict[str, Any]:
+    """The answer as the page uses it: each JPEG as a data URL."""
+    cams = []
+    for c in answer["cameras"]:
+        b64 = c.pop("jpeg_base64")
+        cams.append({**c, "src": f"data:image/jpeg;base64,{b64}" if b64 else None})
+    return {**answer, "cameras": cams}
+
+
+def feed_of(request: Request) -> CameraFeed:
+    feed: CameraFeed | None = getattr(request.app.state, "web_cameras", None)
+    if feed is None:
+        feed = request.app.state.web_cameras = CameraFeed(request.app)
+    return feed
+
+
+FIGURES = """<section class="panel camera-help"><h2>Reading the figures</h2><dl>
+<dt>Focus</dt><dd>The variance of the image's Laplacian (how strong its edges are) over the
+recipe's mark windows, or over the whole image when the camera sees no marks. It has no unit
+of its own: turn the focus ring slowly and stop where the figure is highest (the peak is kept
+while the view is open). Change nothing else meanwhile: more light or contrast also raises it.</dd>
+<dt>Mean</dt><dd>The mean grey level of the image, 0 (black) to 255 (white).</dd>
+<dt>Saturated</dt><dd>The share of pixels at 255. A mark whose edge is saturated cannot be
+located to a fraction of a pixel: keep it near 0 % on the part (shiny spots aside).</dd>
+<dt>Dark</dt><dd>The share of pixels at 0: no signal there.</dd></dl>
+<p>Frames are taken between triggers, at most twice a second, only while this page is open; a
+trigger always comes first (a frame then says it is not new).</p></section>"""
+
+
+@router.get("/cameras")
+async def cameras_page(request: Request) -> Html:
+    user = await page_user(request)
+    if user is None:
+        return to_login(request)
+    if not html.can(user, Role.OPERATOR):
+        body = (f'<section class="panel"><h2>Operator role needed</h2><p>The live camera view '
+                f'makes the station take frames; it needs the role operator or above. You are '
+                f'logged in as {html.esc(user.name)} with role '
+                f'{html.esc(user.role.value)}.</p></section>')
+        return HTMLResponse(html.layout("Cameras", user, body, "/cameras"), status_code=403)
+    body = f"""<div id="camera-view" data-events="/web/cameras/events" data-updates="0">
+<p id="camera-note" class="msg" role="status">Connecting to the station…</p>
+<div id="camera-grid" class="camera-grid"></div></div>{FIGURES}"""
+    return HTMLResponse(html.layout("Cameras", user, body, "/cameras"))
+
+
+@router.get("/web/cameras/events")
+async def events(request: Request) -> StreamingResponse:
+    await need(request, Role.OPERATOR)
+    return StreamingResponse(feed_of(request).stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
