@@ -1,9 +1,13 @@
-"""Observers during a trigger storm: an open Live page, a subscribed OPC UA client.
+"""Observers during a trigger storm: an open Live page, a subscribed OPC UA client, an open line
+view, an open live camera view.
 
 Issue 17: "an open Live page during a trigger storm does not move the station's p99"; issue 18:
 "an OPC UA client subscribed during a trigger storm does not move the Modbus path's p99 by more
-than 10 %". What runs, each in a process of its own: `mvpose serve` on station1 (deadline 1 s,
-as in bench_station, so a slow trigger on a loaded host stays a sample, not a NOK with archived
+than 10 %"; issue 27: "an open line view and an open live camera view each raise the station's
+trigger p99 by at most 10 %".
+
+What runs, each in a process of its own: `mvpose serve` on station1 (deadline 1 s, as in
+bench_station, so a slow trigger on a loaded host stays a sample, not a NOK with archived
 frames; frames of OK results archived at the default 1 in 10, so the Live page has new images to
 load) with its OPC UA link enabled (security "None", anonymous readers: a bench on loopback, no
 certificates); the PLC twin (bench/twin_process.py, one Modbus/TCP connection, triggers back to
@@ -12,25 +16,34 @@ back, status read every 1 ms, trigger written -> RESULT_VALID read measured ther
 The observers, in the bench process and Debian's Chromium:
   live   the operator page's Live view (/, logged in with the token) open in headless Chromium
          (Playwright), its server-sent events connected; each pushed result counted in the page;
+  line   the line view (/line, logged in) open in headless Chromium; it polls its fragment
+         every 2 s; each refresh counted;
+  cameras the live camera view (/cameras, logged in as the bootstrap engineer) open in headless
+         Chromium: the API asks the station for a frame set every 0.5 s, the station grabs
+         between triggers (preempted by a trigger), downscales and encodes 4 JPEGs; each frame
+         set the page shows counted, and the station's own tally (grabs, camera previews
+         preempted, sets skipped because a trigger ran) printed;
   opcua  an asyncua Client (anonymous, security None) subscribed to the MvposeResultReadyEvent
          of the VisionSystem (publishing interval 50 ms); each event counted. It does not call
          load_data_type_definitions: asyncua 1.x fails on some of the Machine Vision structures
          (ResultDataType, RecipeTransferOptions: "Unknown datatype for field") and only logs it.
 Between blocks an observer is closed (page closed / client disconnected): the baseline has no
-observer at all. Conditions come in alternating blocks (base, live, opcua, opcua, live, base, ...)
+observer at all. Conditions come in alternating blocks (base, live, opcua, line, cameras, then
+the same backwards, ...)
 within one server, so a host that gets busier or quieter counts the same for every condition.
 The observers run on the same host as the server (2 shared cores here): their own CPU counts
 against the station, which a screen or a SCADA client on another machine would not.
 
 Printed per run and condition: p50 / p99 of the roundtrip, the ratio observer / baseline of p99
-(issue 18's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it); over all
+(issue 18's and 27's target 1.10; issue 17 gives no number, the same 1.10 is shown beside it),
+each with OK or MISSED; over all
 runs the p50 ratio and the CPU the station, the API process and the OPC UA link's own process
 (drivers.links.process) spent per trigger in each condition (what the observer costs the server,
 apart from the host's noise in p99). A missed
-target is printed as "target missed"; the exit status is non-zero only when something failed.
+target is printed as "MISSED"; the exit status is non-zero only when something failed.
 
 Environment: MVPOSE_BENCH_OBS_RUNS (fresh servers, default 2), MVPOSE_BENCH_OBS_ROUNDS (rounds of
-base/live/opcua/opcua/live/base per run, default 3: 6 blocks per condition),
+the ten blocks per run, default 3: 6 blocks per condition),
 MVPOSE_BENCH_OBS_BLOCK (triggers per block, default 50).
 """
 
@@ -65,8 +78,14 @@ TOKEN = "mvp_bench-observers-token-00000000000000000000"
 RUNS = int(os.environ.get("MVPOSE_BENCH_OBS_RUNS", "2"))
 ROUNDS = int(os.environ.get("MVPOSE_BENCH_OBS_ROUNDS", "3"))
 BLOCK = int(os.environ.get("MVPOSE_BENCH_OBS_BLOCK", "50"))
-CONDITIONS = ("base", "live", "opcua")
-ORDER = ("base", "live", "opcua", "opcua", "live", "base")
+CONDITIONS = ("base", "live", "opcua", "line", "cameras")
+OBSERVERS = CONDITIONS[1:]
+ORDER = (*CONDITIONS, *reversed(CONDITIONS))
+#: each observer's line in the verdicts
+LABELS = {"live": "issue 17: an open Live page",
+          "opcua": "issue 18: a subscribed OPC UA client",
+          "line": "issue 27: an open line view",
+          "cameras": "issue 27: an open live camera view"}
 TARGET_RATIO = 1.10
 TWIN_PERIOD_MS = 0.0  # back to back
 TWIN_POLL_MS = 1.0
@@ -174,18 +193,8 @@ def _spent(before: dict[int, float], after: dict[int, float]) -> float:
 
 
 # --------------------------------------------------------------------------- the observers
-class LivePage:
-    """The Live view in headless Chromium; opened and closed between blocks."""
-
-    #: counts the result fragments the page swaps in (one per pushed "result" event)
-    COUNT_JS = """() => {
-        window.__results = 0;
-        new MutationObserver((changes) => {
-            for (const c of changes) {
-                for (const n of c.addedNodes) { if (n.id === 'result') window.__results += 1; }
-            }
-        }).observe(document.getElementById('live'), {childList: true, subtree: true});
-    }"""
+class Browser:
+    """Headless Chromium with a logged-in context (the bootstrap engineer's token)."""
 
     def __init__(self, base_url: str) -> None:
         from playwright.sync_api import sync_playwright
@@ -199,28 +208,68 @@ class LivePage:
         page = self.context.new_page()
         login(page, base_url, TOKEN)  # the session cookie stays in the context
         page.close()
-        self.page: Any = None
         self.errors: list[str] = []
-
-    def open(self) -> None:
-        self.page = self.context.new_page()
-        self.page.on("pageerror", lambda err: self.errors.append(str(err)))
-        self.page.goto(self.base + "/")
-        self.page.wait_for_function(
-            "document.getElementById('live').dataset.connected === '1'", timeout=30000)
-        self.page.evaluate(self.COUNT_JS)
-
-    def close(self) -> int:
-        """Close the page; the results it showed while open."""
-        n = int(self.page.evaluate("window.__results"))
-        self.page.close()
-        self.page = None
-        return n
 
     def shutdown(self) -> None:
         with contextlib.suppress(Exception):
             self.browser.close()
         self._pw.stop()
+
+
+class BrowserView:
+    """One page of the operator page, opened and closed between blocks."""
+
+    def __init__(self, browser: Browser, path: str, ready_js: str, count_js: str,
+                 counted_js: str) -> None:
+        self.b = browser
+        self.path, self.ready_js, self.count_js, self.counted_js = (
+            path, ready_js, count_js, counted_js)
+        self.page: Any = None
+
+    def open(self) -> None:
+        self.page = self.b.context.new_page()
+        self.page.on("pageerror", lambda err: self.b.errors.append(f"{self.path}: {err}"))
+        self.page.goto(self.b.base + self.path)
+        self.page.wait_for_function(self.ready_js, timeout=30000)
+        self.page.evaluate(self.count_js)
+
+    def close(self) -> int:
+        """Close the page; the updates it showed while open."""
+        n = int(self.page.evaluate(self.counted_js))
+        self.page.close()
+        self.page = None
+        return n
+
+
+def live_page(browser: Browser) -> BrowserView:
+    """The Live view; counts the result fragments it swaps in (one per pushed "result")."""
+    return BrowserView(browser, "/", "document.getElementById('live').dataset.connected === '1'",
+                       """() => {
+        window.__results = 0;
+        new MutationObserver((changes) => {
+            for (const c of changes) {
+                for (const n of c.addedNodes) { if (n.id === 'result') window.__results += 1; }
+            }
+        }).observe(document.getElementById('live'), {childList: true, subtree: true});
+    }""", "window.__results")
+
+
+def line_view(browser: Browser) -> BrowserView:
+    """The line view; counts its refreshes (htmx swaps of its fragment)."""
+    return BrowserView(browser, "/line", "document.querySelector('#verdict') !== null",
+                       """() => {
+        window.__swaps = 0;
+        document.body.addEventListener('htmx:afterSwap', () => { window.__swaps += 1; });
+    }""", "window.__swaps")
+
+
+def camera_view(browser: Browser) -> BrowserView:
+    """The live camera view; counts the frame sets it shows (after the first)."""
+    return BrowserView(browser, "/cameras",
+                       "Number(document.getElementById('camera-view').dataset.updates) > 0",
+                       """() => {
+        window.__sets0 = Number(document.getElementById('camera-view').dataset.updates);
+    }""", "Number(document.getElementById('camera-view').dataset.updates) - window.__sets0")
 
 
 class OpcUaObserver:
@@ -285,17 +334,20 @@ def _pct(a: list[float], q: float) -> float:
 
 def one_run(k: int, tmp: Path) -> dict[str, Any]:
     server = Server(tmp)
-    twin = live = opcua = None
+    twin = browser = opcua = None
     rt: dict[str, list[float]] = {c: [] for c in CONDITIONS}
-    seen = {"live": 0, "opcua": 0}
+    seen = dict.fromkeys(OBSERVERS, 0)
+    tally0 = tally1 = {}
     # station, API process, OPC UA link process, observers' side: CPU s during the blocks
     cpu = {c: [0.0, 0.0, 0.0, 0.0] for c in CONDITIONS}
     nok = 0
     try:
         twin = TwinProcess(server.plc_port, tmp / "twin.log", TWIN_PERIOD_MS, TWIN_POLL_MS)
-        live = LivePage(server.base_url)
+        browser = Browser(server.base_url)
         opcua = OpcUaObserver(server.opcua_port)
-        observers: dict[str, Any] = {"live": live, "opcua": opcua}
+        observers: dict[str, Any] = {"live": live_page(browser), "opcua": opcua,
+                                     "line": line_view(browser), "cameras": camera_view(browser)}
+        tally0 = server.client.status().part("camera_view") or {}
         twin.block(1, 30)  # warm-up, not counted
         next_id = 100
         for _ in range(ROUNDS):
@@ -317,49 +369,53 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                     seen[cond] += obs.close()
                 rt[cond] += res["roundtrip_ms"]
                 nok += int(res["nok"])
-        if live.errors:
-            raise RuntimeError(f"the Live page raised: {live.errors[:3]}")
+        tally1 = server.client.status().part("camera_view") or {}
+        if browser.errors:
+            raise RuntimeError(f"a page raised: {browser.errors[:3]}")
     finally:
-        for obs in (live, opcua):
+        for obs in (browser, opcua):
             if obs is not None:
                 obs.shutdown()
         if twin is not None:
             twin.close()
         server.stop()
+    tally = {n: int(tally1.get(n, 0)) - int(tally0.get(n, 0))
+             for n in ("requests", "grabs", "frames", "preempted", "skipped")}
     return {"run": k, "rt": rt, "seen": seen, "nok": nok, "ready_s": server.ready_s,
-            "cpu": cpu}
+            "cpu": cpu, "camera_view": tally}
 
 
 def report(runs: list[dict[str, Any]]) -> None:
     n_blocks = ROUNDS * ORDER.count("base")
     print(f"\n  trigger -> RESULT_VALID seen by the PLC twin (ms), triggers back to back, "
           f"{n_blocks} blocks of {BLOCK} per condition and run")
-    print(f"    run   {'base p50':>8} {'p99':>6}   {'live p50':>8} {'p99':>6}   "
-          f"{'opcua p50':>9} {'p99':>6}   {'live/base p99':>13}   {'opcua/base p99':>14}   "
-          f"pushed to page / events")
-    ratios: dict[str, list[float]] = {"live": [], "opcua": []}
+    print("    run   " + "   ".join(f"{c + ' p50':>11} {'p99':>6}" for c in CONDITIONS)
+          + "   " + "  ".join(f"{c + '/base p99':>13}" for c in OBSERVERS))
+    ratios: dict[str, list[float]] = {c: [] for c in OBSERVERS}
     for r in runs:
         rt = r["rt"]
         base99 = _pct(rt["base"], 99)
-        cells = []
-        for c in ("live", "opcua"):
+        for c in OBSERVERS:
             ratios[c].append(_pct(rt[c], 99) / base99)
-            cells.append(ratios[c][-1])
-        print(f"    {r['run']:3d}   {_pct(rt['base'], 50):8.1f} {base99:6.1f}   "
-              f"{_pct(rt['live'], 50):8.1f} {_pct(rt['live'], 99):6.1f}   "
-              f"{_pct(rt['opcua'], 50):9.1f} {_pct(rt['opcua'], 99):6.1f}   "
-              f"{cells[0]:13.2f}   {cells[1]:14.2f}   "
-              f"{r['seen']['live']} / {r['seen']['opcua']} of {len(rt['live'])} / "
-              f"{len(rt['opcua'])} triggers")
+        print(f"    {r['run']:3d}   "
+              + "   ".join(f"{_pct(rt[c], 50):11.1f} {_pct(rt[c], 99):6.1f}" for c in CONDITIONS)
+              + "   " + "  ".join(f"{ratios[c][-1]:13.2f}" for c in OBSERVERS))
+        shown = ", ".join(f"{c} {r['seen'][c]}" for c in OBSERVERS)
+        cv = r["camera_view"]
+        print(f"          updates shown (live: results, opcua: events, line: refreshes, "
+              f"cameras: frame sets) {shown}; station camera view: {cv['requests']} requests, "
+              f"{cv['grabs']} frame sets grabbed, {cv['frames']} camera frames, "
+              f"{cv['preempted']} camera previews preempted by a trigger, {cv['skipped']} sets "
+              f"skipped (a trigger ran)")
     pooled = {c: [x for r in runs for x in r["rt"][c]] for c in CONDITIONS}
-    print(f"    all   {_pct(pooled['base'], 50):8.1f} {_pct(pooled['base'], 99):6.1f}   "
-          f"{_pct(pooled['live'], 50):8.1f} {_pct(pooled['live'], 99):6.1f}   "
-          f"{_pct(pooled['opcua'], 50):9.1f} {_pct(pooled['opcua'], 99):6.1f}   "
-          f"{_pct(pooled['live'], 99) / _pct(pooled['base'], 99):13.2f}   "
-          f"{_pct(pooled['opcua'], 99) / _pct(pooled['base'], 99):14.2f}   (pooled)")
+    print("    all   "
+          + "   ".join(f"{_pct(pooled[c], 50):11.1f} {_pct(pooled[c], 99):6.1f}"
+                       for c in CONDITIONS)
+          + "   " + "  ".join(f"{_pct(pooled[c], 99) / _pct(pooled['base'], 99):13.2f}"
+                              for c in OBSERVERS) + "   (pooled)")
     print("    per trigger, all runs: p50 observer / baseline "
           + ", ".join(f"{c} {_pct(pooled[c], 50) / _pct(pooled['base'], 50):.2f}"
-                      for c in ("live", "opcua"))
+                      for c in OBSERVERS)
           + "; CPU ms of the station / API process / OPC UA link process / observers' side "
             "(bench process, Playwright, Chromium) "
           + ", ".join(f"{c} " + " / ".join(
@@ -368,12 +424,11 @@ def report(runs: list[dict[str, Any]]) -> None:
     noks = sum(r["nok"] for r in runs)
     print(f"    NOK answers: {noks}; server ready (OPC UA listening) after "
           + ", ".join(f"{r['ready_s']:.1f}" for r in runs) + " s")
-    for c, label in (("live", "issue 17: an open Live page"),
-                     ("opcua", "issue 18: a subscribed OPC UA client")):
+    for c in OBSERVERS:
         rs = ratios[c]
         med = float(np.median(rs))
-        verdict = "OK" if med <= TARGET_RATIO else "target missed"
-        print(f"  {label}: p99 observer / baseline, median of {len(rs)} runs {med:.2f} "
+        verdict = "OK" if med <= TARGET_RATIO else "MISSED"
+        print(f"  {LABELS[c]}: p99 observer / baseline, median of {len(rs)} runs {med:.2f} "
               f"(runs {min(rs):.2f}-{max(rs):.2f}), target <= {TARGET_RATIO:.2f} ... {verdict}")
 
 

@@ -8,7 +8,8 @@
 - light: the mean grey level (0-255) of the whole image and the share of pixels at 255
   (saturated: an edge that clips there cannot be located) and at 0 (no signal), in percent.
 
-Pure functions of arrays (numpy and OpenCV), as everything in mvpose_core.
+Pure functions of arrays, as everything in mvpose_core. The pixel loops are OpenCV's, which
+release the GIL: the station computes these beside its trigger thread.
 """
 
 from __future__ import annotations
@@ -60,17 +61,20 @@ def focus_figure(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> tu
     h, w = image.shape
     inside = clip_windows(windows, w, h)
     if not inside:
-        return float(cv2.Laplacian(image, cv2.CV_32F, ksize=3).var()), "whole image"
+        std = cv2.meanStdDev(cv2.Laplacian(image, cv2.CV_32F, ksize=3))[1]
+        return float(std[0, 0]) ** 2, "whole image"
     # Each window's Laplacian is taken with the image around it (no artificial border), then
     # all windows' values are pooled: one figure for the marks of the camera.
     n, s, s2 = 0, 0.0, 0.0
     for x0, y0, x1, y1 in inside:
         a, b = max(0, x0 - 1), max(0, y0 - 1)
-        lap = cv2.Laplacian(image[b : min(h, y1 + 1), a : min(w, x1 + 1)], cv2.CV_64F, ksize=3)
-        core = lap[y0 - b : y0 - b + (y1 - y0), x0 - a : x0 - a + (x1 - x0)]
-        n += core.size
-        s += float(core.sum())
-        s2 += float(np.square(core).sum())
+        lap = cv2.Laplacian(image[b : min(h, y1 + 1), a : min(w, x1 + 1)], cv2.CV_32F, ksize=3)
+        core = np.ascontiguousarray(lap[y0 - b : y0 - b + (y1 - y0), x0 - a : x0 - a + (x1 - x0)])
+        m, sd = (float(v[0, 0]) for v in cv2.meanStdDev(core))
+        k = core.size
+        n += k
+        s += k * m
+        s2 += k * (sd * sd + m * m)
     mean = s / n
     return max(0.0, s2 / n - mean * mean), "mark windows"
 
@@ -78,7 +82,7 @@ def focus_figure(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> tu
 def image_figures(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> ImageFigures:
     """Focus (over ``windows`` when any lies in the image) and light of a mono8 image."""
     focus, area = focus_figure(image, windows)
-    hist = np.bincount(image.ravel(), minlength=256)
+    hist = cv2.calcHist([image], [0], None, [256], [0, 256])[:, 0].astype(float)
     total = float(image.size)
     return ImageFigures(
         focus=focus,
