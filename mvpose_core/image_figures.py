@@ -1,15 +1,18 @@
 """Figures of one camera image for setting focus and light by hand (the live camera view).
 
-- focus: the variance of the image's Laplacian (3x3 kernel) in grey levels², over the mark
-  windows when there are any (the detector's search windows, where sharp edges matter), else
-  over the whole image. A sharper image has stronger second derivatives at its edges: turning
-  the focus ring, the figure peaks where the marks are sharpest. It has no absolute scale (it
-  grows with contrast, light and noise), so it compares frames of one camera of one scene.
+- focus: the variance of the image's Laplacian (the 4-neighbour kernel: 4·centre minus its
+  left, right, upper and lower neighbours) in grey levels², over the mark windows when there
+  are any (the detector's search windows, where sharp edges matter), else over the whole image.
+  A sharper image has stronger second derivatives at its edges: turning the focus ring, the
+  figure peaks where the marks are sharpest. It has no absolute scale (it grows with contrast,
+  light and noise), so it compares frames of one camera of one scene.
 - light: the mean grey level (0-255) of the whole image and the share of pixels at 255
   (saturated: an edge that clips there cannot be located) and at 0 (no signal), in percent.
 
-Pure functions of arrays, as everything in mvpose_core. The pixel loops are OpenCV's, which
-release the GIL: the station computes these beside its trigger thread.
+Pure functions of arrays, as everything in mvpose_core, in numpy alone: numpy's loops release
+the GIL, and unlike OpenCV's they run on the calling thread. The station computes these on a
+niced thread beside its real-time trigger path; OpenCV would hand the work to its own thread
+pool, whose threads run at the trigger path's real-time priority (they are started by it).
 """
 
 from __future__ import annotations
@@ -17,7 +20,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -54,53 +56,66 @@ def clip_windows(windows: Sequence[Window], width: int, height: int) -> list[Win
     return out
 
 
+def _laplacian(block: NDArray[np.uint8]) -> NDArray[np.int16]:
+    """The 4-neighbour Laplacian of the block's inner pixels, ``["H-2", "W-2"]``."""
+    b = block.astype(np.int16)
+    out: NDArray[np.int16] = 4 * b[1:-1, 1:-1] - b[:-2, 1:-1] - b[2:, 1:-1] - b[1:-1, :-2] \
+        - b[1:-1, 2:]
+    return out
+
+
 def focus_figure(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> tuple[float, str]:
     """The variance of the Laplacian over ``windows`` (those inside the image), or over the
     whole image when none is; with the name of the area it was taken over."""
     _check(image)
     h, w = image.shape
     inside = clip_windows(windows, w, h)
-    if not inside:
-        std = cv2.meanStdDev(cv2.Laplacian(image, cv2.CV_32F, ksize=3))[1]
-        return float(std[0, 0]) ** 2, "whole image"
+    area = "mark windows" if inside else "whole image"
     # Each window's Laplacian is taken with the image around it (no artificial border), then
     # all windows' values are pooled: one figure for the marks of the camera.
     n, s, s2 = 0, 0.0, 0.0
-    for x0, y0, x1, y1 in inside:
+    for x0, y0, x1, y1 in inside or [(0, 0, w, h)]:
         a, b = max(0, x0 - 1), max(0, y0 - 1)
-        lap = cv2.Laplacian(image[b : min(h, y1 + 1), a : min(w, x1 + 1)], cv2.CV_32F, ksize=3)
-        core = np.ascontiguousarray(lap[y0 - b : y0 - b + (y1 - y0), x0 - a : x0 - a + (x1 - x0)])
-        m, sd = (float(v[0, 0]) for v in cv2.meanStdDev(core))
-        k = core.size
-        n += k
-        s += k * m
-        s2 += k * (sd * sd + m * m)
+        c, d = min(w, x1 + 1), min(h, y1 + 1)
+        lap = _laplacian(image[b:d, a:c])  # covers (a+1 .. c-1) x (b+1 .. d-1)
+        core = lap[max(0, y0 - b - 1) : y1 - b - 1, max(0, x0 - a - 1) : x1 - a - 1]
+        if core.size == 0:
+            continue
+        n += core.size
+        s += float(core.sum(dtype=np.int64))
+        s2 += float(np.square(core, dtype=np.int64).sum())
+    if n == 0:
+        return 0.0, area
     mean = s / n
-    return max(0.0, s2 / n - mean * mean), "mark windows"
+    return max(0.0, s2 / n - mean * mean), area
 
 
 def image_figures(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> ImageFigures:
     """Focus (over ``windows`` when any lies in the image) and light of a mono8 image."""
     focus, area = focus_figure(image, windows)
-    hist = cv2.calcHist([image], [0], None, [256], [0, 256])[:, 0].astype(float)
     total = float(image.size)
     return ImageFigures(
         focus=focus,
         focus_area=area,
-        mean=float(np.dot(hist, np.arange(256)) / total),
-        saturated_pct=100.0 * float(hist[255]) / total,
-        dark_pct=100.0 * float(hist[0]) / total,
+        mean=float(image.mean(dtype=np.float64)),
+        saturated_pct=100.0 * np.count_nonzero(image == 255) / total,
+        dark_pct=100.0 * np.count_nonzero(image == 0) / total,
     )
 
 
 def downscale(image: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
-    """The image at ``width`` pixels wide (area averaging, aspect kept); never enlarged."""
+    """The image reduced by the smallest whole factor that makes it at most ``width`` pixels
+    wide (each output pixel the mean of a k x k block; the last partial row and column of
+    blocks dropped); never enlarged."""
     _check(image)
     if width < 1:
         raise ValueError(f"downscale width must be at least 1 px, got {width}")
     h, w = image.shape
-    if w <= width:
+    k = -(-w // width)  # ceil
+    if k <= 1:
         return image
-    height = max(1, round(h * width / w))
-    out = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-    return out.astype(np.uint8, copy=False)
+    hh, ww = h // k, w // k
+    blocks = image[: hh * k, : ww * k].reshape(hh, k, ww, k)
+    total = blocks.sum(axis=(1, 3), dtype=np.uint32)
+    out: NDArray[np.uint8] = ((total + (k * k) // 2) // (k * k)).astype(np.uint8)
+    return out

@@ -61,11 +61,25 @@ def test_light_figures() -> None:
     assert flat.focus == 0.0 and flat.saturated_pct == 0.0 and flat.mean == pytest.approx(7)
 
 
-def test_downscale_keeps_the_aspect_and_never_enlarges() -> None:
+def test_downscale_averages_blocks_keeps_the_aspect_and_never_enlarges() -> None:
     img = np.zeros((2048, 2448), np.uint8)
-    small = downscale(img, 640)
-    assert small.shape == (535, 640) and small.dtype == np.uint8
+    img[:4, :4] = [[0, 10, 20, 30]] * 4  # one 4 x 4 block, mean 15
+    img[4:8, :4] = 255
+    small = downscale(img, 640)  # 2448 / 4 = 612 <= 640 < 2448 / 3
+    assert small.shape == (512, 612) and small.dtype == np.uint8
+    assert (small[0, 0], small[1, 0], small[0, 1]) == (15, 255, 0)
     assert downscale(small, 1000) is small
+    assert downscale(np.zeros((2048, 2048), np.uint8), 640).shape == (512, 512)
+
+
+def test_focus_is_the_variance_of_the_4_neighbour_laplacian() -> None:
+    img = np.zeros((9, 9), np.uint8)
+    img[4, 4] = 10  # one bright pixel: Laplacian 40 there, -10 at its 4 neighbours
+    values = np.zeros((7, 7))  # the inner pixels, where the kernel fits
+    values[3, 3], values[2, 3], values[4, 3], values[3, 2], values[3, 4] = 40, -10, -10, -10, -10
+    assert focus_figure(img)[0] == pytest.approx(values.var())
+    # a window takes the image around it: the same pixel's window sees the same values
+    assert focus_figure(img, [(3, 3, 6, 6)])[0] == pytest.approx(values[2:5, 2:5].var())
 
 
 def test_bad_input_is_named() -> None:

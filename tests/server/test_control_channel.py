@@ -75,7 +75,7 @@ async def test_every_operation_round_trips_through_its_models(tmp_path: Path) ->
             view = client.camera_view(320)  # the live camera view's frames
             assert isinstance(view, CameraViewAnswer) and view.seq >= 1
             assert [c.camera_id for c in view.cameras] == list(status.cameras)
-            assert all(c.jpeg_base64 and c.width == 320 for c in view.cameras), view.note
+            assert all(c.jpeg_base64 and 0 < c.width <= 320 for c in view.cameras), view.note
 
             moved = client.move_part([0.0] * 6)  # the part at the reference: a zero offset
             assert isinstance(moved, MovePartAnswer)
