@@ -6,8 +6,11 @@
   A sharper image has stronger second derivatives at its edges: turning the focus ring, the
   figure peaks where the marks are sharpest. It has no absolute scale (it grows with contrast,
   light and noise), so it compares frames of one camera of one scene.
-- light: the mean grey level (0-255) of the whole image and the share of pixels at 255
-  (saturated: an edge that clips there cannot be located) and at 0 (no signal), in percent.
+- light: the mean grey level (0-255) of the image and the share of its pixels at 255
+  (saturated: an edge that clips there cannot be located) and at 0 (no signal), in percent,
+  estimated from every :data:`LIGHT_STEP`-th pixel of every LIGHT_STEP-th row (1/16 of a
+  2048 x 2048 frame's pixels: the estimate is within a fraction of a per cent, at 1/16 of the
+  time).
 
 Pure functions of arrays, as everything in mvpose_core, in numpy alone: numpy's loops release
 the GIL, and unlike OpenCV's they run on the calling thread. The station computes these on a
@@ -25,6 +28,8 @@ from numpy.typing import NDArray
 
 #: a window ``(x0, y0, x1, y1)`` in pixels, half-open, as the detector's search windows
 Window = tuple[int, int, int, int]
+#: the light figures look at every LIGHT_STEP-th pixel of every LIGHT_STEP-th row
+LIGHT_STEP = 4
 
 
 @dataclass(frozen=True)
@@ -93,29 +98,26 @@ def focus_figure(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> tu
 def image_figures(image: NDArray[np.uint8], windows: Sequence[Window] = ()) -> ImageFigures:
     """Focus (over ``windows`` when any lies in the image) and light of a mono8 image."""
     focus, area = focus_figure(image, windows)
-    total = float(image.size)
+    sample = image[::LIGHT_STEP, ::LIGHT_STEP]
+    total = float(sample.size)
     return ImageFigures(
         focus=focus,
         focus_area=area,
-        mean=float(image.mean(dtype=np.float64)),
-        saturated_pct=100.0 * np.count_nonzero(image == 255) / total,
-        dark_pct=100.0 * np.count_nonzero(image == 0) / total,
+        mean=float(sample.mean(dtype=np.float64)),
+        saturated_pct=100.0 * np.count_nonzero(sample == 255) / total,
+        dark_pct=100.0 * np.count_nonzero(sample == 0) / total,
     )
 
 
 def downscale(image: NDArray[np.uint8], width: int) -> NDArray[np.uint8]:
-    """The image reduced by the smallest whole factor that makes it at most ``width`` pixels
-    wide (each output pixel the mean of a k x k block; the last partial row and column of
-    blocks dropped); never enlarged."""
+    """The image reduced by the smallest whole factor k that makes it at most ``width`` pixels
+    wide: every k-th pixel of every k-th row (a picture to aim and focus by, not to measure:
+    one copy of 1/k² of the pixels, where a block mean took 10 times as long); never
+    enlarged."""
     _check(image)
     if width < 1:
         raise ValueError(f"downscale width must be at least 1 px, got {width}")
-    h, w = image.shape
-    k = -(-w // width)  # ceil
+    k = -(-image.shape[1] // width)  # ceil
     if k <= 1:
         return image
-    hh, ww = h // k, w // k
-    blocks = image[: hh * k, : ww * k].reshape(hh, k, ww, k)
-    total = blocks.sum(axis=(1, 3), dtype=np.uint32)
-    out: NDArray[np.uint8] = ((total + (k * k) // 2) // (k * k)).astype(np.uint8)
-    return out
+    return np.ascontiguousarray(image[::k, ::k])

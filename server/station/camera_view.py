@@ -9,7 +9,10 @@ What keeps the trigger path from waiting: a grab is not started while a trigger 
 that comes during a grab preempts it on each camera's own thread (CaptureGroup.preview: the
 preview gives way within 2 ms and drops the exposure it started); downscaling, the figures and
 the JPEG run on this room's own thread under the normal scheduler, niced
-(scheduling.background), which the trigger path's real-time threads preempt.
+(scheduling.background), which the trigger path's real-time threads preempt. They run in numpy
+(mvpose_core.image_figures) and libjpeg, on this thread itself: OpenCV's parallel functions
+would hand the pixels to OpenCV's thread pool, whose threads the trigger path started and which
+therefore run at its real-time priority.
 """
 
 from __future__ import annotations
