@@ -7,12 +7,14 @@ processes ask, the cameras give at most one preview frame per period.
 
 What keeps the trigger path from waiting: a grab is not started while a trigger runs; a trigger
 that comes during a grab preempts it on each camera's own thread (CaptureGroup.preview: the
-preview gives way within 2 ms and drops the exposure it started); downscaling, the figures and
-the JPEG run on this room's own thread under the normal scheduler, niced
-(scheduling.background), which the trigger path's real-time threads preempt. They run in numpy
-(mvpose_core.image_figures) and libjpeg, on this thread itself: OpenCV's parallel functions
-would hand the pixels to OpenCV's thread pool, whose threads the trigger path started and which
-therefore run at its real-time priority.
+preview gives way within 2 ms and drops the exposure it started); the picture and the figures
+cost ~2 ms of CPU per camera (every k-th pixel, the light figures from a sample, the focus over
+the mark windows: mvpose_core.image_figures) and run on this room's own thread at real-time
+priority 1, below the trigger path's (scheduling.beneath): a trigger takes the core from it at
+once, and no normal task keeps it from giving the GIL back (the niced thread it first ran on
+did: bench observers, p99 1.5 times the baseline). The pixel loops are numpy's and libjpeg's on
+this thread itself: OpenCV's parallel functions would hand them to OpenCV's thread pool, whose
+threads the trigger path started and which therefore run at its priority.
 """
 
 from __future__ import annotations
@@ -80,7 +82,7 @@ class CameraView:
         """:meth:`take` on this room's thread (never on the station loop)."""
         if self._exec is None:
             self._exec = ThreadPoolExecutor(1, thread_name_prefix="camera-view",
-                                            initializer=scheduling.background)
+                                            initializer=scheduling.beneath)
         return await asyncio.get_running_loop().run_in_executor(self._exec, self.take, width)
 
     # ------------------------------------------------------------------ its thread

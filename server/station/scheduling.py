@@ -11,7 +11,8 @@ else the PC does.
 threads inherit their creator's policy, so the trigger thread, the links' loop, the recorder, the
 camera threads and the detection worker processes all run at that priority. Work that must not
 compete with the next trigger (the archive's PNG encoding) calls :func:`background` in its own
-thread to go back to the normal policy, niced.
+thread to go back to the normal policy, niced. Short Python work beside it (the live camera
+view's frames) calls :func:`beneath`: real-time below the trigger path (see there why).
 
 The station's threads block while they wait (sockets, queues, the cameras); none of them spins.
 Linux keeps 5 % of each second for normal tasks whatever real-time threads do
@@ -64,3 +65,24 @@ def background(nice: int = 10) -> None:
         # Linux: a thread is a task with its own nice value
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
 
+
+
+def beneath(priority: int = 1) -> None:
+    """The calling thread stays real-time when the station's trigger path is, at ``priority``
+    (below the trigger path's, above every normal task); otherwise it is niced like
+    :func:`background`.
+
+    For short Python work beside the trigger path (the live camera view's frames): a niced
+    thread that holds the GIL when the kernel preempts it keeps the trigger thread waiting for
+    the GIL until the busy machine's normal tasks let it run again; a real-time thread below the
+    trigger path gives the core to a trigger at once and gets it back before any normal task.
+    """
+    try:
+        policy = os.sched_getscheduler(0)
+    except (AttributeError, OSError):
+        policy = None
+    if policy == getattr(os, "SCHED_FIFO", None):
+        with contextlib.suppress(OSError):
+            os.sched_setparam(0, os.sched_param(priority))
+            return
+    background()
