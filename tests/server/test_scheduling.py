@@ -121,3 +121,38 @@ def test_a_bad_priority_is_a_one_line_start_up_error(tmp_path: Path, value: str)
     assert done.returncode != 0
     assert "trigger-priority" in done.stderr or "TRIGGER_PRIORITY" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def _in_thread(start_fifo: bool) -> dict[str, Any]:
+    """beneath() in a new thread (real-time at 10 first when ``start_fifo``): its policy after."""
+    import threading
+
+    from server.station import scheduling
+
+    out: dict[str, Any] = {}
+
+    def run() -> None:
+        if start_fifo:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+            except OSError as err:
+                out["refused"] = str(err)
+                return
+        scheduling.beneath()
+        out.update(policy=os.sched_getscheduler(0), priority=os.sched_getparam(0).sched_priority,
+                   nice=os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join(10)
+    return out
+
+
+def test_beneath_keeps_a_thread_real_time_below_the_trigger_path() -> None:
+    out = _in_thread(start_fifo=True)
+    if "refused" in out:
+        pytest.skip(f"no real-time policy on this machine: {out['refused']}")
+    assert (out["policy"], out["priority"]) == (os.SCHED_FIFO, 1)
+    # a station without the real-time policy: the thread is niced, as background() does
+    out = _in_thread(start_fifo=False)
+    assert out["policy"] == os.SCHED_OTHER and out["nice"] >= 10
