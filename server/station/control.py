@@ -231,7 +231,7 @@ class ControlServer:
         if isinstance(request, HandEyeRequest):
             return await self._handeye(request)
         if isinstance(request, CameraViewRequest):
-            # on the camera view's own niced thread: its JPEGs never hold a pool thread
+            # on the camera view's own thread (real-time below the trigger path, not the pool)
             return await self.station.camera_view.frames(request.width)
         work = self._work(request)
         return await asyncio.to_thread(work)
