@@ -23,11 +23,13 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
     "enip": ("drivers.links.enip", "EnipLink"),
+    "s7": ("drivers.links.s7", "S7Link"),
 }
 SETTINGS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus.settings", "ModbusLinkConfig"),
     "opcua": ("drivers.links.opcua.settings", "OpcUaLinkConfig"),
     "enip": ("drivers.links.enip.settings", "EnipLinkConfig"),
+    "s7": ("drivers.links.s7.settings", "S7LinkConfig"),
 }
 OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
 ON_BY_DEFAULT: tuple[str, ...] = ("modbus",)

@@ -106,11 +106,13 @@ def test_the_backoff_doubles_up_to_its_limit_and_starts_again_after_a_success() 
     assert b.next() == 0.1
 
 
-def test_an_outage_is_news_once_and_again_when_its_reason_changes() -> None:
+def test_an_outage_is_news_once_and_again_when_its_kind_changes() -> None:
     o = Outage()
     assert o.lost("refused") is True
-    assert [o.lost("refused") for _ in range(5)] == [False] * 5
-    assert o.lost("timed out") is True  # a new reason is worth a line
+    assert [o.lost(why) for why in ("refused", "reset", "timed out")] == [False] * 3
+    assert o.reason == "timed out"
+    assert o.lost("DB101 is 64 bytes long", "block") is True  # now it answers, but does not fit
+    assert o.lost("DB101 is 64 bytes long", "block") is False
     assert o.outages == 1 and not o.up
     assert o.connected() is True  # the end of a reported outage is worth a line
     assert o.up and o.connected() is False

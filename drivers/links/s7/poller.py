@@ -173,27 +173,29 @@ class Backoff:
 
 
 class Outage:
-    """Whether the PLC is reachable, and whether a problem is news: a log line once per outage
-    (and once more when its reason changes), not once per attempt."""
+    """Whether the PLC is reachable, and whether a problem is news: one log line per outage, not
+    one per attempt, and one more only when its kind changes (a PLC that was unreachable
+    answers now, but its DB does not fit: the operator needs that message)."""
 
     def __init__(self) -> None:
         self.up = False
         self.reason = ""
         self.outages = 0
-        self._told = ""
+        self._told: str | None = None  # the kind of problem the log has told of in this outage
 
     def connected(self) -> bool:
         """The link works again; True when that ends an outage that was reported."""
-        was_down = bool(self._told)
-        self.up, self.reason, self._told = True, "", ""
+        was_down = self._told is not None
+        self.up, self.reason, self._told = True, "", None
         return was_down
 
-    def lost(self, reason: str) -> bool:
-        """A connection attempt or a working connection failed; True when this is news."""
-        if self.up or not self._told:
+    def lost(self, reason: str, kind: str = "lost") -> bool:
+        """A connection attempt or a working connection failed (``kind``: "lost" for the
+        connection, "block" for a DB or PDU that does not fit); True when this is news."""
+        if self.up or self._told is None:
             self.outages += 1
         self.up = False
         self.reason = reason
-        news = reason != self._told
-        self._told = reason
+        news = kind != self._told
+        self._told = kind
         return news
