@@ -117,3 +117,29 @@ def test_an_outage_is_news_once_and_again_when_its_kind_changes() -> None:
     assert o.connected() is True  # the end of a reported outage is worth a line
     assert o.up and o.connected() is False
     assert o.lost("dropped") is True and o.outages == 2
+
+
+def test_the_station_files_s7_block_is_checked_field_by_field() -> None:
+    from drivers.links import LinkSettingsError, link_settings
+
+    cfg = link_settings({"s7": {"host": "10.1.2.7"}})["s7"]
+    assert cfg.tsaps == (0x0100, 0x0101)  # type: ignore[attr-defined]  # rack 0, slot 1
+    cfg = link_settings({"s7": {"host": "10.1.2.7", "rack": 0, "slot": 2}})["s7"]
+    assert cfg.tsaps == (0x0100, 0x0102)  # type: ignore[attr-defined]  # an S7-300
+    cfg = link_settings({"s7": {"host": "h", "local_tsap": 0x1000, "remote_tsap": 0x2001}})["s7"]
+    assert cfg.tsaps == (0x1000, 0x2001)  # type: ignore[attr-defined]
+    bad = [
+        ({"host": "h", "allowlist": ["10.0.0.0/8"]}, "links.s7.allowlist", "Extra inputs"),
+        ({}, "links.s7.host", "Field required"),
+        ({"host": "h", "remote_tsap": 0x0102}, "links.s7", "go together"),
+        ({"host": "h", "slot": 2, "local_tsap": 1, "remote_tsap": 2}, "links.s7", "not both"),
+        ({"host": "h", "result_db": 100, "result_start": 40}, "links.s7", "overlaps"),
+        ({"host": "h", "poll_s": 0}, "links.s7.poll_s", "greater than or equal"),
+        ({"host": "h", "reconnect_min_s": 2, "reconnect_max_s": 1}, "links.s7", "below"),
+    ]
+    for block, where, what in bad:
+        with pytest.raises(LinkSettingsError) as err:
+            link_settings({"s7": block})
+        assert any(w == where and what in m for w, m, _ in err.value.problems), err.value
+    same_db = link_settings({"s7": {"host": "h", "result_db": 100, "result_start": 80}})
+    assert same_db["s7"].result_db == 100  # type: ignore[attr-defined]  # no overlap: fine
