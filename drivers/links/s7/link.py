@@ -216,6 +216,7 @@ class S7Link(Link):
             outputs = await conn.read(self.trigger.db, self.trigger.start, self.trigger.size)
             self.stats.polls += 1
             runner.write_output(outputs, ORDER)  # edges start their work here
+            await _passes()  # a quick answer (a refusal, a command) goes out with this write
             await self._publish(conn, runner)
             due = max(due + period, loop.time())
             woken = False
@@ -225,8 +226,7 @@ class S7Link(Link):
                     woken = True
             if woken:  # a measurement ended: its answer goes out now, the poll stays on time
                 self._wake.clear()
-                for _ in range(3):  # the runner publishes it within a loop pass or two
-                    await asyncio.sleep(0)
+                await _passes()
                 await self._publish(conn, runner)
                 await asyncio.sleep(max(0.0, due - loop.time()))
 
@@ -240,3 +240,9 @@ class S7Link(Link):
             self.stats.block_writes += 1
         else:
             self.stats.heartbeat_writes += 1
+
+
+async def _passes(n: int = 3) -> None:
+    """A few loop passes: the runner publishes an outcome a pass or two after its future ends."""
+    for _ in range(n):
+        await asyncio.sleep(0)
