@@ -92,7 +92,6 @@ class S7Link(Link):
         self._writer = ResultWriter(self.result, HEARTBEAT)
         self._task: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
-        self._conn: S7Connection | None = None
         self._stopping = False
 
     # ------------------------------------------------------------------ life cycle
@@ -185,14 +184,12 @@ class S7Link(Link):
                 log.exception("S7 link: the poll loop failed")
                 self._lost(PlcLostError(f"PLC {conn.plc}: the poll loop failed: {err!r}"))
             finally:
-                self._conn = None
                 await conn.close()
             await asyncio.sleep(backoff.next())
 
     def _connected(self, conn: S7Connection) -> None:
         self.stats.connects += 1
         self._writer.reset()  # the PLC gets the whole result block first
-        self._conn = conn
         if self.outage.connected():
             log.warning("S7 link: PLC %s reachable again (PDU %d bytes)", conn.plc,
                         conn.pdu_size)
