@@ -114,7 +114,9 @@ async def _env(tmp: Path, name: str, *edits: Callable[[dict[str, Any]], None],
     (tmp / "pki" / "trusted" / "client.der").write_bytes(cert.read_bytes())
     settings = settings_for(station_file(tmp, name, *edits, _links(tmp, opcua)), tmp / "var")
     with S7Cpu() as cpu:  # the S7 link is the client: its PLC runs before the station
-        s7 = {**cpu.settings, "watchdog_s": 10.0}
+        # polled every 20 ms, not 5: the CPU's server threads share this process's GIL with
+        # every other link of the shared stations
+        s7 = {**cpu.settings, "watchdog_s": 10.0, "poll_s": 0.02}
         async with running_server(settings, runtime_options(3), links={"s7": s7}) as rs:
             lk = rs.runtime.link("opcua")
             if lk is not None:  # the Machine Vision NodeSet loads in the background of the start
