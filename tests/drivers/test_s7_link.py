@@ -17,7 +17,7 @@ from plc_peers import ArithmeticHandler, expected_outcome
 from waiting import until
 
 from drivers.links import link_settings
-from drivers.links.layout import ErrorCode, Status
+from drivers.links.layout import INPUT_SIZE, ErrorCode, Status
 from drivers.links.s7 import S7Link, S7LinkConfig
 from drivers.links.s7.twin import S7Cpu, S7Port
 from drivers.links.twin import PlcTwin
@@ -101,10 +101,10 @@ async def test_the_result_block_is_written_only_when_it_changed(s7: Factory) -> 
 
 
 @pytest.mark.parametrize(("cpu_kw", "words"), [
-    ({"result_db_size": 64}, ("DB101", "64 bytes long", "140 bytes")),
+    ({"result_db_size": 64}, ("DB101", "64 bytes long", f"{INPUT_SIZE} bytes")),
     ({"trigger_db_size": 0}, ("no DB100", "Optimized block access", "80 bytes")),
     ({"trigger_db_size": 30}, ("DB100", "30 bytes long", "80 bytes")),
-    ({"max_pdu": 160}, ("PDU of 160 bytes", "DB101", "175 bytes")),
+    ({"max_pdu": 160}, ("PDU of 160 bytes", "DB101", f"{INPUT_SIZE + 35} bytes")),
 ])
 async def test_a_bad_plc_project_is_named_and_retried_and_nothing_is_measured(
         s7: Factory, caplog: pytest.LogCaptureFixture, cpu_kw: dict[str, Any],

@@ -35,7 +35,7 @@ class S7LinkConfig(BaseModel):
                             description="the DB the PLC writes (the trigger block, 80 bytes)")
     trigger_start: int = Field(0, ge=0, le=65535, description="its first byte in that DB")
     result_db: int = Field(101, ge=1, le=65535,
-                           description="the DB mvpose writes (the result block, 140 bytes)")
+                           description="the DB mvpose writes (the result block, 168 bytes)")
     result_start: int = Field(0, ge=0, le=65535, description="its first byte in that DB")
     poll_s: float = Field(0.005, ge=0.001, le=1.0,
                           description="the trigger DB is read this often")
