@@ -53,7 +53,8 @@ def run_station_demo(
     port: int = 8000, data_dir: Path = Path("var") / "demo", max_mm: float = 20.0,
     max_deg: float = 2.0, truth: Path | None = None, link: str = "modbus",
 ) -> int:
-    """Run the demo; returns the number of OK results whose error is beyond the tolerances."""
+    """Run the demo; returns the number of OK results whose error is beyond the tolerances.
+    ``link``: the bus the PLC twin talks over (a key of :data:`server.plc_buses.BUSES`)."""
     station = load_station(station_path)  # StationFileError names file, field and value
     if any(c.driver.kind != "sim" for c in station.cameras):
         raise ValueError(f"{station_path}: the demo needs simulated cameras (driver kind: sim)")
@@ -85,9 +86,9 @@ async def _demo(settings: Settings, triggers: int | None, keep_serving: bool, se
         print(f"REST API  {lb.base_url}/api/v1   (OpenAPI: {lb.base_url}/docs)")
         print(f"token     {token}   (engineer; e.g. curl -H 'Authorization: Bearer {token}' "
               f"{lb.base_url}/api/v1/measurements)")
-        bus = {"modbus": "Modbus", "enip": "EtherNet/IP"}.get(link, link)
-        print(f"{bus:<9} 127.0.0.1:{rt.link_port(link)}   "
-              f"store {settings.resolved_database_url}")
+        assert lb.bus is not None  # running_station opens one
+        print(lb.bus.describe(rt))
+        print(f"store     {settings.resolved_database_url}")
         conv = recipe.robot_convention
         lin, ang = _units(conv)
         labels = " ".join(f"{x:>7}" for x in conv.labels[:3]) + " |" + " ".join(

@@ -2,7 +2,8 @@
 
 Used by ``mvpose demo``, the end-to-end tests and the station benchmark, so all three run the same
 production code paths: the FastAPI app with its lifespan (store, migrations, tokens), the
-runtime's Modbus server on a free port, and the twin talking Modbus/TCP to it like the PLC.
+runtime's PLC link on loopback, and the twin talking to it like the PLC over the bus chosen
+(Modbus/TCP by default; the buses are server/plc_buses.py's table).
 """
 
 from __future__ import annotations
@@ -13,17 +14,19 @@ import threading
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import uvicorn
 
 from drivers.links.layout import Status
 from drivers.links.modbus.twin import modbus_twin
-from drivers.links.twin import PlcStatus, PlcTwin
+from drivers.links.twin import PlcPort, PlcStatus, PlcTwin
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array, compose, from_robot, invert, to_robot, transform_error
 from server.app import create_app
 from server.links import load_station
+from server.plc_buses import LOOPBACK_LINKS, Bus, open_bus
 from server.settings import Settings
 from server.station.client import StationClient
 from server.station.core import Station, StationOptions
@@ -95,6 +98,7 @@ class Loopback:
     twin: PlcTwin
     server: uvicorn.Server | None
     base_url: str | None
+    bus: Bus | None = None
 
 
 @dataclass
@@ -102,13 +106,6 @@ class RunningServer:
     runtime: Station
     server: uvicorn.Server | None
     base_url: str | None
-
-
-# the block a backend's link gets on loopback (free ports); its twin (see _twin)
-LOOPBACK_LINKS: dict[str, dict[str, object]] = {
-    "modbus": {"host": "127.0.0.1", "port": 0},
-    "enip": {"host": "127.0.0.1", "port": 0, "io_port": 0},
-}
 
 
 def _twin(link: str, port: int, poll_s: float) -> PlcTwin:
@@ -124,6 +121,7 @@ def _twin(link: str, port: int, poll_s: float) -> PlcTwin:
 async def running_server(
     settings: Settings, options: StationOptions | None = None, *,
     http_host: str = "127.0.0.1", http_port: int | None = 0, link: str = "modbus",
+    links: dict[str, dict[str, Any]] | None = None,
 ) -> AsyncIterator[RunningServer]:
     """The station (with its control channel) + the API app served by uvicorn (unless
     ``http_port`` is None), in this process, with no PLC attached.
@@ -135,16 +133,20 @@ async def running_server(
     the caller: :func:`running_station` adds an in-process twin; the station benchmark runs
     `mvpose serve` and the twin as processes. ``link`` other than Modbus: that backend's link
     is on loopback too (free ports), and the Modbus link is off, so the station's state is
-    the one that link's PLC sees.
+    the one that link's PLC sees. ``links``: blocks merged over all that (a bus's whose PLC
+    the station connects to, such as S7's CPU: :mod:`server.plc_buses`).
     """
     if settings.station is None:
         raise ValueError("settings.station must name the station file")
+    extra_links = links
     station = load_station(settings.station)
     links = dict(station.links)  # the PLC twin's link, on loopback
     links["modbus"] = {**(links.get("modbus") or {}), **LOOPBACK_LINKS["modbus"]}
     if link != "modbus":
         links[link] = {**(links.get(link) or {}), **LOOPBACK_LINKS[link]}
         links["modbus"]["enabled"] = False
+    for name, block in (extra_links or {}).items():
+        links[name] = {**(links.get(name) or {}), **block}
     station = station.model_copy(update={"links": links})
     proc = StationProcess(settings, station, options or StationOptions())
     await asyncio.to_thread(proc.start)
@@ -179,14 +181,16 @@ async def running_server(
         await asyncio.to_thread(proc.stop)
 
 
-async def attach_twin(port: int, poll_s: float = 0.001, link: str = "modbus"
+async def attach_twin(port: int | PlcPort, poll_s: float = 0.001, link: str = "modbus"
                       ) -> tuple[PlcTwin, asyncio.Task[None]]:
-    """A connected twin with its cyclic heartbeat running, trigger enabled, station READY.
+    """A connected twin with its cyclic heartbeat running, trigger enabled, station READY;
+    ``port``: the port the station's ``link`` listens on, or the twin's own port on a bus
+    (S7's, on the CPU the station polls).
 
     An earlier PLC's disconnect may have left the station in ERROR (heartbeat watchdog): the
     twin resets it first, as a PLC program does after a restart.
     """
-    twin = _twin(link, port, poll_s)
+    twin = _twin(link, port, poll_s) if isinstance(port, int) else PlcTwin(port, poll_s=poll_s)
     await twin.connect()
     # The PLC's cyclic heartbeat, next to the handshakes (the client serialises requests).
     beat = asyncio.create_task(twin.keep_alive(0.1), name="plc-heartbeat")
@@ -222,19 +226,27 @@ async def detach_twin(twin: PlcTwin, beat: asyncio.Task[None]) -> None:
 async def running_station(
     settings: Settings, options: StationOptions | None = None, *,
     http_host: str = "127.0.0.1", http_port: int | None = 0, twin_poll_s: float = 0.001,
-    link: str = "modbus",
+    link: str = "modbus", links: dict[str, dict[str, Any]] | None = None,
 ) -> AsyncIterator[Loopback]:
     """:func:`running_server` plus a connected, enabled PLC twin on ``link``'s bus in this
-    process."""
-    async with running_server(settings, options, http_host=http_host,
-                              http_port=http_port, link=link) as rs:
-        # A PLC scans every few ms; a twin polling flat out in this process would only
-        # compete with the pipeline for the GIL.
-        twin, beat = await attach_twin(rs.runtime.link_port(link), twin_poll_s, link)
-        try:
-            yield Loopback(runtime=rs.runtime, twin=twin, server=rs.server, base_url=rs.base_url)
-        finally:
-            await detach_twin(twin, beat)
+    process (a key of :data:`server.plc_buses.BUSES`); ``links``: settings merged over the
+    bus's blocks (a test's watchdog)."""
+    bus = open_bus(link)
+    blocks = {name: {**block, **(links or {}).get(name, {})} for name, block in bus.links.items()}
+    blocks.update({name: block for name, block in (links or {}).items() if name not in blocks})
+    try:
+        async with running_server(settings, options, http_host=http_host,
+                                  http_port=http_port, links=blocks) as rs:
+            # A PLC scans every few ms; a twin polling flat out in this process would only
+            # compete with the pipeline for the GIL.
+            twin, beat = await attach_twin(bus.port(rs.runtime), twin_poll_s)
+            try:
+                yield Loopback(runtime=rs.runtime, twin=twin, server=rs.server,
+                               base_url=rs.base_url, bus=bus)
+            finally:
+                await detach_twin(twin, beat)
+    finally:
+        bus.close()
 
 
 def _serve(server: uvicorn.Server, failed: list[str]) -> None:

@@ -6,7 +6,8 @@ backend's module and class; they are imported only when a station file names the
 station without OPC UA never imports asyncua. A backend in ``OWN_PROCESS`` runs in a child
 process of the station (:mod:`drivers.links.process`): its per-result work is pure Python and
 would otherwise hold the station process's GIL beside the trigger path. A backend in
-``ON_BY_DEFAULT`` runs with its default settings when the station file does not name it.
+``ON_BY_DEFAULT`` runs with its default settings when the station file does not name it. A
+backend in ``CLIENTS`` connects to the PLC: its ``host`` and ``port`` are the PLC's address.
 """
 
 from __future__ import annotations
@@ -23,13 +24,17 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus", "ModbusLink"),
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
     "enip": ("drivers.links.enip", "EnipLink"),
+    "s7": ("drivers.links.s7", "S7Link"),
 }
 SETTINGS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus.settings", "ModbusLinkConfig"),
     "opcua": ("drivers.links.opcua.settings", "OpcUaLinkConfig"),
     "enip": ("drivers.links.enip.settings", "EnipLinkConfig"),
+    "s7": ("drivers.links.s7.settings", "S7LinkConfig"),
 }
 OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
+#: backends that connect to the PLC (their host and port are the PLC's, not ours to listen on)
+CLIENTS: frozenset[str] = frozenset({"s7"})
 ON_BY_DEFAULT: tuple[str, ...] = ("modbus",)
 
 
@@ -99,6 +104,6 @@ def open_links(configs: Mapping[str, Any], handler: StationHandler) -> list[Link
             for name, cfg in configs.items() if getattr(cfg, "enabled", True)]
 
 
-__all__ = ["BACKENDS", "ON_BY_DEFAULT", "OWN_PROCESS", "SETTINGS", "Link", "LinkOutcome",
+__all__ = ["BACKENDS", "CLIENTS", "ON_BY_DEFAULT", "OWN_PROCESS", "SETTINGS", "Link", "LinkOutcome",
            "LinkRequest", "LinkSettingsError", "StationHandler", "link_class", "link_settings",
            "open_links", "relay", "settings_model"]

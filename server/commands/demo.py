@@ -1,9 +1,9 @@
 """``mvpose demo``: the whole station server on simulated hardware, driven by the PLC twin.
 
 ``mvpose demo`` runs station 1 (four simulated 2048 × 2048 cameras, SQLite under ./var/demo,
-Modbus/TCP on loopback (EtherNet/IP class 1 I/O with ``--link enip``), the REST API): the PLC
-twin moves the part to random known displacements (the simulated cameras render the new
-position before the trigger), triggers, and the demo prints
+Modbus/TCP on loopback (EtherNet/IP class 1 I/O with ``--link enip``, S7 with ``--link s7``), the
+REST API): the PLC twin moves the part to random known displacements (the simulated cameras
+render the new position before the trigger), triggers, and the demo prints
 per trigger the true and the measured offset, the error, the 1σ and the server's latency. The
 operator page and the REST API stay up at the printed address; ``--triggers N`` stops after N
 triggers (``--keep-serving``: and keeps serving until Ctrl-C); ``--truth-out FILE`` writes the
@@ -127,8 +127,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="REST port (default 8000, a free one if taken; 0 = any)")
     parser.add_argument("--data-dir", type=Path, default=Path("var") / "demo",
                         help="SQLite store and image archive (default ./var/demo)")
-    parser.add_argument("--link", choices=("modbus", "enip"), default="modbus",
-                        help="the bus the PLC twin drives the station over (default modbus)")
+    from server.plc_buses import BUSES
+
+    parser.add_argument("--link", choices=sorted(BUSES), default="modbus",
+                        help="the fieldbus between the PLC twin and the station (default "
+                        "modbus; enip: EtherNet/IP class 1 I/O; s7: the station polls a "
+                        "simulated S7 CPU's DBs)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -139,11 +139,14 @@ def station_with_links(args: argparse.Namespace, path: Path) -> Any:
 
 def check_link_ports(station: Any) -> None:
     """CliError naming the link and its address when a link's port is taken (before anything
-    starts: a link that fails to listen later would stop the station with a traceback)."""
-    from drivers.links import link_settings
+    starts: a link that fails to listen later would stop the station with a traceback). A
+    client link's address is its PLC's (drivers.links.CLIENTS): nothing to check."""
+    from drivers.links import CLIENTS, link_settings
     from server.cli import check_port_free
 
     for backend, cfg in link_settings(station.links).items():
+        if backend in CLIENTS:
+            continue
         host, port = getattr(cfg, "host", None), getattr(cfg, "port", None)
         if not getattr(cfg, "enabled", True) or not isinstance(host, str) \
                 or not isinstance(port, int):

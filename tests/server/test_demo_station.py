@@ -37,6 +37,26 @@ def test_demo_measures_n_triggers_and_stops(
     assert (tmp_path / "var" / "mvpose.db").exists()
 
 
+@pytest.mark.timeout(180)
+def test_demo_runs_the_line_over_s7(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--link s7``: the station polls a simulated S7 CPU's DBs (python-snap7's server)."""
+    rc = main(["demo", "--link", "s7", "--triggers", "2", "--port", "0", "--data-dir",
+               str(tmp_path / "var"), "--seed", "3"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert re.search(r"^S7\s+PLC 127\.0\.0\.1:\d+ .*trigger DB100, result DB101", out, re.M), out
+    assert "Modbus " not in out  # the station's Modbus link is off: the PLC is on S7
+    answered = re.findall(r"^\s+(?:meas\..*OK|NOK: .*)$", out, flags=re.M)
+    assert len(answered) == 2, out
+    assert "2 triggers:" in out
+
+
+def test_demo_refuses_an_unknown_link(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["demo", "--link", "profibus", "--triggers", "1"])
+    assert "invalid choice: 'profibus'" in capsys.readouterr().err
+
+
 def test_demo_refuses_a_station_without_simulated_cameras(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -3,10 +3,12 @@
 python-can's back-to-back pattern, as the cameras have it (tests/drivers/test_camera_behaviour.py):
 :class:`LinkBehaviour` states what every link does with the real station (server.station.core,
 a real store, simulated cameras), and each backend's subclass says only how its client speaks:
-Modbus/TCP through the project's PLC twin, OPC UA through asyncua's client calling the Machine
-Vision methods, and the REST trigger path (POST /api/v1/station/trigger through the API app and
-the control channel). A backend that lacks a capability says so in ``lacks``, with the reason; the
-test is then skipped naming it. A new fieldbus gets a subclass here before it lands.
+Modbus/TCP through the project's PLC twin, the same PLC program over EtherNet/IP class 1 I/O and
+over S7 (the station polling a python-snap7 CPU's DBs), OPC UA through asyncua's client calling
+the Machine Vision methods, and the REST trigger path (POST /api/v1/station/trigger through the
+API app and the control channel). A backend that lacks a capability says so in ``lacks``, with
+the reason; the test is then skipped naming it. A new fieldbus gets a subclass here before it
+lands.
 
 The stations are shared by every class (module scope): a fixed station with every link, a
 robot-mounted one (views, flange poses) and one whose 2 ms deadline no trigger can meet.
@@ -36,6 +38,7 @@ from drivers.links.codecs import int_scales
 from drivers.links.layout import Command, Status, VerifyVerdict
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
+from drivers.links.s7.twin import S7Cpu, S7Port
 from drivers.links.twin import PlcTwin
 from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
@@ -58,6 +61,7 @@ class Env:
     rs: RunningServer
     tmp: Path
     cert: tuple[Path, Path]  # an OPC UA client certificate the station trusts (key, cert)
+    cpu: S7Cpu  # the S7 PLC the station's S7 link polls (python-snap7's server)
 
     @property
     def station(self) -> Any:
@@ -109,16 +113,20 @@ async def _env(tmp: Path, name: str, *edits: Callable[[dict[str, Any]], None],
     (tmp / "pki" / "trusted").mkdir(parents=True)
     (tmp / "pki" / "trusted" / "client.der").write_bytes(cert.read_bytes())
     settings = settings_for(station_file(tmp, name, *edits, _links(tmp, opcua)), tmp / "var")
-    async with running_server(settings, runtime_options(3)) as rs:
-        lk = rs.runtime.link("opcua")
-        if lk is not None:  # the Machine Vision NodeSet loads in the background of the start
-            assert await asyncio.to_thread(lk.started.wait, 120), lk.status()
-        yield Env(rs, tmp, (key, cert))
+    with S7Cpu() as cpu:  # the S7 link is the client: its PLC runs before the station
+        # polled every 20 ms, not 5: the CPU's server threads share this process's GIL with
+        # every other link of the shared stations
+        s7 = {**cpu.settings, "watchdog_s": 10.0, "poll_s": 0.02}
+        async with running_server(settings, runtime_options(3), links={"s7": s7}) as rs:
+            lk = rs.runtime.link("opcua")
+            if lk is not None:  # the Machine Vision NodeSet loads in the background of the start
+                assert await asyncio.to_thread(lk.started.wait, 120), lk.status()
+            yield Env(rs, tmp, (key, cert), cpu)
 
 
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
 async def fixed(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
-    """Station 1 (fixed cameras, one recipe) with Modbus, OPC UA and the API."""
+    """Station 1 (fixed cameras, one recipe) with Modbus, S7, OPC UA and the API."""
     async with _env(tmp_path_factory.mktemp("fixed"), "station1", relaxed_deadline) as env:
         yield env
 
@@ -455,6 +463,28 @@ class TestEnip(TestModbus):
         finally:
             writer.close()
         assert link.status()["rejected_peers"] == rejected + 1
+
+
+# --------------------------------------------------------------------------- Siemens S7
+class TestS7(TestModbus):
+    """The same PLC program over S7 PUT/GET: the station's S7 link polls the trigger DB of a
+    CPU (python-snap7's server) and writes its result DB; the twin runs on the CPU's DBs."""
+
+    name = "s7"
+    lacks: ClassVar[dict[str, str]] = {
+        "stranger": "mvpose is the S7 client: it connects only to the PLC its station file "
+                    "names, so there is no peer to refuse (no allowlist; docs/integration.md)"}
+
+    @contextlib.asynccontextmanager
+    async def session(self, env: Env) -> AsyncIterator[PlcTwin]:
+        twin, beat = await attach_twin(S7Port(env.cpu), 0.002)
+        try:
+            yield twin
+        finally:
+            await detach_twin(twin, beat)
+
+    async def refuse_stranger(self, env: Env) -> None:
+        self.need("stranger")
 
 
 # --------------------------------------------------------------------------- OPC UA

@@ -143,7 +143,7 @@ async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) ->
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("link", ["modbus", "enip"])
+@pytest.mark.parametrize("link", ["modbus", "enip", "s7"])
 async def test_a_frozen_database_never_delays_the_answer(
     tmp_path: Path, postgres_cluster: Any, link: str
 ) -> None:
