@@ -337,10 +337,15 @@ class LinkBehaviour:
         await hurried.place(hurried.recipe.T_rf_from_pf0.matrix)
         async with self.session(hurried) as s:
             a = await self.trigger(s, hurried, 70, "LATE")
-        assert a.result_code in (Reason.DEADLINE_EXCEEDED, Reason.TIMEOUT), a
         assert a.final and a.offset is None and a.result_id > 0
         rec = (await hurried.record(a.result_id)).record
         assert (rec.trigger_id, rec.result, rec.reason_code) == (70, "NOK", a.result_code)
+        if a.result_code == Reason.CAMERA_FAILED:
+            # on a busy machine the 2 ms budget can end before the simulated cameras answer:
+            # then the grab itself is what ran out of time, and the record says so
+            assert "no answer within" in (rec.message or ""), rec.message
+        else:
+            assert a.result_code in (Reason.DEADLINE_EXCEEDED, Reason.TIMEOUT), a
 
     async def test_the_link_stays_up_across_a_client_that_goes_and_comes_back(
             self, fixed: Env) -> None:
