@@ -68,7 +68,7 @@ def answer(send: SendData) -> Response:
     return Response.unpack(send.items[1].data)
 
 
-def forward_open(ot_size: int = 86, to_size: int = 142, rpi_us: int = 4000, serial: int = 7,
+def forward_open(ot_size: int = 86, to_size: int = 170, rpi_us: int = 4000, serial: int = 7,
                  path: bytes = b"\x20\x04\x24\x97\x2c\x96\x2c\x64", transport: int = 0x01,
                  large: bool = False, multiplier: int = 0) -> bytes:
     """Forward Open request data (Vol 1, 3-5.5.2), written field by field: path class 4,
@@ -193,10 +193,10 @@ def test_session_limit_answers_insufficient_memory() -> None:
 def test_get_attribute_single_on_the_assemblies_and_identity() -> None:
     a = adapter()
     s = registered(a)
-    a.produce(0.0, bytes(range(140)))
+    a.produce(0.0, bytes(range(168)))
     # Get_Attribute_Single (0x0E), class 4 instance 100 attribute 3
     r = answer(rr(s, b"\x0e\x03\x20\x04\x24\x64\x30\x03"))
-    assert r.status == 0 and r.data == bytes(range(140))
+    assert r.status == 0 and r.data == bytes(range(168))
     r = answer(rr(s, b"\x0e\x03\x20\x04\x24\x96\x30\x04"))  # output assembly's size
     assert r.data == struct.pack("<H", 80)
     r = answer(rr(s, b"\x01\x02\x20\x01\x24\x01"))  # Identity Get_Attributes_All
@@ -214,7 +214,7 @@ def test_set_attribute_single_writes_the_outputs_and_refuses_the_inputs() -> Non
     assert r.status == 0
     (ev,) = a.events()
     assert isinstance(ev, OutputImage) and ev.data == bytes([7] * 80) and ev.how == "set"
-    r = answer(rr(s, b"\x10\x03\x20\x04\x24\x64\x30\x03" + bytes(140)))
+    r = answer(rr(s, b"\x10\x03\x20\x04\x24\x64\x30\x03" + bytes(168)))
     assert r.status == 0x0E  # attribute not settable
     r = answer(rr(s, b"\x10\x03\x20\x04\x24\x96\x30\x03" + bytes(79)))
     assert r.status == 0x13  # not enough data
@@ -267,13 +267,13 @@ def test_forward_open_io_produce_consume_and_forward_close() -> None:
     ot_id = opened(a, s)
     (ev,) = a.events()
     assert isinstance(ev, ConnectionOpened) and ev.transport_class == 1 and ev.rpi_ms == 4.0
-    out = a.produce(0.0, bytes([1] * 140))
+    out = a.produce(0.0, bytes([1] * 168))
     assert [dest for _, dest in out] == [("10.0.0.5", 50000)]
     frame = IoFrame.unpack(out[0][0])
     assert (frame.connection_id, frame.sequence_count, frame.data) == (0xBEEF0001, 1,
-                                                                       bytes([1] * 140))
-    assert a.produce(0.001, bytes(140)) == []  # not due before the RPI
-    again = IoFrame.unpack(a.produce(0.004, bytes(140))[0][0])
+                                                                       bytes([1] * 168))
+    assert a.produce(0.001, bytes(168)) == []  # not due before the RPI
+    again = IoFrame.unpack(a.produce(0.004, bytes(168))[0][0])
     assert again.sequence_count == 2 and again.encap_sequence == frame.encap_sequence + 1
     a.receive_io(io(ot_id, 1, bytes([9] * 80)), "10.0.0.5", 0.005)
     a.receive_io(io(ot_id, 1, bytes([8] * 80)), "10.0.0.5", 0.006)  # same count: not new
@@ -286,7 +286,7 @@ def test_forward_open_io_produce_consume_and_forward_close() -> None:
         + b"\x20\x04\x24\x97\x2c\x96\x2c\x64"
     r = answer(rr(s, cm(0x4E, close)))
     assert r.status == 0 and struct.unpack_from("<HHI", r.data) == (7, 0x1234, 0xCAFE)
-    assert not a.connections and a.produce(1.0, bytes(140)) == []
+    assert not a.connections and a.produce(1.0, bytes(168)) == []
     r = answer(rr(s, cm(0x4E, close)))
     assert (r.status, r.extended) == (0x01, (0x0107,))
 
@@ -296,8 +296,8 @@ def test_change_of_state_produces_on_a_change_and_every_rpi() -> None:
     s = registered(a)
     opened(a, s, transport=0x11)  # class 1, production trigger change of state
     assert a.watches_changes()
-    assert len(a.produce(0.0, bytes(140))) == 1  # the first one is due at once
-    assert a.produce(0.001, bytes(140)) == []  # nothing changed, not due
+    assert len(a.produce(0.0, bytes(168))) == 1  # the first one is due at once
+    assert a.produce(0.001, bytes(168)) == []  # nothing changed, not due
     (changed,) = a.produce(0.002, bytes([1]) + bytes(139))  # a change leaves at once
     assert IoFrame.unpack(changed[0]).sequence_count == 2
     assert a.produce(0.005, bytes([1]) + bytes(139)) == []  # the RPI counts from the change
@@ -333,7 +333,7 @@ def test_silent_consumer_times_out_after_rpi_times_multiplier() -> None:
 
 @pytest.mark.parametrize(("kw", "ext", "more"), [
     ({"ot_size": 84}, 0x0127, (86,)),
-    ({"to_size": 200}, 0x0128, (142,)),
+    ({"to_size": 200}, 0x0128, (170,)),
     ({"rpi_us": 1000}, 0x0111, ()),
     ({"path": b"\x20\x04\x24\x97\x2c\x95\x2c\x64"}, 0x0117, ()),
     ({"transport": 0x02}, 0x0103, ()),
@@ -384,7 +384,7 @@ def test_unknown_or_short_io_datagrams_are_dropped() -> None:
 
 def test_frames_round_trip() -> None:
     fo = ForwardOpen(1, 2, 3, 4, 5, 2, 4000, NetworkParameters(86), 4000,
-                     NetworkParameters(142), 1,
+                     NetworkParameters(170), 1,
                      Path(class_id=4, instance=151, points=(150, 100),
                           key=(0, 0, 0, 0, 0)), large=True)
     assert ForwardOpen.unpack(fo.pack(), large=True) == fo

@@ -163,13 +163,13 @@ async def test_bad_input_gets_its_status_a_log_line_and_nothing_else(
         reply = await ask(encap(0x65, b"\x01\x00\x00\x00"))
         session = struct.unpack_from("<I", reply, 4)[0]
         # Set_Attribute_Single on the input assembly: CIP 0x0E in the reply's general status
-        mr = b"\x10\x03\x20\x04\x24\x64\x30\x03" + bytes(140)
+        mr = b"\x10\x03\x20\x04\x24\x64\x30\x03" + bytes(168)
         cpf = struct.pack("<IHHHHHH", 0, 0, 2, 0, 0, 0xB2, len(mr)) + mr
         reply = await ask(encap(0x6F, cpf, session))
         assert struct.unpack_from("<I", reply, 8) == (0,) and reply[24 + 16 + 2] == 0x0E
         # a Forward Open for 64 output bytes: CIP 0x01, extended 0x0127 and the size wanted
         fo = struct.pack("<BBIIHHIB3sIHIHBB", 0x0A, 0xF0, 0, 1, 9, 1, 2, 5, bytes(3), 4000,
-                         64 | 0x4800, 4000, 142 | 0x4800, 0x11, 4) \
+                         64 | 0x4800, 4000, 170 | 0x4800, 0x11, 4) \
             + b"\x20\x04\x24\x97\x2c\x96\x2c\x64"
         mr = b"\x54\x02\x20\x06\x24\x01" + fo
         cpf = struct.pack("<IHHHHHH", 0, 0, 2, 0, 0, 0xB2, len(mr)) + mr

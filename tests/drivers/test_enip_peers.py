@@ -22,7 +22,7 @@ from drivers.links.enip.transport import EnipServer
 from tests.waiting import until
 
 ID = Identity(0xFFFF, 0x2B, 1, (1, 1), 0x0BADF00D, "mvpose station")
-INPUTS = bytes(range(140))
+INPUTS = bytes(range(168))
 
 
 class Station:
@@ -79,7 +79,7 @@ async def test_pycomm3_reads_and_writes_the_assemblies(served: tuple[EnipServer,
             class3 = plc.generic_message(service=0x10, class_code=4, instance=150, attribute=3,
                                          request_data=bytes([3] * 80), connected=True)
             refused = plc.generic_message(service=0x10, class_code=4, instance=100,
-                                          attribute=3, request_data=bytes(140), connected=True)
+                                          attribute=3, request_data=bytes(168), connected=True)
             identity = plc.generic_message(service=0x01, class_code=1, instance=1,
                                            connected=False)
             return ucmm, routed, class3, refused, identity
@@ -122,7 +122,7 @@ async def test_ethernetip_scanner_opens_class1_and_exchanges_io(
     monkeypatch.setattr(scanner, "ENIP_TCP_PORT", srv.port)
     monkeypatch.setattr(scanner, "ENIP_UDP_PORT", srv.io_port)
     enip, conn = await asyncio.to_thread(connect)
-    inputs = enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_INPUT, 140, 100, conn)
+    inputs = enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_INPUT, 168, 100, conn)
     outputs = enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_OUTPUT, 80, 150, conn)
     enip.startIO(udp_port=0)
     try:
@@ -135,8 +135,8 @@ async def test_ethernetip_scanner_opens_class1_and_exchanges_io(
         await until(lambda: bits_to_bytes(inputs) == INPUTS, "the scanner got the inputs")
         await until(lambda: st.outputs and st.outputs[-1][:2] == b"\x01\x02",
                     "the adapter got the outputs")
-        st.inputs = bytes(140)
-        await until(lambda: bits_to_bytes(inputs) == bytes(140), "new inputs reached it")
+        st.inputs = bytes(168)
+        await until(lambda: bits_to_bytes(inputs) == bytes(168), "new inputs reached it")
         conn.stopProduce()
         assert await asyncio.to_thread(conn.sendFwdCloseReq, 100, 150, 151) == 0
         assert srv.adapter is not None and not srv.adapter.connections
@@ -153,7 +153,7 @@ async def test_scanner_that_stops_sending_times_out(served: tuple[EnipServer, St
     monkeypatch.setattr(scanner, "ENIP_TCP_PORT", srv.port)
     monkeypatch.setattr(scanner, "ENIP_UDP_PORT", srv.io_port)
     enip, conn = await asyncio.to_thread(connect)
-    enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_INPUT, 140, 100, conn)
+    enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_INPUT, 168, 100, conn)
     enip.registerAssembly(scanner.EtherNetIP.ENIP_IO_TYPE_OUTPUT, 80, 150, conn)
     try:
         # a wrong O→T size first: the scanner is told the size the adapter consumes

@@ -13,6 +13,7 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from .. import layout
 from .cip import GeneralStatus, Request, Response, Service
 from .codec import Identity
 
@@ -30,8 +31,8 @@ class Assemblies:
     input_instance: int = 100
     output_instance: int = 150
     config_instance: int = 151
-    input_size: int = 140
-    output_size: int = 80
+    input_size: int = layout.INPUT_SIZE
+    output_size: int = layout.OUTPUT_SIZE
 
 
 @dataclass(frozen=True)
