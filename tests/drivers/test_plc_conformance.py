@@ -1,5 +1,5 @@
 """Modbus/TCP conformance of the PLC link, seen from outside: raw frames over a plain socket (exact
-bytes), pyModbusTCP, and mbpoll (libmodbus) from Debian — docs/plc-interface.md, "Conformance"."""
+bytes), pyModbusTCP, and mbpoll (libmodbus) from Debian — docs/modbus.md, "Conformance"."""
 
 # ruff: noqa: F811 — the `plc` fixture comes from plc_peers
 from __future__ import annotations
@@ -495,9 +495,9 @@ async def test_mbpoll_reads_input_and_writes_holding_registers(plc: ServerFactor
 
 
 def test_the_conformance_section_matches_this_module() -> None:
-    """docs/plc-interface.md, "Conformance": every test it cites exists, and its numbers are the
+    """docs/modbus.md, "Conformance": every test it cites exists, and its numbers are the
     transport's."""
-    doc = (Path(__file__).resolve().parents[2] / "docs" / "plc-interface.md").read_text()
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "modbus.md").read_text()
     section = doc.split("## Conformance", 1)[1].split("\n## ", 1)[0]
     cited = set(re.findall(r"`(test_\w+)`", section))
     here = {name for name in globals() if name.startswith("test_")}

@@ -62,7 +62,7 @@ class _Listener(ModbusTcpServer):
 
 
 class _Connection(ModbusTcpConnection):
-    """One PLC connection: the allowlist, and the map's function codes (docs/plc-interface.md,
+    """One PLC connection: the allowlist, and the map's function codes (docs/modbus.md,
     "Conformance"); framing, request checks and answer order are ModbusTcpConnection's."""
 
     function_codes = _WRITE_FCS | {3, 4}

@@ -1,5 +1,5 @@
 """The Modbus backend's settings: the station file's ``links.modbus`` block
-(docs/plc-interface.md, "Settings"), and the handshake's settings derived from it."""
+(docs/modbus.md, "Settings"), and the handshake's settings derived from it."""
 
 from __future__ import annotations
 
