@@ -1,6 +1,6 @@
 """The Calibration page's hand-eye session panel: what the robot-driven session holds, and its
 begin and calculate buttons (engineer). The poses come from the robot program (PLC, OPC UA or
-REST, docs/calibration.md section 5c); the page follows and finishes the session."""
+REST, docs/handeye-robot.md); the page follows and finishes the session."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""docs/calibration.md's walkthrough, every ``$ mvpose …`` command run as the guide writes it (with
+"""docs/calibration-walkthrough.md, every ``$ mvpose …`` command run as the guide writes it (with
 fewer samples, see SMALLER), in a fresh folder: so the guide cannot rot. Each command must exit
 0 and print what the guide shows it printing, line by line up to the first number."""
 
@@ -14,7 +14,7 @@ import pytest
 from stations import relaxed_deadline, station_file
 
 ROOT = Path(__file__).resolve().parents[2]
-DOC = ROOT / "docs" / "calibration.md"
+DOC = ROOT / "docs" / "calibration-walkthrough.md"
 #: The guide's sizes, and the smaller ones this test runs (same commands otherwise). The fixed
 #: station keeps its 14 placements: each camera needs six of its own for its intrinsics.
 SMALLER = {"--samples 18": "--samples 10"}
