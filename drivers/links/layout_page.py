@@ -13,8 +13,9 @@ _INTRO = """\
 # The fieldbus layout
 
 Every cyclic link carries the same two blocks of bytes: Modbus/TCP as registers
-(docs/plc-interface.md), EtherNet/IP as assemblies, S7 as two data blocks, PROFINET as
-submodules (docs/integration.md). This page is written from `drivers/links/layout.py` by
+(docs/modbus.md), EtherNet/IP as assemblies (docs/ethernet-ip.md), S7 as two data blocks
+(docs/s7.md), PROFINET as submodules (docs/integration.md). The handshake over them is
+docs/plc-interface.md. This page is written from `drivers/links/layout.py` by
 `python -m drivers.links.layout_page`; a test keeps it current.
 
 - **Output block** ({out} bytes): the PLC's outputs, written by the PLC, read by mvpose.

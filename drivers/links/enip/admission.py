@@ -14,7 +14,7 @@ from .objects import ASSEMBLY, MESSAGE_ROUTER, Assemblies
 
 @dataclass(frozen=True)
 class Limits:
-    """What the adapter accepts (docs/integration.md, "EtherNet/IP")."""
+    """What the adapter accepts (docs/ethernet-ip.md)."""
 
     max_sessions: int = 16
     max_connections: int = 8  # class 1 + class 3 connections open at once

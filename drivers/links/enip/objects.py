@@ -24,7 +24,7 @@ ASSEMBLY_DATA, ASSEMBLY_SIZE = 3, 4
 
 @dataclass(frozen=True)
 class Assemblies:
-    """The assembly instances, each a view of the fieldbus layout (docs/integration.md):
+    """The assembly instances, each a view of the fieldbus layout (docs/ethernet-ip.md):
     input is the layout's INPUT block (T→O, produced), output its OUTPUT block (O→T, consumed),
     configuration holds nothing."""
 

@@ -1,5 +1,5 @@
 """The EtherNet/IP backend's settings: the station file's ``links.enip`` block
-(docs/integration.md, "EtherNet/IP")."""
+(docs/ethernet-ip.md)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ GENERIC_DEVICE = 0x2B  # device type "Generic Device (keyable)"
 
 
 class EnipLinkConfig(BaseModel):
-    """EtherNet/IP adapter for the line's scanner (docs/integration.md, "EtherNet/IP")."""
+    """EtherNet/IP adapter for the line's scanner (docs/ethernet-ip.md)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -1,6 +1,6 @@
 """The Siemens S7 backend of the link seam: mvpose as an S7 client (PUT/GET) of the line's PLC,
 polling a trigger DB and writing a result DB laid out as the fieldbus layout
-(docs/integration.md, "Siemens S7 (PUT/GET)"; docs/fieldbus-layout.md).
+(docs/s7.md; docs/fieldbus-layout.md).
 
 - :mod:`.poller`: the poll cycle as data (what to write, the PDU and DB checks, backoff);
 - :mod:`.transport`: python-snap7's asyncio client, wrapped; :mod:`.link`: :class:`S7Link`;

@@ -1,5 +1,4 @@
-"""The S7 backend's settings: the station file's ``links.s7`` block (docs/integration.md, "Siemens
-S7 (PUT/GET)").
+"""The S7 backend's settings: the station file's ``links.s7`` block (docs/s7.md).
 
 mvpose is the S7 client here: it connects to the PLC, so there is no allowlist (the link talks to
 the one PLC it is configured with and serves no one else).
