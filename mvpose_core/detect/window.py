@@ -4,9 +4,11 @@ A mark's window is its predicted ellipse widened by how far the mark can move wh
 anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
 geometry of this camera. The search first uses windows for a part near the prior pose
 (``DetectOptions.first_reach_mm`` / ``first_reach_deg``, when the tolerances are wider: small
-windows, quickly searched) and widens them to the whole tolerance for an image where a mark was
-not found. Accepted candidates from all windows are assigned to marks jointly (least total
-distance to the predictions), so two marks never take the same blob.
+windows, quickly searched). When a mark had no blob there, the blobs the small windows did hold
+give the part's pose (follow.py) and every image is searched in the small windows around that
+pose; an image where a mark is still not found is searched over the whole tolerance. Accepted
+candidates from all windows are assigned to marks jointly (least total distance to the
+predictions), so two marks never take the same blob.
 """
 
 from __future__ import annotations
@@ -51,13 +53,18 @@ def detect_marks_many(
     The candidates of each image are searched by ``map_fn`` (give a thread pool's ``map`` to
     search the images in parallel: the search is OpenCV, which releases the GIL); all candidates
     of all images are then measured in one batch, which costs little more than one image's.
-    Each image's result is what :func:`detect_marks` gives for it alone (tested). A bad image
-    raises ``ValueError`` naming its camera.
+    Each image's result is what :func:`detect_marks` gives for it alone (tested); for a part
+    beyond the first reach, the pose of all images' blobs may find an image's marks in small
+    windows, the same marks at the same centres within the detector's noise (~0.01 px,
+    tested). A bad image raises ``ValueError`` naming its camera.
 
     Two reaches (``options.first_reach_mm`` / ``first_reach_deg``, when the recipe's tolerances
     are wider): the windows first allow for a part near the prior pose; an image where a mark
     that faces its camera was not found is searched again with windows for the recipe's whole
-    tolerance, and that result is the image's.
+    tolerance, and that result is the image's. Before that, when a facing mark has no blob at
+    all in its small window, the pose of the blobs that the small windows held (three marks or
+    more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
+    there; only an image still missing a blob then gets the whole tolerance's windows.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
