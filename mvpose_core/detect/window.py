@@ -4,9 +4,11 @@ A mark's window is its predicted ellipse widened by how far the mark can move wh
 anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
 geometry of this camera. The search first uses windows for a part near the prior pose
 (``DetectOptions.first_reach_mm`` / ``first_reach_deg``, when the tolerances are wider: small
-windows, quickly searched) and widens them to the whole tolerance for an image where a mark was
-not found. Accepted candidates from all windows are assigned to marks jointly (least total
-distance to the predictions), so two marks never take the same blob.
+windows, quickly searched). When a mark had no blob there, the blobs the small windows did hold
+give the part's pose (follow.py) and every image is searched in the small windows around that
+pose; an image where a mark is still not found is searched over the whole tolerance. Accepted
+candidates from all windows are assigned to marks jointly (least total distance to the
+predictions), so two marks never take the same blob.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from functools import partial
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mvpose_core.detect.follow import pose_from_blobs
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
@@ -50,13 +53,18 @@ def detect_marks_many(
     The candidates of each image are searched by ``map_fn`` (give a thread pool's ``map`` to
     search the images in parallel: the search is OpenCV, which releases the GIL); all candidates
     of all images are then measured in one batch, which costs little more than one image's.
-    Each image's result is what :func:`detect_marks` gives for it alone (tested). A bad image
-    raises ``ValueError`` naming its camera.
+    Each image's result is what :func:`detect_marks` gives for it alone (tested); for a part
+    beyond the first reach, the pose of all images' blobs may find an image's marks in small
+    windows, the same marks at the same centres within the detector's noise (~0.01 px,
+    tested). A bad image raises ``ValueError`` naming its camera.
 
     Two reaches (``options.first_reach_mm`` / ``first_reach_deg``, when the recipe's tolerances
     are wider): the windows first allow for a part near the prior pose; an image where a mark
     that faces its camera was not found is searched again with windows for the recipe's whole
-    tolerance, and that result is the image's.
+    tolerance, and that result is the image's. Before that, when a facing mark has no blob at
+    all in its small window, the pose of the blobs that the small windows held (three marks or
+    more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
+    there; only an image still missing a blob then gets the whole tolerance's windows.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
@@ -69,10 +77,14 @@ def detect_marks_many(
         searches = dict(zip(todo, map_fn(search, todo), strict=True))
         if n + 1 < len(reaches):
             # An image with a mark that has no blob in its small window would be searched again
-            # whatever its measurement says: it is searched with the whole tolerance's windows
-            # now, and only those blobs are measured, in the same batch as the other images'
-            # (the same result as measuring first; a displaced part costs one batch, not two).
+            # whatever its measurement says. The blobs the small windows did hold give the
+            # part's pose (follow.py): every image is searched in the small windows around it.
+            # An image with a mark still without a blob is searched with the whole tolerance's
+            # windows; only those blobs are measured, in the same batch as the other images'.
             wider = [k for k in todo if _unfound(searches[k])]
+            if wider:
+                wider = _follow(checked, recipe, T_rf_from_pf_prior, options, reach, map_fn,
+                                searches)
             if wider:
                 search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options,
                                  reaches[-1])
@@ -88,6 +100,51 @@ def detect_marks_many(
         if not todo:
             break
     return out
+
+
+def _follow(
+    checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
+    options: DetectOptions, reach: float, map_fn: Callable[..., Iterable[_Search]],
+    searches: dict[int, _Search],
+) -> list[int]:
+    """Search every image in the small windows around the pose of the blobs found so far
+    (``searches`` is updated); the images that still lack a blob for a facing mark, to be
+    searched over the whole tolerance (all the unfound ones when there is no pose)."""
+    keys = list(searches)
+    T = pose_from_blobs([(checked[k][1], searches[k].live, searches[k].cands) for k in keys],
+                        recipe, T_prior)
+    if T is None:
+        return [k for k in keys if _unfound(searches[k])]
+    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach)
+    searches.update(zip(keys, map_fn(search, keys), strict=True))
+    return [k for k in keys if _unfound(searches[k])]
+
+
+def _search_followed(
+    checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
+    T: Array, options: DetectOptions, reach: float, k: int,
+) -> _Search:
+    """The small windows around the pose ``T``, held to what the whole tolerance's search at
+    the prior accepts: only blobs inside the mark's whole window, sizes and shapes within its
+    ranges, and the perspective correction at the prior (as that search reports it)."""
+    image, cam = checked[k]
+    s = _search(image, cam, recipe, T, options, reach)
+    whole = {p.mark.mark_id: p for p in predict_marks_cached(
+        cam, recipe, T_prior, options.size_tolerance, options.shape_slack_deg, 1.0)}
+    H, W = image.shape
+    live = []
+    for p in s.live:
+        w = whole[p.mark.mark_id]
+        live.append(replace(
+            p, correction=w.correction,
+            radius_range=(max(p.radius_range[0], w.radius_range[0]),
+                          min(p.radius_range[1], w.radius_range[1])),
+            ratio_range=(max(p.ratio_range[0], w.ratio_range[0]),
+                         min(p.ratio_range[1], w.ratio_range[1]))))
+    kept = [(j, (k_, c)) for j, (k_, c) in enumerate(s.cands)
+            if _holds(_box(whole[live[k_].mark.mark_id], options, W, H), *c.ellipse.centre)]
+    return replace(s, live=live, cands=[kc for _, kc in kept],
+                   scales=[s.scales[j] for j, _ in kept])
 
 
 def _unfound(s: _Search) -> bool:
@@ -172,11 +229,7 @@ def _search(
         if not p.facing:
             results[mid] = MarkDetection.missing(mid, FACES_AWAY)
             continue
-        half = p.max_shift_px + p.radius_range[1] + options.window_extra_px
-        pu, pv = float(p.uv[0]), float(p.uv[1])
-        u0, v0 = math.floor(pu - half), math.floor(pv - half)
-        u1, v1 = math.ceil(pu + half) + 1, math.ceil(pv + half) + 1
-        box = (max(u0, 0), max(v0, 0), min(u1, W), min(v1, H))
+        box = _box(p, options, W, H)
         if box[2] - box[0] < 8 or box[3] - box[1] < 8:
             results[mid] = MarkDetection.missing(mid, "outside image")
             continue
@@ -234,6 +287,16 @@ def _conclude(
             )
     _assign(s.live, accepted, results, options)
     return [results[p.mark.mark_id] for p in s.preds]
+
+
+def _box(p: MarkPrediction, options: DetectOptions, W: int, H: int) -> tuple[int, int, int, int]:
+    """A mark's window: its predicted position widened by its possible shift, its largest
+    radius and the margin, within the image."""
+    half = p.max_shift_px + p.radius_range[1] + options.window_extra_px
+    pu, pv = float(p.uv[0]), float(p.uv[1])
+    u0, v0 = math.floor(pu - half), math.floor(pv - half)
+    u1, v1 = math.ceil(pu + half) + 1, math.ceil(pv + half) + 1
+    return (max(u0, 0), max(v0, 0), min(u1, W), min(v1, H))
 
 
 def _holds(box: tuple[int, int, int, int], u: float, v: float) -> bool:

@@ -1,0 +1,81 @@
+"""A displaced part's pose from the blobs of the first reach's windows, to predict its windows.
+
+When a part lies beyond the first reach (docs/detection.md, "Two reaches"), some of its marks
+still leave blobs in their small windows (a mark near the rotation's centre moves little; a mark
+at a window's edge is clipped but found). Their coarse centres (before measurement, within a few
+pixels of the marks) give a pose with the estimator the measurement uses
+(:func:`mvpose_core.estimate.estimate_pose`, started at the prior); the windows of the first
+reach around that pose then hold the marks, and are searched instead of the whole tolerance's.
+
+A pose is given only when it is trustworthy: three or more distinct marks, every kept blob within
+:data:`AGREE_PX` of its projection at the pose, and the pose within the recipe's tolerance of the
+prior. Otherwise ``None``: the caller searches the whole tolerance, as without this step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from mvpose_core.detect.geometry import MarkPrediction
+from mvpose_core.detect.refine import Candidate
+from mvpose_core.estimate import EstimateOptions, estimate_pose
+from mvpose_core.problem import Observation, PoseInputError
+from mvpose_core.scene import ViewCamera
+from mvpose_core.station import RecipeConfig
+from mvpose_core.transforms import Array
+
+#: a blob farther than this from its mark's projection at the estimated pose (px) is dropped by
+#: the estimator's outlier rule; a pose whose kept blobs are not all within it is not used
+AGREE_PX = 12.0
+_OPTIONS = EstimateOptions(outlier_px=AGREE_PX, max_iterations=10, max_rejections=2)
+
+
+def pose_from_blobs(
+    blobs: Sequence[tuple[ViewCamera, list[MarkPrediction], list[tuple[int, Candidate]]]],
+    recipe: RecipeConfig,
+    T_prior: Array,
+) -> Array | None:
+    """``T_rf_from_pf`` from each camera's blobs (index in its predictions, blob), or None.
+
+    Each mark's blob nearest its prediction at the prior stands for it in that camera.
+    """
+    obs: list[Observation] = []
+    for cam, preds, cands in blobs:
+        best: dict[int, tuple[float, Array]] = {}
+        for k, c in cands:
+            d = float(np.hypot(*(c.ellipse.centre - preds[k].uv)))
+            if k not in best or d < best[k][0]:
+                best[k] = (d, c.ellipse.centre)
+        obs += [Observation(cam.view, cam.camera_id, preds[k].mark.mark_id, uv)
+                for k, (_, uv) in best.items()]
+    if len({o.mark_id for o in obs}) < 3:
+        return None
+    marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
+    try:
+        res = estimate_pose(obs, [c for c, _, _ in blobs], marks_pf, _OPTIONS,
+                            initial_T_rf_from_pf=T_prior)
+    except (PoseInputError, np.linalg.LinAlgError):
+        return None
+    used = res.used if len(res.used) else np.ones(len(obs), dtype=bool)
+    if len({obs[i].mark_id for i in np.flatnonzero(used).tolist()}) < 3:
+        return None
+    kept = res.residuals_px[used]
+    if float(np.max(np.hypot(kept[:, 0], kept[:, 1]))) > AGREE_PX:
+        return None
+    T = res.T_rf_from_pf
+    if not _within_tolerance(T, T_prior, recipe):
+        return None
+    return T
+
+
+def _within_tolerance(T: Array, T_prior: Array, recipe: RecipeConfig) -> bool:
+    """Whether ``T`` is within the recipe's tolerance of the prior (the marks' centroid moved
+    no more than ``max_offset_mm``, the rotation no more than ``max_offset_deg``)."""
+    tol = recipe.tolerances
+    D = np.linalg.solve(T_prior, T)
+    c = np.asarray(recipe.mark_centroid(), dtype=float)
+    moved = float(np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c))
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return moved <= tol.max_offset_mm and float(np.degrees(np.arccos(cos))) <= tol.max_offset_deg
