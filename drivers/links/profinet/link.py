@@ -1,0 +1,194 @@
+"""The PROFINET backend of the link seam: :class:`ProfinetLink`. The IO-device runs in a child
+process (:mod:`.transport`); the handshake (:class:`~drivers.links.handshake.HandshakeRunner`)
+stays on the station's loop and exchanges whole images with it: the controller's output image
+in, the input image out whenever it changed. Every value is big-endian, as PROFINET carries it.
+
+A controller that stops sending (the data hold time) aborts the AR in the child; the outputs
+read as zeros and no heartbeat arrives, so the station reports it as it reports a lost PLC
+(the handshake's watchdog, ``line_state``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+from typing import Any
+
+from .. import layout as r
+from ..base import Link, StationHandler
+from ..handshake import HandshakeRunner
+from ..layout import ByteOrder
+from .settings import ProfinetLinkConfig
+
+log = logging.getLogger(__name__)
+START_S = 10.0
+
+
+class ProfinetError(RuntimeError):
+    """The device's process could not start (names why: no raw sockets, no interface)."""
+
+
+class ProfinetLink(Link):
+    """PROFINET IO-device for the line's IO-controller."""
+
+    name = "profinet"
+    config: ProfinetLinkConfig
+
+    def __init__(self, config: ProfinetLinkConfig, handler: StationHandler) -> None:
+        super().__init__(config, handler)
+        self.runner: HandshakeRunner | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._pair: socket.socket | None = None
+        self._poller: asyncio.Task[None] | None = None
+        self._sent: bytes = b""
+        self._started: asyncio.Future[dict[str, Any]] | None = None
+        self.child_stats: dict[str, Any] = {}
+        self.events: list[dict[str, Any]] = []  # the device's last 20 events
+
+    async def start(self) -> None:
+        cfg = self.config
+        runner = HandshakeRunner(self.handler, cfg.handshake(self.handler.selected_recipe()),
+                                 link="profinet")
+        await runner.start()
+        self.runner = runner
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "drivers.links.profinet.transport",
+                 json.dumps(cfg.child()), str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
+                    os.path.abspath(__file__))))))
+        finally:
+            theirs.close()
+        ours.setblocking(False)
+        self._pair = ours
+        loop = asyncio.get_running_loop()
+        self._started = loop.create_future()
+        loop.add_reader(ours.fileno(), self._read)
+        try:
+            started = await asyncio.wait_for(asyncio.shield(self._started), START_S)
+        except BaseException:
+            await self.stop()
+            raise
+        if started["kind"] == "error":
+            await self.stop()
+            raise ProfinetError(started["text"])
+        log.info("profinet link: %s", started["text"])
+        self._poller = asyncio.create_task(self._poll(), name="profinet-input")
+
+    async def stop(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._poller
+            self._poller = None
+        if self._pair is not None:
+            asyncio.get_running_loop().remove_reader(self._pair.fileno())
+            with contextlib.suppress(OSError):
+                self._pair.send(b"Q")
+            self._pair.close()
+            self._pair = None
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            try:
+                await asyncio.to_thread(proc.wait, 3.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                await asyncio.to_thread(proc.wait)
+        if self.runner is not None:
+            await self.runner.stop()
+            self.runner = None
+
+    # ------------------------------------------------------------------ the child
+
+    def _read(self) -> None:
+        assert self._pair is not None
+        while True:
+            try:
+                msg = self._pair.recv(65536)
+            except BlockingIOError:
+                return
+            except OSError:
+                msg = b""
+            if not msg:
+                asyncio.get_running_loop().remove_reader(self._pair.fileno())
+                if self._started is not None and not self._started.done():
+                    self._started.set_result({"kind": "error",
+                                              "text": "the PROFINET device process ended"})
+                elif self.runner is not None:
+                    self.runner.note("the PROFINET device process ended")
+                return
+            kind, body = msg[:1], msg[1:]
+            if kind == b"O" and self.runner is not None:
+                self.runner.write_output(body, ByteOrder.BIG)
+                self._push()
+            elif kind == b"E":
+                event = json.loads(body)
+                if self._started is not None and not self._started.done():
+                    self._started.set_result(event)
+                    continue
+                self.events = [*self.events[-19:], event]
+                if event["kind"] in ("data_hold_expired", "aborted") and self.runner:
+                    self.runner.note(event["text"])
+                else:
+                    log.info("profinet link: %s", event["text"])
+            elif kind == b"S":
+                self.child_stats = json.loads(body)
+
+    def _push(self) -> None:
+        if self.runner is None or self._pair is None:
+            return
+        image = self.runner.input_image(ByteOrder.BIG)
+        if image != self._sent:
+            with contextlib.suppress(BlockingIOError):
+                self._pair.send(b"I" + image)
+                self._sent = image
+
+    async def _poll(self) -> None:
+        while True:
+            self._push()
+            await asyncio.sleep(self.config.poll_s)
+
+    # ------------------------------------------------------------------ the seam
+
+    def ready(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def line_state(self) -> str | None:
+        return None if self.runner is None else self.runner.machine.state.name
+
+    def recipe_changed(self) -> None:
+        if self.runner is not None:
+            self.runner.recipe_selected(self.handler.selected_recipe(),
+                                        self.handler.convention().code)
+
+    def status(self) -> dict[str, Any]:
+        if self.runner is None or not self.ready():
+            return {"running": False}
+        hs = self.runner.machine.stats
+        image = self.runner.machine.image
+        st = self.child_stats
+        return {
+            "running": True, "interface": self.config.interface,
+            "station_name": st.get("station_name", self.config.station_name),
+            "state": self.runner.machine.state.name, "ar": st.get("ar"),
+            "connects": st.get("connects", 0), "releases": st.get("releases", 0),
+            "data_hold_expired": st.get("data_hold_expired", 0),
+            "malformed": st.get("malformed", 0), "module_diffs": st.get("module_diffs", 0),
+            "handler_errors": self.runner.stats.handler_errors,
+            "last_errors": [*st.get("last_errors", []), *self.runner.stats.last_errors][-5:],
+            "server_heartbeat": image[r.IR_HEARTBEAT],
+            "plc_online": bool(image[r.IR_STATUS] & r.Status.ONLINE),
+            "error_code": image[r.IR_ERROR_CODE],
+            "result_id": self.runner.machine.result_id,
+            "watchdog_trips": hs.watchdog_trips,
+            "missed_triggers": hs.missed_triggers,
+        }
+
