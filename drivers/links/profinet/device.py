@@ -151,7 +151,7 @@ class Device:
                   and eth.dst == self.identity.mac):
                 self._rt(eth, frame_id, now, out)
             # alarms from the controller (ACKs) and other frame ids: not ours to answer
-        except fr.FrameError as err:
+        except (ValueError, IndexError, struct.error) as err:  # FrameError is a ValueError
             self._bad(f"frame from {fr.mac_text(raw[6:12])} dropped: {err}")
         return out
 
@@ -249,7 +249,7 @@ class Device:
         out = Out()
         try:
             self._rpc(data, addr, now, out)
-        except fr.FrameError as err:
+        except (ValueError, IndexError, struct.error) as err:  # FrameError is a ValueError
             self._bad(f"RPC datagram from {addr[0]}:{addr[1]} dropped: {err}")
         return out
 
@@ -417,7 +417,9 @@ class Device:
                out: Out) -> tuple[int, bytes]:
         req = rpc.RecordRequest.unpack(body)
         sub = mod.find(req.slot, req.subslot)
-        if not self._own(req.ar_uuid) or sub is None or req.index >= 0x8000:
+        # user records (0..0x7FFF) and the port/interface records a controller writes in its
+        # parameter phase (0x8000..0xAFFF: PDPortDataCheck, PDInterfaceAdjust, ...) are kept
+        if not self._own(req.ar_uuid) or sub is None or req.index >= 0xB000:
             # IODWriteRes, PNIORW, access: invalid slot/subslot or index
             status = rpc.pnio_status(0xDF, 0x80, 0xB2 if sub is None else 0xB0, 0)
             return status, req.response(0, status)

@@ -1,7 +1,8 @@
 """The IO-device's modules and submodules, taken from the fieldbus layout
-(:mod:`drivers.links.layout`): slot 0 the device access point, slot 1 the handshake (PLC
-outputs up to the robot pose), slot 2 the robot pose and part id (the rest of the PLC outputs),
-slot 3 the result (all PLC inputs). The GSDML and the Connect check both read this table.
+(:mod:`drivers.links.layout`): slot 0 the device access point (with its interface and port
+submodules), slot 1 the handshake (PLC outputs up to the robot pose), slot 2 the robot pose
+and part id (the rest of the PLC outputs), slot 3 the result (all PLC inputs). The GSDML and
+the Connect check both read this table.
 """
 
 from __future__ import annotations
@@ -38,11 +39,13 @@ class Submodule:
 
 _POSE = 2 * layout.HR_ROBOT_POSE
 DAP = Submodule("device access point", 0, 1, 0x00000001, 0x00000001)
+INTERFACE = Submodule("interface", 0, 0x8000, 0x00000001, 0x00000002)
+PORT = Submodule("port 1", 0, 0x8001, 0x00000001, 0x00000003)
 HANDSHAKE = Submodule("handshake", 1, 1, 0x00000010, 0x00000011, output=(0, _POSE))
 ROBOT_POSE = Submodule("robot pose", 2, 1, 0x00000020, 0x00000021,
                        output=(_POSE, layout.OUTPUT_SIZE - _POSE))
 RESULT = Submodule("result", 3, 1, 0x00000030, 0x00000031, input=(0, layout.INPUT_SIZE))
-SUBMODULES: Final = (DAP, HANDSHAKE, ROBOT_POSE, RESULT)
+SUBMODULES: Final = (DAP, INTERFACE, PORT, HANDSHAKE, ROBOT_POSE, RESULT)
 
 
 def find(slot: int, subslot: int) -> Submodule | None:
