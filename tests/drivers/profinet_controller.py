@@ -6,7 +6,8 @@ Commands: {"do": "identify", "name"?} | {"do": "set_name", "mac", "name"} |
 {"do": "connect", "name", "slots": [[slot, subslot, in_len, out_len, mod_id, sub_id]...],
  "reduction_ratio", "data_hold_factor"} | {"do": "prm_end"} | {"do": "app_ready"} |
 {"do": "cyclic"} | {"do": "output", "slot", "subslot", "hex"} | {"do": "input", "slot",
- "subslot"} | {"do": "stop_cyclic"} | {"do": "release"} | {"do": "read", "slot", "subslot",
+ "subslot"} | {"do": "listen_alarms"} | {"do": "alarms"} |
+{"do": "stop_cyclic"} | {"do": "release"} | {"do": "read", "slot", "subslot",
  "index"} | {"do": "raw", "hex"} (send a raw frame) | {"do": "udp", "hex", "ip"}.
 """
 
@@ -94,6 +95,16 @@ def run(cmd: dict, sock, mac: bytes, state: dict) -> dict:
         data = state["cyc"].get_input_data(cmd["slot"], cmd["subslot"])
         return {"hex": None if data is None else data.hex(), "state":
                 state["cyc"].state.value}
+    if do == "listen_alarms":
+        listener = con.create_alarm_listener(IFACE)
+        got = state.setdefault("alarms", [])
+        listener.add_callback(lambda a: got.append(
+            [a.alarm_type, a.slot_number, a.subslot_number]))
+        listener.start()
+        state["listener"] = listener
+        return {}
+    if do == "alarms":
+        return {"alarms": state.get("alarms", [])}
     if do == "stop_cyclic":
         cyc = state.pop("cyc")
         cyc.stop()

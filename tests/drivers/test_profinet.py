@@ -238,6 +238,46 @@ async def test_a_stopped_controller_is_a_lost_plc_and_it_reconnects(
     await until(lambda: link.child_stats.get("connects") == 2, "the second AR counted")
 
 
+async def test_a_camera_down_is_a_diagnosis_alarm_that_disappears(
+        device: Any, controller: Controller) -> None:
+    link, _ = device
+    await _run_ar(controller)
+    await controller.ok("listen_alarms")
+    await until(lambda: (link.child_stats.get("ar") or {}).get("phase") == "data",
+                "the AR in data exchange")
+    link.alarm_changed(_Notice("raised", "camera:left1", "CAMERA_DOWN"))
+    link.alarm_changed(_Notice("raised", "link:modbus", "LINK_NO_PLC"))  # not a diagnosis
+
+    async def alarms() -> list[list[int]]:
+        got: list[list[int]] = (await controller.ok("alarms"))["alarms"]
+        return got
+
+    want = [[0x0001, mod.RESULT.slot, mod.RESULT.subslot]]
+    for _ in range(500):
+        if await alarms() == want:
+            break
+        await asyncio.sleep(0.01)
+    assert await alarms() == want
+    link.alarm_changed(_Notice("cleared", "camera:left1", "CAMERA_DOWN"))
+    want.append([0x000C, mod.RESULT.slot, mod.RESULT.subslot])  # diagnosis disappears
+    for _ in range(500):
+        if await alarms() == want:
+            break
+        await asyncio.sleep(0.01)
+    assert await alarms() == want
+    await until(lambda: (link.child_stats.get("ar") or {}).get("alarms_acked") == 2,
+                "both alarms acknowledged by the controller")
+
+
+@dataclass(frozen=True)
+class _Notice:
+    """The fields of the station's AlarmNotice the link reads (docs/alarms.md)."""
+
+    event: str
+    source: str
+    code: str
+
+
 async def test_wrong_submodules_get_a_module_diff(device: Any, controller: Controller) -> None:
     link, _ = device
     wrong = [list(s) for s in SLOTS]

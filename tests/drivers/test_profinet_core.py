@@ -277,3 +277,31 @@ def test_the_shipped_gsdml_is_the_generated_one() -> None:
     assert idents == {s.module_ident for s in mod.SUBMODULES if s.slot > 0}
     outputs = root.iterfind(".//g:ModuleItem[@ID='IDM_1']//g:Output/g:DataItem", ns)
     assert len(list(outputs)) == len(mod.output_fields(mod.HANDSHAKE))
+
+
+def test_diagnosis_alarms_one_in_flight_acked_and_retried() -> None:
+    from drivers.links.profinet import alarms as al
+
+    cr = al.AlarmCr(PLC_MAC, DEV_MAC, controller_ref=3, device_ref=1, high=False,
+                    timeout_s=0.1, retries=3)
+    (first,) = cr.diagnosis(True, al.ERROR_CAMERA_DOWN, 0.0)
+    assert cr.diagnosis(False, al.ERROR_CAMERA_DOWN, 0.0) == []  # window of one: queued
+    eth = fr.Ethernet.unpack(first)
+    assert struct.unpack_from(">H", eth.payload)[0] == fr.FRAME_ID_ALARM_LOW
+    rta = al.Rta.unpack(eth.payload[2:])
+    assert (rta.dst_ref, rta.src_ref, rta.pdu_type, rta.send_seq) == (3, 1, al.PDU_DATA, 0xFFFF)
+    ((btype, body),) = rpc.split_blocks(rta.var)
+    alarm_type, _api, slot, subslot = struct.unpack_from(">HIHH", body, 0)
+    assert (btype, alarm_type, slot, subslot) == (0x0002, al.ALARM_DIAGNOSIS, 3, 1)
+    assert struct.unpack_from(">HHHH", body, 20) == (al.USI_CHANNEL_DIAGNOSIS,
+                                                     al.WHOLE_SUBMODULE, 1 << 11,
+                                                     al.ERROR_CAMERA_DOWN)
+    assert cr.tick(0.05) == [] and cr.tick(0.11) == [first]  # retried after the RTA timeout
+    ack = al.Rta(1, 3, al.PDU_ACK, 1, 0xFFFF, 0xFFFF)
+    (second,) = cr.on_rta(ack, 0.12)  # acked: the disappearing one goes out
+    rta2 = al.Rta.unpack(fr.Ethernet.unpack(second).payload[2:])
+    assert rta2.send_seq == 0
+    assert struct.unpack_from(">H", rpc.split_blocks(rta2.var)[0][1], 0)[0] == \
+        al.ALARM_DIAGNOSIS_DISAPPEARS
+    assert cr.acked == 1
+    assert cr.on_rta(al.Rta(9, 3, al.PDU_ACK, 1, 0, 0), 0.13) == []  # not our endpoint

@@ -21,6 +21,7 @@ from .. import layout
 from . import frames as fr
 from . import modules as mod
 from . import rpc
+from .alarms import AlarmCr, Rta
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ class Ar:
     output_cr: rpc.IocrRequest
     input_frame_id: int
     output_frame_id: int
-    alarm_ref: int
+    alarm: AlarmCr
     phase: str = "parameter"  # parameter → ready (ApplicationReady sent) → data
     next_send: float = 0.0
     cycle: int = 0
@@ -123,6 +124,7 @@ class Device:
         self.output_image = bytes(layout.OUTPUT_SIZE)
         self.records: dict[tuple[int, int, int], bytes] = {}  # parameter records written
         self._device_alarm_ref = 0x0001
+        self.diagnoses: dict[str, int] = {}  # active: source → ChannelErrorType
 
     # ------------------------------------------------------------------ problems
 
@@ -150,6 +152,10 @@ class Device:
             elif (fr.FRAME_ID_RTC1_MIN <= frame_id <= fr.FRAME_ID_RTC1_MAX
                   and eth.dst == self.identity.mac):
                 self._rt(eth, frame_id, now, out)
+            elif (frame_id in (fr.FRAME_ID_ALARM_HIGH, fr.FRAME_ID_ALARM_LOW)
+                  and eth.dst == self.identity.mac and self.ar is not None
+                  and eth.src == self.ar.controller_mac):
+                out.frames += self.ar.alarm.on_rta(Rta.unpack(eth.payload[2:]), now)
             # alarms from the controller (ACKs) and other frame ids: not ours to answer
         except (ValueError, IndexError, struct.error) as err:  # FrameError is a ValueError
             self._bad(f"frame from {fr.mac_text(raw[6:12])} dropped: {err}")
@@ -316,8 +322,13 @@ class Device:
             fr.FRAME_ID_RTC1_MAX else 0xC001
         out_id = 0xC000 + 0x100 + (outputs[0].reference & 0xFF)
         mac = ar_req.initiator_mac
+        # diagnosis alarms go low priority (frame id 0xFE01), one in flight, RTA retries
+        alarm_cr = AlarmCr(mac, self.identity.mac, alarm.local_reference,
+                           self._device_alarm_ref, high=False,
+                           timeout_s=max(alarm.timeout_factor, 1) * 0.1,
+                           retries=min(max(alarm.retries, 3), 15))
         ar = Ar(ar_req, mac, (addr[0], rpc.RPC_PORT), inputs[0], outputs[0], in_id, out_id,
-                alarm.local_reference, next_send=now, connected_at=now)
+                alarm_cr, next_send=now, connected_at=now)
         self.ar = ar
         self.stats.connects += 1
         if diff:
@@ -469,6 +480,27 @@ class Device:
             return
         ar.phase = "data"
         out.events.append(Event("running", "ApplicationReady confirmed: data exchange"))
+        for error_type in self.diagnoses.values():  # what is down now, for the new AR
+            out.frames += ar.alarm.diagnosis(True, error_type, now)
+
+    # ------------------------------------------------------------------ diagnosis
+
+    def diagnosis(self, source: str, appears: bool, error_type: int, now: float) -> Out:
+        """A station alarm (``source``: camera:<id>, station) appeared or cleared: a diagnosis
+        alarm to the controller when the AR exchanges data, remembered for the next AR."""
+        out = Out()
+        known = source in self.diagnoses
+        if appears == known:
+            return out
+        if appears:
+            self.diagnoses[source] = error_type
+        else:
+            error_type = self.diagnoses.pop(source)
+        if self.ar is not None and self.ar.phase == "data":
+            out.frames += self.ar.alarm.diagnosis(appears, error_type, now)
+        out.events.append(Event("diagnosis", f"diagnosis {'appears' if appears else 'disappears'}"
+                                f": {source} (channel error type 0x{error_type:04x})"))
+        return out
 
     # ------------------------------------------------------------------ cyclic data
 
@@ -545,6 +577,7 @@ class Device:
             out.datagrams.append(self._app_ready_request(ar))
             ar.app_ready_tries += 1
             ar.app_ready_at = now + APP_READY_RETRY_S
+        out.frames += ar.alarm.tick(now)
         if now >= ar.next_send:
             out.frames.append(self._input_frame(ar))
             self.stats.frames_out += 1

@@ -24,10 +24,12 @@ from .. import layout as r
 from ..base import Link, StationHandler
 from ..handshake import HandshakeRunner
 from ..layout import ByteOrder
+from .alarms import ERROR_CAMERA_DOWN, ERROR_STATION_DOWN
 from .settings import ProfinetLinkConfig
 
 log = logging.getLogger(__name__)
 START_S = 10.0
+DIAGNOSED = frozenset({"CAMERA_DOWN", "STATION_DOWN"})  # station alarm codes (docs/alarms.md)
 
 
 class ProfinetError(RuntimeError):
@@ -155,6 +157,24 @@ class ProfinetLink(Link):
         while True:
             self._push()
             await asyncio.sleep(self.config.poll_s)
+
+    def diagnosis(self, source: str, appears: bool) -> None:
+        """A camera (``camera:<id>``) or the station (``station``) went down (``appears``) or
+        came back: the device sends the controller a diagnosis alarm on the result
+        submodule."""
+        if self._pair is None:
+            return
+        error_type = ERROR_STATION_DOWN if source == "station" else ERROR_CAMERA_DOWN
+        with contextlib.suppress(BlockingIOError):
+            self._pair.send(b"A" + json.dumps({"source": source, "appears": appears,
+                                               "error_type": error_type}).encode())
+
+    def alarm_changed(self, notice: Any) -> None:
+        """The station's alarm seam (an AlarmNotice: event, source, code): CAMERA_DOWN and
+        STATION_DOWN become diagnosis alarms, appearing when raised and disappearing when
+        cleared."""
+        if getattr(notice, "code", None) in DIAGNOSED and notice.event in ("raised", "cleared"):
+            self.diagnosis(notice.source, notice.event == "raised")
 
     # ------------------------------------------------------------------ the seam
 

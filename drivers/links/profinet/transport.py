@@ -3,8 +3,9 @@ drivers.links.profinet.transport``): a raw AF_PACKET socket on the configured in
 (DCP, RT, LLDP), the RPC socket on UDP 34964, and the station over a SEQPACKET socketpair whose
 descriptor is the second argument. A frame cycle never waits for the station's GIL.
 
-Messages on the pair, one per packet: to the child ``I`` + the INPUT block (big-endian) and
-``Q`` (stop); to the station ``O`` + the OUTPUT block when the controller's outputs changed,
+Messages on the pair, one per packet: to the child ``I`` + the INPUT block (big-endian),
+``A`` + a JSON diagnosis (``{"source", "appears", "error_type"}``) and ``Q`` (stop); to the
+station ``O`` + the OUTPUT block when the controller's outputs changed,
 ``E`` + a JSON event (``{"kind", "text"}``; kind ``started`` with the MAC, ``error`` with a
 start-up problem, then the device's events) and ``S`` + JSON stats every second.
 """
@@ -98,6 +99,9 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
                 break
             if msg[:1] == b"I" and len(msg) - 1 == len(dev.input_image):
                 dev.input_image = msg[1:]
+            elif msg[:1] == b"A":
+                diag = json.loads(msg[1:])
+                emit(dev.diagnosis(diag["source"], diag["appears"], diag["error_type"], now))
         if raw in ready:
             for _ in range(64):
                 try:
@@ -120,7 +124,9 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
                 "ar": None if dev.ar is None else {
                     "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
                     "cycle_ms": dev.ar.input_cr.cycle_us / 1000,
-                    "data_hold_ms": dev.ar.hold_s * 1000}}).encode())
+                    "data_hold_ms": dev.ar.hold_s * 1000, "alarms_sent": dev.ar.alarm.sent,
+                    "alarms_acked": dev.ar.alarm.acked},
+                "diagnoses": sorted(dev.diagnoses)}).encode())
             next_stats = now + STATS_EVERY_S
 
 
