@@ -5,7 +5,7 @@ line on stdout. Run inside the controller's network namespace (`ip netns exec`).
 Commands: {"do": "identify", "name"?} | {"do": "set_name", "mac", "name"} |
 {"do": "connect", "name", "slots": [[slot, subslot, in_len, out_len, mod_id, sub_id]...],
  "reduction_ratio", "data_hold_factor"} | {"do": "prm_end"} | {"do": "app_ready"} |
-{"do": "cyclic"} | {"do": "output", "slot", "subslot", "hex"} | {"do": "input", "slot",
+{"do": "cyclic"} | {"do": "output", "slots": [[slot, subslot, hex]...]} | {"do": "input", "slot",
  "subslot"} | {"do": "listen_alarms"} | {"do": "alarms"} |
 {"do": "stop_cyclic"} | {"do": "release"} | {"do": "read", "slot", "subslot",
  "index"} | {"do": "raw", "hex"} (send a raw frame) | {"do": "udp", "hex", "ip"}.
@@ -88,8 +88,9 @@ def run(cmd: dict, sock, mac: bytes, state: dict) -> dict:
         cyc.start()
         state["cyc"] = cyc
         return {}
-    if do == "output":
-        state["cyc"].set_output_data(cmd["slot"], cmd["subslot"], bytes.fromhex(cmd["hex"]))
+    if do == "output":  # [[slot, subslot, hex], ...] in this order
+        for slot, subslot, data in cmd["slots"]:
+            state["cyc"].set_output_data(slot, subslot, bytes.fromhex(data))
         return {}
     if do == "input":
         data = state["cyc"].get_input_data(cmd["slot"], cmd["subslot"])

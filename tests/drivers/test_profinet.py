@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from drivers.links import layout as L  # noqa: N812 - as the layout tests name it
+from drivers.links import layout
 from drivers.links.layout import ByteOrder, Status
 from drivers.links.profinet import ProfinetLink
 from drivers.links.profinet import modules as mod
@@ -129,21 +129,22 @@ class ControllerPort:
 
     def __init__(self, ctl: Controller) -> None:
         self.ctl = ctl
-        self.outputs = bytearray(L.OUTPUT_SIZE)
+        self.outputs = bytearray(layout.OUTPUT_SIZE)
 
     async def connect(self) -> None:
         pass
 
     async def read_inputs(self) -> bytes:
         answer = await self.ctl.ok("input", slot=mod.RESULT.slot, subslot=1)
-        return bytes.fromhex(answer["hex"]) if answer["hex"] else bytes(L.INPUT_SIZE)
+        return bytes.fromhex(answer["hex"]) if answer["hex"] else bytes(layout.INPUT_SIZE)
 
     async def write_outputs(self, offset: int, data: bytes) -> None:
         self.outputs[offset:offset + len(data)] = data
-        for sub in (mod.HANDSHAKE, mod.ROBOT_POSE):
-            lo, n = sub.output
-            await self.ctl.ok("output", slot=sub.slot, subslot=1,
-                              hex=bytes(self.outputs[lo:lo + n]).hex())
+        # the pose and part id before the control word: a frame sent between the two writes
+        # must not carry a TRIGGER edge without its data (a PLC writes its outputs as one)
+        await self.ctl.ok("output", slots=[
+            [sub.slot, sub.subslot, bytes(self.outputs[sub.output[0]:sum(sub.output)]).hex()]
+            for sub in (mod.ROBOT_POSE, mod.HANDSHAKE)])
 
     def close(self) -> None:
         pass
@@ -196,8 +197,8 @@ async def test_connect_cyclic_trigger_result_and_release(
                 "the AR in data exchange")
     async with _plc(controller) as twin:
         ready = await twin.enable()
-        assert ready.test_float == pytest.approx(L.TEST_FLOAT, abs=1e-4)
-        assert ready.test_int == L.TEST_INT
+        assert ready.test_float == pytest.approx(layout.TEST_FLOAT, abs=1e-4)
+        assert ready.test_int == layout.TEST_INT
         for trigger_id in (91001, 91013):  # 91013 = 13 × 7001: a NOK of the arithmetic handler
             answer = await twin.cycle(trigger_id, part_id="WVWZZZ1KZ", timeout=5.0)
             assert answer.trigger_id == trigger_id

@@ -121,6 +121,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             pair.send(b"S" + json.dumps({
                 **{k: v for k, v in vars(st).items() if k != "last_errors"},
                 "last_errors": st.last_errors[-5:], "station_name": dev.identity.station_name,
+                "dcp_requests": dev.dcp.requests,
                 "ar": None if dev.ar is None else {
                     "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
                     "cycle_ms": dev.ar.input_cr.cycle_us / 1000,
