@@ -4,9 +4,10 @@ line on stdout. Run inside the controller's network namespace (`ip netns exec`).
 
 Commands: {"do": "identify", "name"?} | {"do": "set_name", "mac", "name"} |
 {"do": "connect", "name", "slots": [[slot, subslot, in_len, out_len, mod_id, sub_id]...],
- "reduction_ratio", "data_hold_factor"} | {"do": "prm_end"} | {"do": "app_ready"} |
-{"do": "cyclic"} | {"do": "output", "slots": [[slot, subslot, hex]...]} | {"do": "input", "slot",
- "subslot"} | {"do": "listen_alarms"} | {"do": "alarms"} |
+ "reduction_ratio", "data_hold_factor"} | {"do": "connect_supervisor", "name"} |
+{"do": "prm_end"} | {"do": "app_ready"} |
+{"do": "cyclic"} | {"do": "output", "slots": [[slot, subslot, hex]...]} |
+{"do": "input", "slot", "subslot"} | {"do": "listen_alarms"} | {"do": "alarms"} |
 {"do": "stop_cyclic"} | {"do": "release"} | {"do": "read", "slot", "subslot",
  "index"} | {"do": "raw", "hex"} (send a raw frame) | {"do": "udp", "hex", "ip"}.
 """
@@ -69,6 +70,10 @@ def run(cmd: dict, sock, mac: bytes, state: dict) -> dict:
         return {"input_frame_id": result.input_frame_id, "output_frame_id":
                 result.output_frame_id, "device_mac": util.mac2s(info.mac)
                 if isinstance(info.mac, bytes) else info.mac}
+    if do == "connect_supervisor":  # a device-access AR (IOSAR), no IOCRs
+        info = rpc.get_station_info(sock, mac, cmd["name"], timeout_sec=2)
+        rpc.RPCCon(info, timeout=2.0).connect(mac)
+        return {}
     con = state.get("con")
     if do == "prm_end":
         con.prm_end()

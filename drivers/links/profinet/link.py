@@ -202,6 +202,7 @@ class ProfinetLink(Link):
             "connects": st.get("connects", 0), "releases": st.get("releases", 0),
             "data_hold_expired": st.get("data_hold_expired", 0),
             "malformed": st.get("malformed", 0), "module_diffs": st.get("module_diffs", 0),
+            "refused_connects": st.get("refused_connects", 0),
             "handler_errors": self.runner.stats.handler_errors,
             "last_errors": [*st.get("last_errors", []), *self.runner.stats.last_errors][-5:],
             "server_heartbeat": image[r.IR_HEARTBEAT],
