@@ -92,7 +92,10 @@ class Controller:
         return answer
 
     async def run_ar(self, name: str, **connect: Any) -> dict[str, Any]:
-        """Connect with the device's own submodules, PrmEnd, ApplicationReady, cyclic data."""
+        """Connect with the device's own submodules, PrmEnd, ApplicationReady, cyclic data.
+        The data hold time defaults to 100 cycles: profinet-py's sender is Python threads on
+        a shared 2-core machine and misses whole runs of cycles (a hardware PLC does not)."""
+        connect.setdefault("data_hold_factor", 100)
         answer = await self.ok("connect", name=name, slots=SLOTS, **connect)
         await self.ok("prm_end")
         await self.ok("app_ready")
