@@ -97,6 +97,8 @@ async def test_connect_cyclic_trigger_result_and_release(
             assert answer.has(Status.RESULT_OK) == (trigger_id % 13 != 0)
     assert [r.part_id for r in handler.requests] == ["WVWZZZ1KZ"] * 2
     assert {r.link for r in handler.requests} == {"profinet"}
+    await until(lambda: link.status().get("cycle_jitter_ms") is not None,
+                "the cycle's jitter measured")
     im0 = bytes.fromhex((await controller.ok("read", slot=0, subslot=1, index=0xAFF0))["hex"])
     assert b"MVPOSE-PN" in im0
     await controller.ok("stop_cyclic")

@@ -305,3 +305,19 @@ def test_diagnosis_alarms_one_in_flight_acked_and_retried() -> None:
         al.ALARM_DIAGNOSIS_DISAPPEARS
     assert cr.acked == 1
     assert cr.on_rta(al.Rta(9, 3, al.PDU_ACK, 1, 0, 0), 0.13) == []  # not our endpoint
+
+
+def test_lldp_names_the_station_and_port() -> None:
+    eth = fr.Ethernet.unpack(fr.lldp_frame(DEV_MAC, "mvpose-cell-7", "port-001"))
+    assert (eth.dst, eth.src, eth.ethertype) == (fr.LLDP_MULTICAST, DEV_MAC, fr.ETHERTYPE_LLDP)
+    tlvs, at = {}, 0
+    while at < len(eth.payload):
+        head, = struct.unpack_from(">H", eth.payload, at)
+        kind, n = head >> 9, head & 0x1FF
+        tlvs[kind] = eth.payload[at + 2:at + 2 + n]
+        at += 2 + n
+        if kind == 0:
+            break
+    assert tlvs[1] == b"\x07mvpose-cell-7"  # chassis id: NameOfStation, locally assigned
+    assert tlvs[2] == b"\x07port-001"
+    assert struct.unpack(">H", tlvs[3]) == (20,)

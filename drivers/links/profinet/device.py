@@ -83,6 +83,7 @@ class Out:
     datagrams: list[tuple[bytes, tuple[str, int]]] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
     output: bytes | None = None
+    cyclic: bool = False  # ``frames`` holds this cycle's input frame
 
 
 class Device:
@@ -468,6 +469,7 @@ class Device:
         out.frames += ar.alarm.tick(now)
         if now >= ar.next_send:
             out.frames.append(self._input_frame(ar))
+            out.cyclic = True
             self.stats.frames_out += 1
             ar.next_send = max(ar.next_send + ar.input_period_s, now - ar.input_period_s)
         return out

@@ -20,6 +20,7 @@ import socket
 import struct
 import sys
 import time
+from collections import deque
 from typing import Any
 
 from . import frames as fr
@@ -77,10 +78,17 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
     event("started", f"PROFINET device {cfg['station_name']!r} on {cfg['interface']} "
           f"({fr.mac_text(mac)})", mac=fr.mac_text(mac))
     next_lldp = next_stats = time.monotonic()
+    intervals: deque[float] = deque(maxlen=2000)  # between input frames sent, for the jitter
+    last_cyclic = [0.0]
 
     def emit(out: Out) -> None:
         for frame in out.frames:
             raw.send(frame)
+        if out.cyclic:
+            t = time.monotonic()
+            if last_cyclic[0]:
+                intervals.append(t - last_cyclic[0])
+            last_cyclic[0] = t
         for data, addr in out.datagrams:
             udp.sendto(data, addr)
         for ev in out.events:
@@ -121,7 +129,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             pair.send(b"S" + json.dumps({
                 **{k: v for k, v in vars(st).items() if k != "last_errors"},
                 "last_errors": st.last_errors[-5:], "station_name": dev.identity.station_name,
-                "dcp_requests": dev.dcp.requests,
+                "dcp_requests": dev.dcp.requests, **_jitter(intervals),
                 "ar": None if dev.ar is None else {
                     "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
                     "cycle_ms": dev.ar.input_cr.cycle_us / 1000,
@@ -129,6 +137,16 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
                     "alarms_acked": dev.ar.alarm.acked},
                 "diagnoses": sorted(dev.diagnoses)}).encode())
             next_stats = now + STATS_EVERY_S
+
+
+def _jitter(intervals: deque[float]) -> dict[str, float]:
+    """The input frames' interval p50 and p99 − p50 (the cycle jitter), in ms."""
+    if len(intervals) < 10:
+        return {}
+    ordered = sorted(intervals)
+    p50 = ordered[len(ordered) // 2]
+    p99 = ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))]
+    return {"cycle_p50_ms": round(p50 * 1000, 3), "cycle_jitter_ms": round((p99 - p50) * 1000, 3)}
 
 
 def main() -> None:
