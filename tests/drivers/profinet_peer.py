@@ -47,7 +47,7 @@ class Net:
     controller_ip: str
 
 
-def _ip(*args: str) -> None:
+def ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True)
 
 
@@ -55,15 +55,15 @@ def _ip(*args: str) -> None:
 def veth(k: int = 0) -> Iterator[Net]:
     tag = f"{os.getpid() % 10000}{k}"
     n = Net(f"pnc{tag}", f"pnd{tag}", f"pnc{tag}", f"10.251.{k}.1", f"10.251.{k}.2")
-    _ip("netns", "add", n.ns)
+    ip("netns", "add", n.ns)
     try:
-        _ip("link", "add", n.device_if, "type", "veth", "peer", "name", n.controller_if)
-        _ip("link", "set", n.controller_if, "netns", n.ns)
-        _ip("addr", "add", f"{n.device_ip}/24", "dev", n.device_if)
-        _ip("link", "set", n.device_if, "up")
-        _ip("-n", n.ns, "addr", "add", f"{n.controller_ip}/24", "dev", n.controller_if)
-        _ip("-n", n.ns, "link", "set", n.controller_if, "up")
-        _ip("-n", n.ns, "link", "set", "lo", "up")
+        ip("link", "add", n.device_if, "type", "veth", "peer", "name", n.controller_if)
+        ip("link", "set", n.controller_if, "netns", n.ns)
+        ip("addr", "add", f"{n.device_ip}/24", "dev", n.device_if)
+        ip("link", "set", n.device_if, "up")
+        ip("-n", n.ns, "addr", "add", f"{n.controller_ip}/24", "dev", n.controller_if)
+        ip("-n", n.ns, "link", "set", n.controller_if, "up")
+        ip("-n", n.ns, "link", "set", "lo", "up")
         yield n
     finally:
         subprocess.run(["ip", "link", "del", n.device_if], capture_output=True)

@@ -195,3 +195,20 @@ async def test_malformed_frames_are_counted_never_a_crash(
     await until(lambda: link.child_stats.get("malformed", 0) >= 3, "the bad frames counted")
     assert link.ready()
     assert (await controller.ok("identify", name=NAME))["devices"]
+
+
+async def test_the_interface_going_down_is_not_the_end_of_the_device(
+        device: Any, controller: Controller, net: peer.Net) -> None:
+    link, _ = device
+    await _run_ar(controller)
+    peer.ip("link", "set", net.device_if, "down")
+    try:
+        await until(lambda: link.child_stats.get("send_errors", 0) > 0,
+                    "the frames that could not be sent counted")
+        assert link.ready()
+    finally:
+        peer.ip("link", "set", net.device_if, "up")
+    await controller.ok("stop_cyclic")
+    await until(lambda: link.child_stats.get("ar") is None, "the AR ended (data hold time)")
+    found = (await controller.ok("identify", name=NAME))["devices"]
+    assert [d["name"] for d in found] == [NAME]

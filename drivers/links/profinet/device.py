@@ -40,6 +40,7 @@ class Stats:
     module_diffs: int = 0
     data_hold_expired: int = 0
     releases: int = 0
+    send_errors: int = 0
     last_errors: list[str] = field(default_factory=list)
 
 

@@ -81,16 +81,25 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
     intervals: deque[float] = deque(maxlen=2000)  # between input frames sent, for the jitter
     last_cyclic = [0.0]
 
+    def send(sock: socket.socket, data: bytes, addr: tuple[str, int] | None = None) -> None:
+        # a link that is down or a controller that went away (ICMP unreachable) is counted,
+        # never the end of the device
+        try:
+            sock.send(data) if addr is None else sock.sendto(data, addr)
+        except OSError as err:
+            dev.stats.send_errors += 1
+            dev.stats.last_errors = [*dev.stats.last_errors[-9:], f"send failed: {err}"]
+
     def emit(out: Out) -> None:
         for frame in out.frames:
-            raw.send(frame)
+            send(raw, frame)
         if out.cyclic:
             t = time.monotonic()
             if last_cyclic[0]:
                 intervals.append(t - last_cyclic[0])
             last_cyclic[0] = t
         for data, addr in out.datagrams:
-            udp.sendto(data, addr)
+            send(udp, data, addr)
         for ev in out.events:
             event(ev.kind, ev.text)
         if out.output is not None:
@@ -114,15 +123,19 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             for _ in range(64):
                 try:
                     frame = raw.recv(2048, socket.MSG_DONTWAIT)
-                except BlockingIOError:
+                except OSError:  # nothing more, or the interface went down
                     break
                 emit(dev.on_frame(frame, now))
         if udp in ready:
-            data, addr = udp.recvfrom(8192)
-            emit(dev.on_datagram(data, addr, now))
+            try:
+                data, addr = udp.recvfrom(8192)
+            except OSError:  # an ICMP error of an earlier datagram (the controller went away)
+                pass
+            else:
+                emit(dev.on_datagram(data, addr, now))
         emit(dev.tick(time.monotonic()))
         if now >= next_lldp:
-            raw.send(fr.lldp_frame(mac, dev.identity.station_name, "port-001"))
+            send(raw, fr.lldp_frame(mac, dev.identity.station_name, "port-001"))
             next_lldp = now + LLDP_EVERY_S
         if now >= next_stats:
             st = dev.stats
