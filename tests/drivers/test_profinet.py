@@ -6,6 +6,8 @@ shared handshake; the PLC program is the layout's twin over the controller's cyc
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -210,5 +212,17 @@ async def test_the_interface_going_down_is_not_the_end_of_the_device(
         peer.ip("link", "set", net.device_if, "up")
     await controller.ok("stop_cyclic")
     await until(lambda: link.child_stats.get("ar") is None, "the AR ended (data hold time)")
+    found = (await controller.ok("identify", name=NAME))["devices"]
+    assert [d["name"] for d in found] == [NAME]
+
+
+async def test_a_device_process_that_dies_is_started_again(
+        device: Any, controller: Controller) -> None:
+    link, _ = device
+    assert link._proc is not None
+    os.kill(link._proc.pid, signal.SIGKILL)
+    await until(lambda: link.status().get("restarts") == 1 and link.ready(),
+                "the device's process started again")
+    assert any("ended" in e for e in link.runner.stats.last_errors)
     found = (await controller.ok("identify", name=NAME))["devices"]
     assert [d["name"] for d in found] == [NAME]

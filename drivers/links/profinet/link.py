@@ -29,6 +29,7 @@ from .settings import ProfinetLinkConfig
 
 log = logging.getLogger(__name__)
 START_S = 10.0
+RESTART_S = (1.0, 30.0)  # first and longest wait before a dead device process starts again
 DIAGNOSED = frozenset({"CAMERA_DOWN", "STATION_DOWN"})  # station alarm codes (docs/alarms.md)
 
 
@@ -52,6 +53,8 @@ class ProfinetLink(Link):
         self._started: asyncio.Future[dict[str, Any]] | None = None
         self.child_stats: dict[str, Any] = {}
         self.events: list[dict[str, Any]] = []  # the device's last 20 events
+        self._restart: asyncio.Task[None] | None = None
+        self.restarts = 0
 
     async def start(self) -> None:
         cfg = self.config
@@ -59,38 +62,36 @@ class ProfinetLink(Link):
                                  link="profinet")
         await runner.start()
         self.runner = runner
+        try:
+            await self._spawn()
+        except BaseException:
+            await self.stop()
+            raise
+        self._poller = asyncio.create_task(self._poll(), name="profinet-input")
+
+    async def _spawn(self) -> None:
+        """Start the device's process and wait for its start (ProfinetError names why not)."""
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "drivers.links.profinet.transport",
-                 json.dumps(cfg.child()), str(theirs.fileno())],
+                 json.dumps(self.config.child()), str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),),
                 cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
                     os.path.abspath(__file__))))))
         finally:
             theirs.close()
         ours.setblocking(False)
-        self._pair = ours
+        self._pair, self._sent = ours, b""
         loop = asyncio.get_running_loop()
         self._started = loop.create_future()
         loop.add_reader(ours.fileno(), self._read)
-        try:
-            started = await asyncio.wait_for(asyncio.shield(self._started), START_S)
-        except BaseException:
-            await self.stop()
-            raise
+        started = await asyncio.wait_for(asyncio.shield(self._started), START_S)
         if started["kind"] == "error":
-            await self.stop()
             raise ProfinetError(started["text"])
         log.info("profinet link: %s", started["text"])
-        self._poller = asyncio.create_task(self._poll(), name="profinet-input")
 
-    async def stop(self) -> None:
-        if self._poller is not None:
-            self._poller.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._poller
-            self._poller = None
+    async def _close_child(self) -> None:
         if self._pair is not None:
             asyncio.get_running_loop().remove_reader(self._pair.fileno())
             with contextlib.suppress(OSError):
@@ -104,6 +105,37 @@ class ProfinetLink(Link):
             except subprocess.TimeoutExpired:
                 proc.kill()
                 await asyncio.to_thread(proc.wait)
+
+    async def _respawn(self) -> None:
+        """The device's process ended: start it again, waiting 1 s, then up to 30 s."""
+        wait = RESTART_S[0]
+        while True:
+            await self._close_child()
+            await asyncio.sleep(wait)
+            try:
+                await self._spawn()
+            except (OSError, ProfinetError, TimeoutError) as err:
+                if self.runner is not None:
+                    self.runner.note(f"the PROFINET device did not start again: {err}")
+                wait = min(2 * wait, RESTART_S[1])
+            else:
+                self.restarts += 1
+                return
+
+    async def _respawn_then_clear(self) -> None:
+        try:
+            await self._respawn()
+        finally:
+            self._restart = None
+
+    async def stop(self) -> None:
+        for task in (self._poller, self._restart):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._poller = self._restart = None
+        await self._close_child()
         if self.runner is not None:
             await self.runner.stop()
             self.runner = None
@@ -124,8 +156,10 @@ class ProfinetLink(Link):
                 if self._started is not None and not self._started.done():
                     self._started.set_result({"kind": "error",
                                               "text": "the PROFINET device process ended"})
-                elif self.runner is not None:
-                    self.runner.note("the PROFINET device process ended")
+                elif self.runner is not None and self._restart is None:
+                    self.runner.note("the PROFINET device process ended; starting it again")
+                    self._restart = asyncio.create_task(self._respawn_then_clear(),
+                                                        name="profinet-restart")
                 return
             kind, body = msg[:1], msg[1:]
             if kind == b"O" and self.runner is not None:
@@ -202,7 +236,7 @@ class ProfinetLink(Link):
             "connects": st.get("connects", 0), "releases": st.get("releases", 0),
             "data_hold_expired": st.get("data_hold_expired", 0),
             "malformed": st.get("malformed", 0), "module_diffs": st.get("module_diffs", 0),
-            "refused_connects": st.get("refused_connects", 0),
+            "refused_connects": st.get("refused_connects", 0), "restarts": self.restarts,
             # the input frames' interval: p50 and p99 − p50 over the last 2000 (ms)
             "cycle_p50_ms": st.get("cycle_p50_ms"), "cycle_jitter_ms": st.get("cycle_jitter_ms"),
             "handler_errors": self.runner.stats.handler_errors,
