@@ -321,3 +321,17 @@ def test_lldp_names_the_station_and_port() -> None:
     assert tlvs[1] == b"\x07mvpose-cell-7"  # chassis id: NameOfStation, locally assigned
     assert tlvs[2] == b"\x07port-001"
     assert struct.unpack(">H", tlvs[3]) == (20,)
+
+
+def test_the_station_files_block_is_checked_field_by_field() -> None:
+    from drivers.links import LinkSettingsError, link_settings
+    from drivers.links.profinet.settings import ProfinetLinkConfig
+
+    assert "profinet" not in link_settings({})  # no PROFINET unless the station file names it
+    cfg = link_settings({"profinet": {"interface": "eth1", "station_name": "cell-7"}})["profinet"]
+    assert isinstance(cfg, ProfinetLinkConfig) and cfg.min_cycle_ms == 1.0
+    with pytest.raises(LinkSettingsError) as err:
+        link_settings({"profinet": {"station_name": "Cell_7", "cycle": 4, "min_cycle_ms": 0.5}})
+    where = sorted(p[0] for p in err.value.problems)
+    assert where == ["links.profinet.cycle", "links.profinet.min_cycle_ms",
+                     "links.profinet.station_name"]
