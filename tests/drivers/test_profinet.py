@@ -9,12 +9,13 @@ import asyncio
 import os
 import signal
 from collections.abc import AsyncIterator, Iterator
-from dataclasses import dataclass
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
 
 from drivers.links import layout
+from drivers.links.base import AlarmNotice
 from drivers.links.layout import Status
 from drivers.links.profinet import ProfinetLink
 from drivers.links.profinet import modules as mod
@@ -164,13 +165,9 @@ async def test_a_camera_down_is_a_diagnosis_alarm_that_disappears(
                 "both alarms acknowledged by the controller")
 
 
-@dataclass(frozen=True)
-class _Notice:
-    """The fields of the station's AlarmNotice the link reads (docs/alarms.md)."""
-
-    event: str
-    source: str
-    code: str
+def _Notice(event: str, source: str, code: str) -> AlarmNotice:  # noqa: N802 - reads as one
+    return AlarmNotice(event, 1, 1, source, code, "high", code, event == "raised", False, None,
+                       datetime.now(UTC))
 
 
 async def test_wrong_submodules_get_a_module_diff(device: Any, controller: Controller) -> None:

@@ -21,7 +21,7 @@ import sys
 from typing import Any
 
 from .. import layout as r
-from ..base import Link, StationHandler
+from ..base import AlarmNotice, Link, StationHandler
 from ..handshake import HandshakeRunner
 from ..layout import ByteOrder
 from .alarms import ERROR_CAMERA_DOWN, ERROR_STATION_DOWN
@@ -203,11 +203,10 @@ class ProfinetLink(Link):
             self._pair.send(b"A" + json.dumps({"source": source, "appears": appears,
                                                "error_type": error_type}).encode())
 
-    def alarm_changed(self, notice: Any) -> None:
-        """The station's alarm seam (an AlarmNotice: event, source, code): CAMERA_DOWN and
-        STATION_DOWN become diagnosis alarms, appearing when raised and disappearing when
-        cleared."""
-        if getattr(notice, "code", None) in DIAGNOSED and notice.event in ("raised", "cleared"):
+    def alarm_changed(self, notice: AlarmNotice) -> None:
+        """The station's alarms (docs/alarms.md): CAMERA_DOWN and STATION_DOWN become
+        diagnosis alarms, appearing when raised and disappearing when cleared."""
+        if notice.code in DIAGNOSED and notice.event in ("raised", "cleared"):
             self.diagnosis(notice.source, notice.event == "raised")
 
     # ------------------------------------------------------------------ the seam
