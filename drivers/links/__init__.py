@@ -25,12 +25,14 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "opcua": ("drivers.links.opcua", "OpcUaLink"),
     "enip": ("drivers.links.enip", "EnipLink"),
     "s7": ("drivers.links.s7", "S7Link"),
+    "profinet": ("drivers.links.profinet", "ProfinetLink"),
 }
 SETTINGS: dict[str, tuple[str, str]] = {
     "modbus": ("drivers.links.modbus.settings", "ModbusLinkConfig"),
     "opcua": ("drivers.links.opcua.settings", "OpcUaLinkConfig"),
     "enip": ("drivers.links.enip.settings", "EnipLinkConfig"),
     "s7": ("drivers.links.s7.settings", "S7LinkConfig"),
+    "profinet": ("drivers.links.profinet.settings", "ProfinetLinkConfig"),
 }
 OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
 #: backends that connect to the PLC (their host and port are the PLC's, not ours to listen on)

@@ -45,6 +45,8 @@ from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import RobotConvention, from_robot, to_robot, transform_error
 from server.loopback import RunningServer, attach_twin, detach_twin, running_server
 from server.store.schemas import MeasurementFilter, StoredMeasurement
+from tests.drivers import profinet_peer
+from tests.waiting import until
 
 pytestmark = [pytest.mark.asyncio(loop_scope="module"), pytest.mark.timeout(600)]
 
@@ -490,6 +492,83 @@ class TestS7(TestModbus):
 
     async def refuse_stranger(self, env: Env) -> None:
         self.need("stranger")
+
+
+# --------------------------------------------------------------------------- PROFINET
+PN_NAME = "mvpose-station"
+
+
+def _profinet(net: profinet_peer.Net) -> Callable[[dict[str, Any]], None]:
+    def edit(data: dict[str, Any]) -> None:
+        data.setdefault("links", {})["profinet"] = {
+            "interface": net.device_if, "station_name": PN_NAME, "rpc_host": net.device_ip,
+            "watchdog_s": 10.0}
+    return edit
+
+
+@pytest.mark.skipif(profinet_peer.usable() is not None, reason=str(profinet_peer.usable()))
+class TestProfinet(TestModbus):
+    """The same handshake over PROFINET cyclic data (RT_CLASS_1, 4 ms), the station an
+    IO-device on a veth pair and profinet-py the IO-controller in a namespace of its own; the
+    PLC program's steps are Modbus's. The class's stations are its own (they need the veth)."""
+
+    name = "profinet"
+    nets: ClassVar[dict[int, profinet_peer.Net]] = {}
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def _station(cls, tmp: Path, k: int, name: str,
+                       *edits: Callable[[dict[str, Any]], None]) -> AsyncIterator[Env]:
+        with profinet_peer.veth(k) as net:
+            async with _env(tmp, name, *edits, _profinet(net), opcua=False) as env:
+                cls.nets[id(env.rs)] = net
+                yield env
+
+    @pytest_asyncio.fixture(scope="class", loop_scope="module")
+    @classmethod
+    async def fixed(cls, tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
+        async with cls._station(tmp_path_factory.mktemp("pn-fixed"), 1, "station1",
+                                 relaxed_deadline) as env:
+            yield env
+
+    @pytest_asyncio.fixture(scope="class", loop_scope="module")
+    @classmethod
+    async def mounted(cls, tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
+        async with cls._station(tmp_path_factory.mktemp("pn-mounted"), 2, "lab",
+                                 relaxed_deadline) as env:
+            yield env
+
+    @pytest_asyncio.fixture(scope="class", loop_scope="module")
+    @classmethod
+    async def hurried(cls, tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
+        def deadline(data: dict[str, Any]) -> None:
+            data["deadline_ms"] = 2.0
+
+        async with cls._station(tmp_path_factory.mktemp("pn-hurried"), 3, "station1",
+                                 deadline) as env:
+            yield env
+
+    @contextlib.asynccontextmanager
+    async def session(self, env: Env) -> AsyncIterator[PlcTwin]:
+        async with profinet_peer.controller(self.nets[id(env.rs)]) as ctl:
+            await ctl.run_ar(PN_NAME, reduction_ratio=4)  # 4 ms
+            try:
+                async with profinet_peer.plc(ctl, ready=True) as twin:
+                    yield twin
+            finally:
+                await ctl("stop_cyclic")
+                await ctl("release")
+
+    async def refuse_stranger(self, env: Env) -> None:
+        """A supervisor's device-access AR (no IO, no AlarmCR) is refused: the device serves
+        one IO controller's IOCARSingle."""
+        link = env.station.link("profinet")
+        refused = link.status()["refused_connects"]
+        async with profinet_peer.controller(self.nets[id(env.rs)]) as ctl:
+            answer = await ctl("connect_supervisor", name=PN_NAME)
+        assert not answer["ok"] and "rejected" in answer["error"], answer
+        await until(lambda: link.status()["refused_connects"] == refused + 1,
+                    "the refused Connect counted")
 
 
 # --------------------------------------------------------------------------- OPC UA

@@ -26,6 +26,7 @@ from stations import ENGINEER, relaxed_deadline, station_file
 
 from server.loopback import attach_twin, detach_twin
 from server.station.client import StationClient, StationDownError
+from tests.drivers import profinet_peer
 
 START_S = 120.0  # two processes, migrations and four simulated 4 MP cameras on a loaded machine
 
@@ -159,6 +160,72 @@ async def test_serve_keeps_triggering_through_kills_of_either_process(tmp_path: 
     assert code == 0, (tmp_path / "serve.log").read_text()[-3000:]
     assert stopped_s < 5.0, f"SIGTERM took {stopped_s:.1f} s"
     assert not (data / "station.sock").exists()
+
+
+@pytest.mark.skipif(profinet_peer.usable() is not None, reason=str(profinet_peer.usable()))
+async def test_serve_keeps_its_result_ids_through_a_kill_of_the_station_over_profinet(
+        tmp_path: Path) -> None:
+    """The PLC durability rule over PROFINET: profinet-py the IO-controller on a veth pair;
+    the station process killed with SIGKILL between triggers takes the device (its child) with
+    it; the controller connects again to the restarted one. 0 lost, 0 doubled, 0 reused ids."""
+    name = "mvpose-station"
+    with profinet_peer.veth(5) as net:
+        def profinet(data: dict[str, Any]) -> None:
+            data["links"]["profinet"] = {"interface": net.device_if, "station_name": name,
+                                         "rpc_host": net.device_ip, "watchdog_s": 10.0}
+
+        path = station_file(tmp_path, "station1", relaxed_deadline, profinet)
+        data = tmp_path / "var"
+        env = dict(os.environ, MVPOSE_BOOTSTRAP_TOKEN=ENGINEER)
+        log = (tmp_path / "serve.log").open("wb")
+        serve = subprocess.Popen(
+            [sys.executable, "-m", "server.cli", "serve", "--station", str(path), "--data-dir",
+             str(data), "--port", "0", "--plc-port", "0", "--log-level", "warning"],
+            env=env, stdout=log, stderr=subprocess.STDOUT)
+        client = StationClient(data / "station.sock")
+        answers: list[tuple[int, int, int]] = []
+
+        def running() -> bool:
+            try:
+                return bool(client.status().links["profinet"]["running"])
+            except (StationDownError, KeyError):
+                return False
+
+        async def run(ctl: profinet_peer.Controller, first: int, n: int) -> None:
+            async with profinet_peer.plc(ctl, ready=True) as twin:
+                for k in range(first, first + n):
+                    status = await twin.cycle(k, timeout=10.0)
+                    answers.append((k, status.result_code, status.result_id))
+
+        try:
+            station = await _until("the station process answers", lambda: _ping(client))
+            await _until("the PROFINET link running", running)
+            async with profinet_peer.controller(net) as ctl:
+                await ctl.run_ar(name, reduction_ratio=4)
+                await run(ctl, 1, 10)
+                os.kill(station["pid"], signal.SIGKILL)
+                await ctl.ok("stop_cyclic")  # the AR went with the device
+                await _until("a new station process",
+                             lambda: (p := _ping(client)) and p["pid"] != station["pid"] and p)
+                await _until("the PROFINET link running again", running)
+                await ctl.run_ar(name, reduction_ratio=4)
+                await run(ctl, 11, 3)
+            assert [code for _, code, _ in answers] == [0] * 13, answers
+            ids = [rid for _, _, rid in answers]
+            assert ids == sorted(set(ids)), f"result ids doubled or reused: {ids}"
+            api = await _until("the API process answers", lambda: _api(data))
+            base = f"http://127.0.0.1:{api['port']}/api/v1"
+            auth = {"Authorization": f"Bearer {ENGINEER}"}
+            async with httpx.AsyncClient(base_url=base, headers=auth, timeout=10) as http:
+                for k, code, rid in answers:
+                    found = (await http.get("/measurements", params={"result_id": rid})).json()
+                    assert [(m["trigger_id"], m["reason_code"]) for m in found["items"]] == [
+                        (k, code)]
+        finally:
+            serve.send_signal(signal.SIGTERM)
+            code = serve.wait(timeout=30)
+            log.close()
+        assert code == 0, (tmp_path / "serve.log").read_text()[-3000:]
 
 
 def _samples(text: str, name: str) -> list[tuple[dict[str, str], float]]:

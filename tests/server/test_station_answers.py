@@ -21,6 +21,7 @@ from test_store_faults import _signal_all
 from mvpose_core.reasons import Reason
 from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter
+from tests.drivers import profinet_peer
 
 SLACK_S = 0.5  # what a loaded machine may add to a deadline; tells "at the deadline" from "hung"
 
@@ -179,6 +180,52 @@ async def test_a_frozen_database_never_delays_the_answer(
             assert stored[rid].trigger_id == k and stored[rid].reason_code == code
         assert lb.runtime.services.store.measurements.verify_chain().ok
 
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(profinet_peer.usable() is not None, reason=str(profinet_peer.usable()))
+async def test_a_frozen_database_never_delays_the_answer_over_profinet(
+    tmp_path: Path, postgres_cluster: Any
+) -> None:
+    """The deadline rule with the PLC on PROFINET (profinet-py on a veth pair, 4 ms cycle)."""
+    url = postgres_cluster.create_database()
+    name = "mvpose-station"
+    with profinet_peer.veth(6) as net:
+        def profinet(data: dict[str, Any]) -> None:
+            data.setdefault("links", {})["profinet"] = {
+                "interface": net.device_if, "station_name": name, "rpc_host": net.device_ip,
+                "watchdog_s": 10.0}
+
+        path = station_file(tmp_path, "station1", relaxed_deadline, profinet)
+        settings = settings_for(path, tmp_path / "var", database_url=url)
+        async with running_server(settings, runtime_options(), http_port=None) as rs, \
+                profinet_peer.controller(net) as ctl:
+            await ctl.run_ar(name, reduction_ratio=4)
+            async with profinet_peer.plc(ctl, ready=True) as twin:
+                recipe = rs.runtime.active.config
+                await move_part(rs.runtime, twin, recipe.T_rf_from_pf0.matrix)
+                for k in range(3):  # warm: the database answers
+                    status, _ = await trigger(twin, recipe, k, None, timeout=10.0)
+                    assert status.result_code == 0
+                _signal_all(postgres_cluster, signal.SIGSTOP)
+                try:
+                    answers = []
+                    for k in range(10, 16):
+                        t = time.monotonic()
+                        status, _ = await trigger(twin, recipe, k, None, timeout=10.0)
+                        answers.append((k, status.result_code, status.result_id,
+                                        time.monotonic() - t))
+                    assert rs.runtime.status()["store"]["pending"] >= 1
+                finally:
+                    _signal_all(postgres_cluster, signal.SIGCONT)
+            for k, code, _rid, took in answers:
+                assert code == 0, f"trigger {k}: code {code}"
+                assert took < 1.0 + SLACK_S, f"trigger {k} answered after {took:.3f} s"
+            rs.runtime.wait_idle(30)
+            stored = {r.seq: r.record for r in _records(rs)}
+            for k, code, rid, _ in answers:
+                assert stored[rid].trigger_id == k and stored[rid].reason_code == code
+            assert rs.runtime.services.store.measurements.verify_chain().ok
 
 
 async def test_the_apis_status_calls_reach_the_station_at_most_every_quarter_second(

@@ -1,0 +1,148 @@
+"""DCP, the Discovery and basic Configuration Protocol of the IO-device (IEC 61158-6-10,
+"DCP"), sans-I/O: Identify (all and by name), Get, Set (NameOfStation, Signal, IP), and what
+its answers say about the device (:class:`Identity`).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Final
+
+from . import frames as fr
+
+if TYPE_CHECKING:
+    from .device import Out
+
+ROLE_IO_DEVICE: Final = 0x01
+
+
+@dataclass
+class Event:
+    """Something the station should know: ``kind`` is connected, running, released,
+    data_hold_expired, aborted, diagnosis, name_set, signal; ``text`` says it for the log."""
+
+    kind: str
+    text: str
+
+
+@dataclass
+class Identity:
+    """What DCP and I&M0 tell about the device."""
+
+    mac: bytes
+    station_name: str
+    ip: tuple[bytes, bytes, bytes] = (bytes(4), bytes(4), bytes(4))  # address, mask, gateway
+    vendor_id: int = 0xFFFF
+    device_id: int = 0x0001
+    vendor_text: str = "mvpose station"
+    order_id: str = "MVPOSE-PN"
+    serial: str = "1"
+    software: tuple[int, int, int] = (1, 0, 0)
+
+
+def valid_station_name(name: str) -> bool:
+    """NameOfStation rules (IEC 61158-6-10, DNS-like): 1..240 characters, labels of 1..63
+    of a-z, 0-9 and '-', not starting or ending with '-', not of the form port-xyz."""
+    if not 1 <= len(name) <= 240 or name.startswith("port-"):
+        return False
+    for label in name.split("."):
+        if not 1 <= len(label) <= 63 or label[0] == "-" or label[-1] == "-":
+            return False
+        if any(c not in "abcdefghijklmnopqrstuvwxyz0123456789-" for c in label):
+            return False
+    return True
+
+
+@dataclass
+class DcpResponder:
+    """The device's DCP side over its :class:`Identity` (a Set of NameOfStation changes it)."""
+
+    identity: Identity
+    requests: int = 0
+
+    def _dcp_blocks(self) -> dict[tuple[int, int], bytes]:
+        ident = self.identity
+        options = [fr.Opt.IP_MAC, fr.Opt.IP_PARAMETER, fr.Opt.VENDOR, fr.Opt.NAME_OF_STATION,
+                   fr.Opt.DEVICE_ID, fr.Opt.DEVICE_ROLE, fr.Opt.DEVICE_OPTIONS,
+                   fr.Opt.CONTROL_SIGNAL]
+        return {
+            fr.Opt.VENDOR: ident.vendor_text.encode("ascii"),
+            fr.Opt.NAME_OF_STATION: ident.station_name.encode("ascii"),
+            fr.Opt.DEVICE_ID: struct.pack(">HH", ident.vendor_id, ident.device_id),
+            fr.Opt.DEVICE_ROLE: bytes([ROLE_IO_DEVICE, 0]),
+            fr.Opt.DEVICE_OPTIONS: b"".join(bytes(o) for o in options),
+            fr.Opt.IP_MAC: ident.mac,
+            fr.Opt.IP_PARAMETER: b"".join(ident.ip),
+        }
+
+    def _answer_block(self, key: tuple[int, int]) -> fr.DcpBlock | None:
+        value = self._dcp_blocks().get(key)
+        if value is None:
+            return None
+        info = 0x0001 if key == fr.Opt.IP_PARAMETER and any(self.identity.ip[0]) else 0
+        return fr.DcpBlock(key[0], key[1], struct.pack(">H", info) + value)
+
+    def handle(self, eth: fr.Ethernet, ar_open: bool, out: Out) -> None:
+        """One DCP request: its answer (if any) and events into ``out``."""
+        pdu = fr.Dcp.unpack(eth.payload)
+        if pdu.service_type != fr.Service.REQUEST:
+            return
+        self.requests += 1
+        if pdu.service_id == fr.Service.IDENTIFY:
+            if not all(self._matches(b) for b in pdu.blocks):
+                return
+            keys = [fr.Opt.NAME_OF_STATION, fr.Opt.VENDOR, fr.Opt.DEVICE_ID,
+                    fr.Opt.DEVICE_ROLE, fr.Opt.DEVICE_OPTIONS, fr.Opt.IP_PARAMETER]
+            blocks = tuple(b for k in keys if (b := self._answer_block(k)) is not None)
+            reply = fr.Dcp(fr.FRAME_ID_DCP_IDENTIFY_RES, pdu.service_id, fr.Service.SUCCESS,
+                           pdu.xid, 0, blocks)
+        elif pdu.service_id == fr.Service.GET:
+            # a Get request names one (option, suboption) per block, without data
+            blocks = tuple(self._answer_block(b.key) or fr.DcpBlock(
+                *fr.Opt.CONTROL_RESPONSE, bytes([*b.key, fr.BLOCK_SUBOPTION_UNSUPPORTED]))
+                for b in pdu.blocks)
+            reply = fr.Dcp(fr.FRAME_ID_DCP_GET_SET, pdu.service_id, fr.Service.SUCCESS,
+                           pdu.xid, 0, blocks)
+        elif pdu.service_id == fr.Service.SET:
+            blocks = tuple(fr.DcpBlock(*fr.Opt.CONTROL_RESPONSE,
+                                       bytes([*b.key, self._set(b, ar_open, out)]))
+                           for b in pdu.blocks)
+            reply = fr.Dcp(fr.FRAME_ID_DCP_GET_SET, pdu.service_id, fr.Service.SUCCESS,
+                           pdu.xid, 0, blocks)
+        else:
+            reply = fr.Dcp(fr.FRAME_ID_DCP_GET_SET, pdu.service_id, fr.Service.UNSUPPORTED,
+                           pdu.xid, 0, ())
+        out.frames.append(fr.Ethernet(eth.src, self.identity.mac, fr.ETHERTYPE_PN,
+                                      reply.pack()).pack())
+
+    def _matches(self, b: fr.DcpBlock) -> bool:
+        if b.key == fr.Opt.ALL:
+            return True
+        value = self._dcp_blocks().get(b.key)
+        return value is not None and value == b.data
+
+    def _set(self, b: fr.DcpBlock, ar_open: bool, out: Out) -> int:
+        """One Set block (BlockQualifier then value); the BlockError it gets."""
+        value = b.data[2:]
+        if b.key == fr.Opt.NAME_OF_STATION:
+            name = value.rstrip(b"\0").decode("ascii", "replace")
+            if not valid_station_name(name):
+                return fr.BLOCK_SET_NOT_POSSIBLE
+            if ar_open:
+                return fr.BLOCK_SET_NOT_POSSIBLE  # not while an AR is open
+            self.identity.station_name = name
+            out.events.append(Event("name_set", f"NameOfStation set to {name!r} by DCP"))
+            return fr.BLOCK_OK
+        if b.key == fr.Opt.CONTROL_SIGNAL:
+            out.events.append(Event("signal", "DCP Signal: flash the station's indicator"))
+            return fr.BLOCK_OK
+        if b.key in (fr.Opt.CONTROL_START, fr.Opt.CONTROL_STOP):
+            return fr.BLOCK_OK
+        if b.key == fr.Opt.IP_PARAMETER:
+            # the host's network configuration owns the address; an equal one is accepted
+            return fr.BLOCK_OK if value[:12] == b"".join(self.identity.ip) \
+                else fr.BLOCK_SET_NOT_POSSIBLE
+        if b.key[0] in (1, 2, 5):
+            return fr.BLOCK_SUBOPTION_UNSUPPORTED
+        return fr.BLOCK_OPTION_UNSUPPORTED

@@ -1,0 +1,415 @@
+"""PROFINET IO over DCE/RPC (connectionless, UDP 34964), sans-I/O: the RPC header, the NDR
+wrapper and the PNIO blocks of Connect, Control, Release, Read and Write (IEC 61158-6-10,
+"RPC" and "Coding of the fields"; DCE 1.1 RPC, chapter 12 for the header).
+
+The RPC header and the NDR wrapper follow the sender's data representation (DREP byte 0:
+0x10 little-endian, 0x00 big-endian); the PNIO blocks inside are always big-endian.
+"""
+
+from __future__ import annotations
+
+import struct
+import uuid
+from dataclasses import dataclass, field
+from typing import Final
+
+from .frames import FrameError
+
+RPC_PORT: Final = 34964
+HEADER_SIZE: Final = 80
+NDR_SIZE: Final = 20
+
+# packet types (DCE 1.1, "PDU types") and operations (IEC 61158-6-10, "RPC operations")
+REQUEST: Final = 0
+RESPONSE: Final = 2
+FAULT: Final = 3
+REJECT: Final = 6
+OP_CONNECT: Final = 0
+OP_RELEASE: Final = 1
+OP_READ: Final = 2
+OP_WRITE: Final = 3
+OP_CONTROL: Final = 4
+OP_READ_IMPLICIT: Final = 5
+
+IFACE_DEVICE: Final = uuid.UUID("dea00001-6c97-11d1-8271-00a02442df7d")
+IFACE_CONTROLLER: Final = uuid.UUID("dea00002-6c97-11d1-8271-00a02442df7d")
+OBJECT_PREFIX: Final = "dea00000-6c97-11d1-8271-"
+
+
+def object_uuid(instance: int, device_id: int, vendor_id: int) -> uuid.UUID:
+    """The PNIO object UUID: DEA00000-6C97-11D1-8271-{instance}{device id}{vendor id}."""
+    return uuid.UUID(f"{OBJECT_PREFIX}{instance:04x}{device_id:04x}{vendor_id:04x}")
+
+
+def _uuid_bytes(u: uuid.UUID, little: bool) -> bytes:
+    return u.bytes_le if little else u.bytes
+
+
+def _uuid_from(raw: bytes, little: bool) -> uuid.UUID:
+    return uuid.UUID(bytes_le=raw) if little else uuid.UUID(bytes=raw)
+
+
+@dataclass(frozen=True)
+class RpcHeader:
+    """The 80-byte connectionless DCE/RPC header."""
+
+    ptype: int
+    object: uuid.UUID
+    interface: uuid.UUID
+    activity: uuid.UUID
+    seqnum: int
+    opnum: int
+    body_length: int
+    little: bool = True
+    flags1: int = 0x20  # idempotent
+    flags2: int = 0
+    server_boot: int = 0
+    interface_version: int = 1
+    fragnum: int = 0
+    serial: int = 0
+
+    def pack(self) -> bytes:
+        o = "<" if self.little else ">"
+        drep = bytes([0x10 if self.little else 0x00, 0, 0])
+        return (struct.pack("BBBB", 4, self.ptype, self.flags1, self.flags2) + drep
+                + bytes([self.serial >> 8 & 0xFF])
+                + _uuid_bytes(self.object, self.little) + _uuid_bytes(self.interface, self.little)
+                + _uuid_bytes(self.activity, self.little)
+                + struct.pack(o + "IIIHHHHH", self.server_boot, self.interface_version,
+                              self.seqnum, self.opnum, 0xFFFF, 0xFFFF, self.body_length,
+                              self.fragnum)
+                + bytes([0, self.serial & 0xFF]))
+
+    @classmethod
+    def unpack(cls, raw: bytes) -> RpcHeader:
+        if len(raw) < HEADER_SIZE:
+            raise FrameError(f"RPC datagram of {len(raw)} bytes is shorter than its 80-byte "
+                             "header")
+        if raw[0] != 4:
+            raise FrameError(f"RPC version {raw[0]} is not 4 (connectionless)")
+        little = bool(raw[4] & 0x10)
+        o = "<" if little else ">"
+        boot, iver, seq, op, _ih, _ah, blen, frag = struct.unpack_from(o + "IIIHHHHH", raw, 56)
+        return cls(raw[1], _uuid_from(raw[8:24], little), _uuid_from(raw[24:40], little),
+                   _uuid_from(raw[40:56], little), seq, op, blen, little, raw[2], raw[3], boot,
+                   iver, frag, raw[7] << 8 | raw[79])
+
+
+@dataclass(frozen=True)
+class Ndr:
+    """The NDR wrapper of a PNIO request (ArgsMaximum) or response (PNIOStatus), with
+    ArgsLength, MaximumCount, Offset and ActualCount, in the header's byte order."""
+
+    first: int  # ArgsMaximum in a request, PNIOStatus (as a big-endian u32) in a response
+    body: bytes
+    maximum_count: int = 0
+
+    def pack(self, little: bool, response: bool) -> bytes:
+        o = "<" if little else ">"
+        head = (struct.pack(">I", self.first) if response else struct.pack(o + "I", self.first))
+        return head + struct.pack(o + "IIII", len(self.body), self.maximum_count or
+                                  max(len(self.body), self.first if not response else 0),
+                                  0, len(self.body)) + self.body
+
+    @classmethod
+    def unpack(cls, raw: bytes, little: bool) -> Ndr:
+        if len(raw) < NDR_SIZE:
+            raise FrameError(f"NDR data of {len(raw)} bytes is shorter than its 20-byte header")
+        o = "<" if little else ">"
+        args_max, args_len, max_count, _off, actual = struct.unpack_from(o + "IIIII", raw, 0)
+        if NDR_SIZE + actual > len(raw) or actual > args_len + 4096:
+            raise FrameError(f"NDR ActualCount {actual} runs past the datagram's "
+                             f"{len(raw) - NDR_SIZE} bytes")
+        return cls(args_max, raw[NDR_SIZE:NDR_SIZE + actual], max_count)
+
+
+def pnio_status(code: int = 0, decode: int = 0, code1: int = 0, code2: int = 0) -> int:
+    """PNIOStatus as one u32: ErrorCode, ErrorDecode, ErrorCode1, ErrorCode2."""
+    return code << 24 | decode << 16 | code1 << 8 | code2
+
+
+def connect_error(code1: int, code2: int) -> int:
+    """A PNIOStatus rejecting a Connect (ErrorCode 0xDB IODConnectRes, ErrorDecode 0x81 PNIO)."""
+    return pnio_status(0xDB, 0x81, code1, code2)
+
+
+# --------------------------------------------------------------------------- blocks
+
+BLOCK_AR_REQ: Final = 0x0101
+BLOCK_IOCR_REQ: Final = 0x0102
+BLOCK_ALARM_CR_REQ: Final = 0x0103
+BLOCK_EXPECTED_SUBMODULE: Final = 0x0104
+BLOCK_PRM_END: Final = 0x0110
+BLOCK_APP_READY: Final = 0x0112
+BLOCK_RELEASE: Final = 0x0114
+BLOCK_PRM_BEGIN: Final = 0x0118
+BLOCK_READ_REQ: Final = 0x0009
+BLOCK_WRITE_REQ: Final = 0x0008
+BLOCK_IM0: Final = 0x0020
+BLOCK_REAL_IDENTIFICATION: Final = 0x0013
+RESPONSE_BIT: Final = 0x8000
+
+CMD_PRM_END: Final = 0x0001
+CMD_APP_READY: Final = 0x0002
+CMD_RELEASE: Final = 0x0004
+CMD_DONE: Final = 0x0008
+CMD_PRM_BEGIN: Final = 0x0040
+
+IOCR_INPUT: Final = 1
+IOCR_OUTPUT: Final = 2
+
+
+def block(block_type: int, body: bytes, version: tuple[int, int] = (1, 0)) -> bytes:
+    """BlockHeader (BlockType, BlockLength counted after itself, BlockVersion) and body."""
+    return struct.pack(">HHBB", block_type, len(body) + 2, *version) + body
+
+
+def split_blocks(raw: bytes) -> list[tuple[int, bytes]]:
+    """(BlockType, body after the version bytes) of each block in ``raw``."""
+    out, at = [], 0
+    while at < len(raw):
+        if at + 6 > len(raw):
+            raise FrameError(f"block header cut short at byte {at}")
+        btype, blen = struct.unpack_from(">HH", raw, at)
+        if blen < 2 or at + 4 + blen > len(raw):
+            raise FrameError(f"block 0x{btype:04x} of length {blen} runs past the data")
+        out.append((btype, raw[at + 6:at + 4 + blen]))
+        at += 4 + blen
+    return out
+
+
+@dataclass(frozen=True)
+class ArRequest:
+    """ARBlockReq (0x0101)."""
+
+    ar_type: int
+    ar_uuid: bytes
+    session_key: int
+    initiator_mac: bytes
+    initiator_object: bytes
+    properties: int
+    timeout_factor: int
+    station_name: str
+
+    @classmethod
+    def unpack(cls, body: bytes) -> ArRequest:
+        if len(body) < 52:
+            raise FrameError(f"ARBlockReq of {len(body)} bytes is too short")
+        ar_type, = struct.unpack_from(">H", body, 0)
+        session, = struct.unpack_from(">H", body, 18)
+        props, tf, _port, nlen = struct.unpack_from(">IHHH", body, 42)
+        return cls(ar_type, body[2:18], session, body[20:26], body[26:42], props, tf,
+                   body[52:52 + nlen].decode("ascii", "replace"))
+
+    def response(self, responder_mac: bytes) -> bytes:
+        return block(BLOCK_AR_REQ | RESPONSE_BIT,
+                     struct.pack(">H", self.ar_type) + self.ar_uuid
+                     + struct.pack(">H", self.session_key) + responder_mac
+                     + struct.pack(">H", 0x8892))
+
+
+@dataclass(frozen=True)
+class IoObject:
+    """IODataObject or IOCS of an IOCR: (slot, subslot) at a frame offset."""
+
+    slot: int
+    subslot: int
+    offset: int
+
+
+@dataclass(frozen=True)
+class IocrRequest:
+    """IOCRBlockReq (0x0102), one API (API 0)."""
+
+    iocr_type: int
+    reference: int
+    properties: int
+    data_length: int
+    frame_id: int
+    send_clock_factor: int
+    reduction_ratio: int
+    watchdog_factor: int
+    data_hold_factor: int
+    data: tuple[IoObject, ...] = field(default_factory=tuple)
+    iocs: tuple[IoObject, ...] = field(default_factory=tuple)
+
+    @property
+    def cycle_us(self) -> float:
+        """Send clock × reduction ratio, in µs (the clock unit is 31.25 µs)."""
+        return self.send_clock_factor * self.reduction_ratio * 31.25
+
+    @classmethod
+    def unpack(cls, body: bytes) -> IocrRequest:
+        if len(body) < 40:
+            raise FrameError(f"IOCRBlockReq of {len(body)} bytes is too short")
+        (itype, ref, _lt, props, dlen, fid, scf, rr, _phase, _seq, _fso, wdf, dhf, _tag
+         ) = struct.unpack_from(">HHHIHHHHHHIHHH", body, 0)
+        n_apis, = struct.unpack_from(">H", body, 38)
+        data: list[IoObject] = []
+        iocs: list[IoObject] = []
+        at = 40
+        try:
+            for _ in range(n_apis):
+                at += 4
+                for target in (data, iocs):
+                    n, = struct.unpack_from(">H", body, at)
+                    at += 2
+                    for _ in range(n):
+                        target.append(IoObject(*struct.unpack_from(">HHH", body, at)))
+                        at += 6
+        except struct.error:
+            raise FrameError("IOCRBlockReq's API list runs past the block") from None
+        return cls(itype, ref, props, dlen, fid, scf, rr, wdf, dhf, tuple(data), tuple(iocs))
+
+    def response(self, frame_id: int) -> bytes:
+        return block(BLOCK_IOCR_REQ | RESPONSE_BIT,
+                     struct.pack(">HHH", self.iocr_type, self.reference, frame_id))
+
+
+@dataclass(frozen=True)
+class AlarmCrRequest:
+    """AlarmCRBlockReq (0x0103)."""
+
+    cr_type: int
+    lt: int
+    properties: int
+    timeout_factor: int
+    retries: int
+    local_reference: int
+    max_data_length: int
+
+    @classmethod
+    def unpack(cls, body: bytes) -> AlarmCrRequest:
+        if len(body) < 20:
+            raise FrameError(f"AlarmCRBlockReq of {len(body)} bytes is too short")
+        return cls(*struct.unpack_from(">HHIHHHH", body, 0))
+
+    def response(self, device_reference: int) -> bytes:
+        return block(BLOCK_ALARM_CR_REQ | RESPONSE_BIT,
+                     struct.pack(">HHH", self.cr_type, device_reference,
+                                 min(self.max_data_length, 200)))
+
+
+@dataclass(frozen=True)
+class ExpectedSubmodule:
+    """One submodule of an ExpectedSubmoduleBlockReq (0x0104): where, which idents, and the
+    data lengths its DataDescriptions give (input = device → controller)."""
+
+    api: int
+    slot: int
+    module_ident: int
+    subslot: int
+    submodule_ident: int
+    input_length: int
+    output_length: int
+
+
+def expected_submodules(body: bytes) -> list[ExpectedSubmodule]:
+    """The submodules an ExpectedSubmoduleBlockReq body lists."""
+    out: list[ExpectedSubmodule] = []
+    try:
+        n_apis, = struct.unpack_from(">H", body, 0)
+        at = 2
+        for _ in range(n_apis):
+            api, slot, mident, _mprops, n_sub = struct.unpack_from(">IHIHH", body, at)
+            at += 14
+            for _ in range(n_sub):
+                subslot, sident, sprops = struct.unpack_from(">HIH", body, at)
+                at += 8
+                lengths = {1: 0, 2: 0}
+                for _ in range(2 if sprops & 3 == 3 else 1):
+                    desc, dlen, _iocs, _iops = struct.unpack_from(">HHBB", body, at)
+                    at += 6
+                    lengths[desc] = dlen
+                out.append(ExpectedSubmodule(api, slot, mident, subslot, sident,
+                                             lengths[1], lengths[2]))
+    except struct.error:
+        raise FrameError("ExpectedSubmoduleBlockReq runs past its block") from None
+    return out
+
+
+# ModuleState / SubmoduleState (IEC 61158-6-10, "ModuleDiffBlock")
+MODULE_NO: Final = 0
+MODULE_WRONG: Final = 1
+MODULE_PROPER: Final = 2
+SUBMODULE_OK: Final = 0x8000
+SUBMODULE_WRONG: Final = 0x8000 | 2 << 11
+SUBMODULE_NO: Final = 0x8000 | 3 << 11
+
+
+def module_diff(rows: list[tuple[int, int, int, int, int, int, int]]) -> bytes:
+    """ModuleDiffBlock (0x8104) from (api, slot, module ident, module state, subslot,
+    submodule ident, submodule state) rows, grouped by API and slot."""
+    apis: dict[int, dict[int, tuple[int, int, list[tuple[int, int, int]]]]] = {}
+    for api, slot, mident, mstate, subslot, sident, sstate in rows:
+        mods = apis.setdefault(api, {})
+        entry = mods.setdefault(slot, (mident, mstate, []))
+        entry[2].append((subslot, sident, sstate))
+    body = struct.pack(">H", len(apis))
+    for api, mods in apis.items():
+        body += struct.pack(">IH", api, len(mods))
+        for slot, (mident, mstate, subs) in mods.items():
+            body += struct.pack(">HIHH", slot, mident, mstate, len(subs))
+            for subslot, sident, sstate in subs:
+                body += struct.pack(">HIH", subslot, sident, sstate)
+    return block(0x8104, body)
+
+
+@dataclass(frozen=True)
+class Control:
+    """IODControlReq/Res and IODReleaseReq/Res (0x0110, 0x0112, 0x0114, 0x0118 and their
+    responses): ARUUID, SessionKey, ControlCommand."""
+
+    block_type: int
+    ar_uuid: bytes
+    session_key: int
+    command: int
+    properties: int = 0
+
+    def pack(self) -> bytes:
+        return block(self.block_type, struct.pack(">H", 0) + self.ar_uuid
+                     + struct.pack(">HHHH", self.session_key, 0, self.command, self.properties))
+
+    @classmethod
+    def unpack(cls, btype: int, body: bytes) -> Control:
+        if len(body) < 26:
+            raise FrameError(f"control block 0x{btype:04x} of {len(body)} bytes is too short")
+        session, _r, cmd, props = struct.unpack_from(">HHHH", body, 18)
+        return cls(btype, body[2:18], session, cmd, props)
+
+
+@dataclass(frozen=True)
+class RecordRequest:
+    """IODReadReqHeader (0x0009) or IODWriteReqHeader (0x0008), and a Write's record data."""
+
+    block_type: int
+    seq: int
+    ar_uuid: bytes
+    api: int
+    slot: int
+    subslot: int
+    index: int
+    length: int
+    data: bytes = b""
+
+    @classmethod
+    def unpack(cls, raw: bytes) -> RecordRequest:
+        if len(raw) < 64:
+            raise FrameError(f"record request of {len(raw)} bytes is shorter than its header")
+        btype, blen = struct.unpack_from(">HH", raw, 0)
+        if btype not in (BLOCK_READ_REQ, BLOCK_WRITE_REQ):
+            raise FrameError(f"block 0x{btype:04x} is not an IODRead/WriteReqHeader")
+        seq, = struct.unpack_from(">H", raw, 6)
+        api, slot, subslot, _pad, index, length = struct.unpack_from(">IHHHHI", raw, 24)
+        data = raw[4 + blen:4 + blen + length] if btype == BLOCK_WRITE_REQ else b""
+        return cls(btype, seq, raw[8:24], api, slot, subslot, index, length, data)
+
+    def response(self, length: int, status: int = 0) -> bytes:
+        head = (struct.pack(">H", self.seq) + self.ar_uuid
+                + struct.pack(">IHHHHIHH", self.api, self.slot, self.subslot, 0, self.index,
+                              length, 0, 0))
+        if self.block_type == BLOCK_WRITE_REQ:
+            head += struct.pack(">I", status) + bytes(16)
+        else:
+            head += bytes(20)
+        return block(self.block_type | RESPONSE_BIT, head)

@@ -1,0 +1,65 @@
+"""The PROFINET backend's settings: the station file's ``links.profinet`` block
+(docs/integration.md, "PROFINET")."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from ..handshake import HandshakeConfig
+from ..layout import ByteOrder
+from .device import valid_station_name
+
+# No PROFINET vendor id is assigned to mvpose: 0xFFFF marks that; an integrator with an id of
+# their own sets vendor_id (and regenerates the GSDML: `python -m drivers.links.profinet.gsdml`).
+UNASSIGNED_VENDOR = 0xFFFF
+
+
+class ProfinetLinkConfig(BaseModel):
+    """PROFINET IO-device for the line's IO-controller (docs/integration.md, "PROFINET")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    interface: str = Field("eth0", min_length=1, max_length=15,
+                           description="network interface the device answers on")
+    station_name: str = Field("mvpose-station", description="NameOfStation (DCP)")
+    rpc_host: str = Field("0.0.0.0", description="address of the RPC socket (UDP 34964)")
+    rpc_port: int = Field(34964, ge=1, le=65535)
+    vendor_id: int = Field(UNASSIGNED_VENDOR, ge=0, le=0xFFFF)
+    device_id: int = Field(0x0001, ge=0, le=0xFFFF)
+    order_id: str = Field("MVPOSE-PN", max_length=20, pattern=r"^[ -~]*$")
+    serial: str = Field("1", max_length=16, pattern=r"^[ -~]*$")
+    min_cycle_ms: float = Field(1.0, ge=1.0, le=512,
+                                description="shortest send clock × reduction ratio accepted")
+    poll_s: float = Field(0.001, gt=0, le=0.05,
+                          description="how often the station looks for a new input image")
+    watchdog_s: float = Field(1.0, ge=0, le=60, description="PLC heartbeat timeout; 0 = off")
+    trigger_hold_s: float = Field(1.0, ge=0, le=60,
+                                  description="TRIGGER high this long after the answer = error")
+    measure_timeout_s: float | None = Field(
+        None, gt=0, le=600,
+        description="the link's own backstop; default: the station deadline + 2 s")
+
+    @field_validator("station_name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not valid_station_name(value):
+            raise ValueError("not a PROFINET NameOfStation: labels of a-z, 0-9 and '-', "
+                             "1..63 characters each, 240 at most, not 'port-...'")
+        return value
+
+    def handshake(self, initial_recipe: int) -> HandshakeConfig:
+        """The handshake's settings: every value big-endian (ABCD), as PROFINET carries it."""
+        return HandshakeConfig(
+            word_order=ByteOrder.BIG.word_order,
+            measure_timeout_s=self.measure_timeout_s or 0.0,
+            watchdog_s=self.watchdog_s,
+            trigger_hold_s=self.trigger_hold_s,
+            initial_recipe=initial_recipe,
+        )
+
+    def child(self) -> dict[str, object]:
+        """What the device's process needs (JSON)."""
+        return {k: getattr(self, k) for k in (
+            "interface", "station_name", "rpc_host", "rpc_port", "vendor_id", "device_id",
+            "order_id", "serial", "min_cycle_ms")}

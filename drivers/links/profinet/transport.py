@@ -1,0 +1,177 @@
+"""The PROFINET device's sockets, in a process of its own (``python -m
+drivers.links.profinet.transport``): a raw AF_PACKET socket on the configured interface
+(DCP, RT, LLDP), the RPC socket on UDP 34964, and the station over a SEQPACKET socketpair whose
+descriptor is the second argument. A frame cycle never waits for the station's GIL.
+
+Messages on the pair, one per packet: to the child ``I`` + the INPUT block (big-endian),
+``A`` + a JSON diagnosis (``{"source", "appears", "error_type"}``) and ``Q`` (stop); to the
+station ``O`` + the OUTPUT block when the controller's outputs changed,
+``E`` + a JSON event (``{"kind", "text"}``; kind ``started`` with the MAC, ``error`` with a
+start-up problem, then the device's events) and ``S`` + JSON stats every second.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import select
+import socket
+import struct
+import sys
+import time
+from collections import deque
+from typing import Any
+
+from . import frames as fr
+from .device import Device, Identity, Out
+
+ETH_P_ALL = 0x0003
+SIOCGIFADDR = 0x8915
+SIOCGIFNETMASK = 0x891B
+LLDP_EVERY_S = 5.0
+STATS_EVERY_S = 1.0
+
+
+def _ifaddr(sock: socket.socket, iface: str, request: int) -> bytes:
+    try:
+        raw = fcntl.ioctl(sock.fileno(), request, struct.pack("256s", iface.encode()[:15]))
+        return raw[20:24]
+    except OSError:
+        return bytes(4)
+
+
+def open_sockets(iface: str, rpc_host: str, rpc_port: int
+                 ) -> tuple[socket.socket, socket.socket, bytes, tuple[bytes, bytes, bytes]]:
+    """The raw socket on ``iface``, the RPC socket, the interface's MAC and IP parameters."""
+    try:
+        raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+    except PermissionError:
+        raise PermissionError(
+            "the PROFINET link needs raw Ethernet sockets: run the station as root or give its "
+            "python CAP_NET_RAW (setcap cap_net_raw+ep)") from None
+    try:
+        raw.bind((iface, 0))
+    except OSError as err:
+        raw.close()
+        raise OSError(f"PROFINET interface {iface!r}: {err.strerror}") from None
+    mac = raw.getsockname()[4][:6]
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    udp.bind((rpc_host, rpc_port))
+    ip = (_ifaddr(udp, iface, SIOCGIFADDR), _ifaddr(udp, iface, SIOCGIFNETMASK), bytes(4))
+    return raw, udp, mac, ip
+
+
+def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
+    def event(kind: str, text: str, **more: Any) -> None:
+        pair.send(b"E" + json.dumps({"kind": kind, "text": text, **more}).encode())
+
+    try:
+        raw, udp, mac, ip = open_sockets(cfg["interface"], cfg["rpc_host"], cfg["rpc_port"])
+    except OSError as err:
+        event("error", str(err))
+        return
+    dev = Device(Identity(mac, cfg["station_name"], ip, cfg["vendor_id"], cfg["device_id"],
+                          order_id=cfg["order_id"], serial=cfg["serial"]),
+                 min_cycle_ms=cfg["min_cycle_ms"])
+    event("started", f"PROFINET device {cfg['station_name']!r} on {cfg['interface']} "
+          f"({fr.mac_text(mac)})", mac=fr.mac_text(mac))
+    next_lldp = next_stats = time.monotonic()
+    intervals: deque[float] = deque(maxlen=2000)  # between input frames sent, for the jitter
+    last_cyclic = [0.0]
+
+    def send(sock: socket.socket, data: bytes, addr: tuple[str, int] | None = None) -> None:
+        # a link that is down or a controller that went away (ICMP unreachable) is counted,
+        # never the end of the device
+        try:
+            sock.send(data) if addr is None else sock.sendto(data, addr)
+        except OSError as err:
+            dev.stats.send_errors += 1
+            dev.stats.last_errors = [*dev.stats.last_errors[-9:], f"send failed: {err}"]
+
+    def emit(out: Out) -> None:
+        for frame in out.frames:
+            send(raw, frame)
+        if out.cyclic:
+            t = time.monotonic()
+            if last_cyclic[0]:
+                intervals.append(t - last_cyclic[0])
+            last_cyclic[0] = t
+        for data, addr in out.datagrams:
+            send(udp, data, addr)
+        for ev in out.events:
+            event(ev.kind, ev.text)
+        if out.output is not None:
+            pair.send(b"O" + out.output)
+
+    while True:
+        now = time.monotonic()
+        timeout = max(0.0, dev.next_deadline(now) - now)
+        ready, _, _ = select.select([raw, udp, pair], [], [], timeout)
+        now = time.monotonic()
+        if pair in ready:
+            msg = pair.recv(4096)
+            if not msg or msg[:1] == b"Q":
+                break
+            if msg[:1] == b"I" and len(msg) - 1 == len(dev.input_image):
+                dev.input_image = msg[1:]
+            elif msg[:1] == b"A":
+                diag = json.loads(msg[1:])
+                emit(dev.diagnosis(diag["source"], diag["appears"], diag["error_type"], now))
+        if raw in ready:
+            for _ in range(64):
+                try:
+                    frame = raw.recv(2048, socket.MSG_DONTWAIT)
+                except OSError:  # nothing more, or the interface went down
+                    break
+                emit(dev.on_frame(frame, now))
+        if udp in ready:
+            try:
+                data, addr = udp.recvfrom(8192)
+            except OSError:  # an ICMP error of an earlier datagram (the controller went away)
+                pass
+            else:
+                emit(dev.on_datagram(data, addr, now))
+        emit(dev.tick(time.monotonic()))
+        if now >= next_lldp:
+            send(raw, fr.lldp_frame(mac, dev.identity.station_name, "port-001"))
+            next_lldp = now + LLDP_EVERY_S
+        if now >= next_stats:
+            st = dev.stats
+            pair.send(b"S" + json.dumps({
+                **{k: v for k, v in vars(st).items() if k != "last_errors"},
+                "last_errors": st.last_errors[-5:], "station_name": dev.identity.station_name,
+                "dcp_requests": dev.dcp.requests, **_jitter(intervals),
+                "ar": None if dev.ar is None else {
+                    "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
+                    "cycle_ms": dev.ar.input_cr.cycle_us / 1000,
+                    "data_hold_ms": dev.ar.hold_s * 1000, "alarms_sent": dev.ar.alarm.sent,
+                    "alarms_acked": dev.ar.alarm.acked},
+                "diagnoses": sorted(dev.diagnoses)}).encode())
+            next_stats = now + STATS_EVERY_S
+
+
+def _jitter(intervals: deque[float]) -> dict[str, float]:
+    """The input frames' interval p50 and p99 − p50 (the cycle jitter), in ms."""
+    if len(intervals) < 10:
+        return {}
+    ordered = sorted(intervals)
+    p50 = ordered[len(ordered) // 2]
+    p99 = ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))]
+    return {"cycle_p50_ms": round(p50 * 1000, 3), "cycle_jitter_ms": round((p99 - p50) * 1000, 3)}
+
+
+def main() -> None:
+    cfg = json.loads(sys.argv[1])
+    pair = socket.socket(fileno=int(sys.argv[2]))
+    try:
+        serve(cfg, pair)
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    finally:
+        os._exit(0)
+
+
+if __name__ == "__main__":
+    main()
