@@ -14,7 +14,7 @@ _INTRO = """\
 
 Every cyclic link carries the same two blocks of bytes: Modbus/TCP as registers
 (docs/modbus.md), EtherNet/IP as assemblies (docs/ethernet-ip.md), S7 as two data blocks
-(docs/s7.md), PROFINET as submodules (docs/integration.md). The handshake over them is
+(docs/s7.md), PROFINET as submodules (docs/profinet.md). The handshake over them is
 docs/plc-interface.md. This page is written from `drivers/links/layout.py` by
 `python -m drivers.links.layout_page`; a test keeps it current.
 

@@ -1,5 +1,5 @@
 """The PROFINET backend's settings: the station file's ``links.profinet`` block
-(docs/integration.md, "PROFINET")."""
+(docs/profinet.md)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ UNASSIGNED_VENDOR = 0xFFFF
 
 
 class ProfinetLinkConfig(BaseModel):
-    """PROFINET IO-device for the line's IO-controller (docs/integration.md, "PROFINET")."""
+    """PROFINET IO-device for the line's IO-controller (docs/profinet.md)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
