@@ -27,6 +27,7 @@ from fastapi.responses import HTMLResponse, StreamingResponse
 from server.auth import Role
 from server.web import html
 from server.web.context import need, page_user, runtime_of
+from server.web.i18n import N_, _
 from server.web.live import KEEPALIVE_S, QUEUE, STREAM_S, sse
 from server.web.pages import Html, to_login
 
@@ -125,17 +126,30 @@ def feed_of(request: Request) -> CameraFeed:
     return feed
 
 
-FIGURES = """<section class="panel camera-help"><h2>Reading the figures</h2><dl>
-<dt>Focus</dt><dd>The variance of the image's Laplacian (how strong its edges are) over the
-recipe's mark windows, or over the whole image when the camera sees no marks. It has no unit
-of its own: turn the focus ring slowly and stop where the figure is highest (the peak is kept
-while the view is open). Change nothing else meanwhile: more light or contrast also raises it.</dd>
-<dt>Mean</dt><dd>The mean grey level of the image, 0 (black) to 255 (white).</dd>
-<dt>Saturated</dt><dd>The share of pixels at 255. A mark whose edge is saturated cannot be
-located to a fraction of a pixel: keep it near 0 % on the part (shiny spots aside).</dd>
-<dt>Dark</dt><dd>The share of pixels at 0: no signal there.</dd></dl>
-<p>Frames are taken between triggers, at most twice a second, only while this page is open; a
-trigger always comes first (a frame then says it is not new).</p></section>"""
+#: the figures' explanations (term, what it says)
+FIGURES = (
+    (N_("Focus"), N_("The variance of the image's Laplacian (how strong its edges are) over the "
+                     "recipe's mark windows, or over the whole image when the camera sees no "
+                     "marks. It has no unit of its own: turn the focus ring slowly and stop "
+                     "where the figure is highest (the peak is kept while the view is open). "
+                     "Change nothing else meanwhile: more light or contrast also raises it.")),
+    (N_("Mean"), N_("The mean grey level of the image, 0 (black) to 255 (white).")),
+    (N_("Saturated"), N_("The share of pixels at 255. A mark whose edge is saturated cannot be "
+                         "located to a fraction of a pixel: keep that share near zero on the part "
+                         "(shiny spots aside).")),
+    (N_("Dark"), N_("The share of pixels at 0: no signal there.")),
+)
+
+
+def figures_help() -> str:
+    """The panel that says how to read the figures, in the page's language."""
+    e = html.esc
+    terms = "".join(f"<dt>{e(_(term))}</dt><dd>{e(_(what))}</dd>" for term, what in FIGURES)
+    return ('<section class="panel camera-help"><h2>' + e(_("Reading the figures"))
+            + f"</h2><dl>{terms}</dl><p>"
+            + e(_("Frames are taken between triggers, at most twice a second, only while this "
+                  "page is open; a trigger always comes first (a frame then says it is not "
+                  "new).")) + "</p></section>")
 
 
 @router.get("/cameras")
@@ -144,15 +158,17 @@ async def cameras_page(request: Request) -> Html:
     if user is None:
         return to_login(request)
     if not html.can(user, Role.OPERATOR):
-        body = (f'<section class="panel"><h2>Operator role needed</h2><p>The live camera view '
-                f'makes the station take frames; it needs the role operator or above. You are '
-                f'logged in as {html.esc(user.name)} with role '
-                f'{html.esc(user.role.value)}.</p></section>')
-        return HTMLResponse(html.layout("Cameras", user, body, "/cameras"), status_code=403)
-    body = f"""<div id="camera-view" data-events="/web/cameras/events" data-updates="0">
-<p id="camera-note" class="msg" role="status">Connecting to the station…</p>
-<div id="camera-grid" class="camera-grid"></div></div>{FIGURES}"""
-    return HTMLResponse(html.layout("Cameras", user, body, "/cameras"))
+        body = ('<section class="panel"><h2>' + html.esc(_("Operator role needed"))
+                + "</h2><p>" + html.esc(_(
+                    "The live camera view makes the station take frames; it needs the role "
+                    "operator or above. You are logged in as {name} with role {role}.").format(
+                        name=user.name, role=user.role.value)) + "</p></section>")
+        return HTMLResponse(html.layout(_("Cameras"), user, body, "/cameras"), status_code=403)
+    body = ('<div id="camera-view" data-events="/web/cameras/events" data-updates="0">\n'
+            '<p id="camera-note" class="msg" role="status">'
+            + html.esc(_("Connecting to the station…")) + "</p>\n"
+            '<div id="camera-grid" class="camera-grid"></div></div>' + figures_help())
+    return HTMLResponse(html.layout(_("Cameras"), user, body, "/cameras"))
 
 
 @router.get("/web/cameras/events")

@@ -43,8 +43,7 @@ _UNITS = {
 TABS = [("/", N_("Live")), ("/line", N_("Line")), ("/history", N_("History")),
         ("/spc", N_("SPC")), ("/calibration", N_("Calibration")), ("/recipes", N_("Recipes")),
         ("/gauge", N_("Gauge")),
-        ("/alarms", "Alarms"),  # wrapped for translation by the i18n work
-        ("/cameras", "Cameras")]  # likewise
+        ("/alarms", N_("Alarms")), ("/cameras", N_("Cameras"))]
 
 
 def esc(x: object) -> str:

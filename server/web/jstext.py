@@ -31,6 +31,10 @@ MESSAGES = (
     N_("{n} (learning: {left} to go)"), N_("Last verify ({when}, {record}): {message}"),
     N_("No calibration verify recorded yet."), N_("drift watch: {error}"),
     N_("ok"), N_("warning"), N_("alarm"), N_("learning"),
+    N_("Camera {camera}"), N_("camera {camera}, newest frame"),
+    N_("focus of camera {camera} against its peak"), N_("Focus {focus} (peak {peak})"),
+    N_("Focus {focus}"), N_("focus over"), N_("mean grey"), N_("saturated"), N_("dark"),
+    N_("taken"), N_("Frame set {seq}, at most one every {period} s."), N_("No frames: {why}"),
 )
 
 

@@ -25,6 +25,7 @@ from server.errors import NotFoundError, UnauthenticatedError
 from server.store.alarms import Alarm
 from server.store.schemas import MAX_ID, MeasurementFilter, MeasurementSummary
 from server.store.shifts import ShiftCounts
+from server.web import alarms as alarm_words
 from server.web import html, i18n
 from server.web.context import in_thread, need, page_user, reader_of, station_status, zone_of
 from server.web.i18n import N_, _, ngettext
@@ -218,8 +219,8 @@ def alarm_banner(f: LineFigures) -> str:
     newest = active[0] if active else f.alarms[0]
     return (f'<p id="alarm-banner" class="alarm-banner {html.esc(top.priority)}" role="alert" '
             f'data-active="{len(active)}" data-unacked="{unacked}">⚠ <a href="/alarms">'
-            f'{len(active)} active alarm{"" if len(active) == 1 else "s"}, {unacked} '
-            f'unacknowledged</a>: {html.esc(newest.text)}</p>')
+            + html.esc(alarm_words.count_words(len(active), unacked)) + "</a>: "
+            + html.esc(alarm_words.words(newest)) + "</p>")
 
 
 def shift_table(f: LineFigures, zone: str) -> str:

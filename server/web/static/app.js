@@ -157,9 +157,9 @@ function setupCameraView() {
     fig.dataset.camera = cid;
     fig.innerHTML = '<img alt=""><figcaption><h2></h2><p class="focus"></p>' +
       '<meter min="0" max="1" value="0"></meter><dl></dl><p class="note"></p></figcaption>';
-    fig.querySelector("h2").textContent = "Camera " + cid;
-    fig.querySelector("img").alt = "camera " + cid + ", newest frame";
-    fig.querySelector("meter").setAttribute("aria-label", "focus of camera " + cid + " against its peak");
+    fig.querySelector("h2").textContent = t("Camera {camera}", {camera: cid});
+    fig.querySelector("img").alt = t("camera {camera}, newest frame", {camera: cid});
+    fig.querySelector("meter").setAttribute("aria-label", t("focus of camera {camera} against its peak", {camera: cid}));
     grid.appendChild(fig);
     return fig;
   };
@@ -172,15 +172,16 @@ function setupCameraView() {
       if (c.focus !== null) peaks[c.camera_id] = Math.max(peaks[c.camera_id] || 0, c.focus);
       const peak = peaks[c.camera_id];
       fig.dataset.focus = c.focus === null ? "" : String(c.focus);
-      fig.querySelector(".focus").textContent = "Focus " + fmt(c.focus, 1) +
-        (peak ? " (peak " + fmt(peak, 1) + ")" : "");
+      fig.querySelector(".focus").textContent = peak
+        ? t("Focus {focus} (peak {peak})", {focus: fmt(c.focus, 1), peak: fmt(peak, 1)})
+        : t("Focus {focus}", {focus: fmt(c.focus, 1)});
       const meter = fig.querySelector("meter");
       meter.value = peak && c.focus !== null ? c.focus / peak : 0;
       const dl = fig.querySelector("dl");
       dl.replaceChildren();
-      [["focus over", c.focus_area || "—"], ["mean grey", fmt(c.mean, 1)],
-       ["saturated", fmt(c.saturated_pct, 2) + " %"], ["dark", fmt(c.dark_pct, 2) + " %"],
-       ["taken", c.grabbed_at ? new Date(c.grabbed_at).toLocaleTimeString() : "—"]]
+      [[t("focus over"), c.focus_area || "—"], [t("mean grey"), fmt(c.mean, 1)],
+       [t("saturated"), fmt(c.saturated_pct, 2) + " %"], [t("dark"), fmt(c.dark_pct, 2) + " %"],
+       [t("taken"), c.grabbed_at ? new Date(c.grabbed_at).toLocaleTimeString(I18N.lang || undefined, {timeZone: I18N.zone || undefined}) : "—"]]
         .forEach(([k, v]) => {
           const dt = document.createElement("dt"); dt.textContent = k;
           const dd = document.createElement("dd"); dd.textContent = v;
@@ -188,13 +189,13 @@ function setupCameraView() {
         });
       fig.querySelector(".note").textContent = c.note;
     });
-    note.textContent = d.note || "Frame set " + d.seq + ", at most one every " + d.period_s + " s.";
+    note.textContent = d.note || t("Frame set {seq}, at most one every {period} s.", {seq: d.seq, period: fmt(d.period_s, 1)});
     note.classList.toggle("error", false);
     view.dataset.seq = String(d.seq);
     view.dataset.updates = String(Number(view.dataset.updates || 0) + 1);
   });
   events.addEventListener("down", (ev) => {
-    note.textContent = ev.data;
+    note.textContent = t("No frames: {why}", {why: ev.data});
     note.classList.toggle("error", true);
   });
   events.addEventListener("open", () => { view.dataset.connected = "1"; });
