@@ -12,7 +12,7 @@ from datetime import UTC, datetime
 from typing import Any, get_args
 from urllib.parse import urlencode
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse
 
 from server.auth import Principal, Role
@@ -22,7 +22,7 @@ from server.web.context import in_thread, page_user
 from server.web.i18n import N_, _, ngettext
 from server.web.pages import Html, to_login
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 PAGE = 50  # history rows per page
 _STATES = {"all": None, "active": True, "cleared": False}
 _ACKED = {"any": None, "yes": True, "no": False}

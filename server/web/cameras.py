@@ -21,17 +21,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import anyio.to_thread
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse, StreamingResponse
 
 from server.auth import Role
-from server.web import html
+from server.web import html, i18n
 from server.web.context import need, page_user, runtime_of
 from server.web.i18n import N_, _
 from server.web.live import KEEPALIVE_S, QUEUE, STREAM_S, sse
 from server.web.pages import Html, to_login
 
-router = APIRouter(include_in_schema=False)
+router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 #: the frames' width in the page, px (the station downscales to it)
 WIDTH = 640
 #: how long the feed waits before asking a station that did not answer again

@@ -1,7 +1,8 @@
 """The operator page in each of its languages, in a real browser (Debian's Chromium driven by
 Playwright): the line view and the history in English, German, Simplified Chinese and Spanish,
 with the locale's numbers and dates in the plant's time zone; the language selector; the
-script's messages (SPC, Live) in the chosen language; axe-core on each.
+script's messages (SPC, Live) in the chosen language; the Alarms and Cameras pages in German;
+axe-core on each.
 """
 
 from __future__ import annotations
@@ -92,6 +93,9 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
         line.start = datetime.now(UTC) - timedelta(seconds=line.period_s * 12)
         line.run(9, missing_every=4)
         nok = line.store(*line.record(missing="B2", frames=True))
+        writer.store.alarms.raise_("camera:left1", "CAMERA_DOWN", "high",
+                                   "camera left1 is down: no frame", {"camera": "left1",
+                                                                      "reason": "no frame"})
         app = create_app(cfg)
         with serve(app) as base, sync_playwright() as pw:
             browser = launch(pw)
@@ -198,5 +202,34 @@ def test_the_browsers_language_then_the_selector(site: Site) -> None:
     page.select_option("#lang-select", "en")
     page.wait_for_function("document.documentElement.lang === 'en'")
     assert page.locator("main h2").first.inner_text() == "SPC"
+    assert not page.errors, page.errors
+    page.context.close()
+
+
+def test_the_alarms_and_the_cameras_page_in_german(site: Site) -> None:
+    page = site.page("de")
+    page.goto(f"{site.base}/alarms")
+    assert page.get_attribute("html", "lang") == "de"
+    assert page.locator("header nav a.on").inner_text() == "Alarme"
+    assert page.locator("#standing-h").inner_text() == "Anstehende Alarme"
+    # the alarm's text from its key and arguments, its priority and state in words
+    row = page.locator('#standing-alarms tr[data-code="CAMERA_DOWN"]')
+    assert "Kamera left1 ist ausgefallen: no frame" in row.inner_text()
+    assert row.locator(".prio").text_content() == "hoch"  # CSS writes it in capitals
+    assert row.locator(".alarm-state").text_content() == "aktiv"
+    assert row.locator("button.ack").inner_text() == "Quittieren"
+    # the header's count, loaded by htmx
+    badge = page.locator("#alarm-count .alarm-badge")
+    badge.wait_for()
+    assert badge.inner_text() == "⚠ 1 aktiver Alarm (1 nicht quittiert)"
+    assert_accessible(page, "/alarms in de")
+
+    page.goto(f"{site.base}/cameras")
+    assert page.locator("header nav a.on").inner_text() == "Kameras"
+    assert page.locator(".camera-help h2").inner_text() == "Die Kennzahlen lesen"
+    # no station process here: the script says so in German, from the page's catalogue
+    page.wait_for_function(
+        "document.getElementById('camera-note').textContent.startsWith('Keine Bilder:')")
+    assert_accessible(page, "/cameras in de")
     assert not page.errors, page.errors
     page.context.close()
