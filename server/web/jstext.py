@@ -35,6 +35,7 @@ MESSAGES = (
     N_("focus of camera {camera} against its peak"), N_("Focus {focus} (peak {peak})"),
     N_("Focus {focus}"), N_("focus over"), N_("mean grey"), N_("saturated"), N_("dark"),
     N_("taken"), N_("Frame set {seq}, at most one every {period} s."), N_("No frames: {why}"),
+    N_("mark windows"), N_("whole image"),  # a frame's focus_area (mvpose_core.image_figures)
 )
 
 

@@ -179,7 +179,7 @@ function setupCameraView() {
       meter.value = peak && c.focus !== null ? c.focus / peak : 0;
       const dl = fig.querySelector("dl");
       dl.replaceChildren();
-      [[t("focus over"), c.focus_area || "—"], [t("mean grey"), fmt(c.mean, 1)],
+      [[t("focus over"), c.focus_area ? t(c.focus_area) : "—"], [t("mean grey"), fmt(c.mean, 1)],
        [t("saturated"), fmt(c.saturated_pct, 2) + " %"], [t("dark"), fmt(c.dark_pct, 2) + " %"],
        [t("taken"), c.grabbed_at ? new Date(c.grabbed_at).toLocaleTimeString(I18N.lang || undefined, {timeZone: I18N.zone || undefined}) : "—"]]
         .forEach(([k, v]) => {
