@@ -5,8 +5,9 @@ helpers: the app on a real socket, Debian's Chromium through Playwright).
 
 starts the API app on a temporary SQLite store, fills it with records the pose engine measured
 on simulated station 1 (server.web.sample), ending now, starts a station process on it (simulated
-cameras, no PLC), logs in and saves every page as the screen shows it, at a full-HD monitor's
-1920 x 1080 and the panel PC's 1366 x 768, in English and German (the selector's cookie):
+cameras, no PLC: its link's alarm is the active one on Alarms), logs in and saves every page
+as the screen shows it, at a full-HD monitor's 1920 x 1080 and the panel PC's 1366 x 768, in
+English and German (the selector's cookie):
 ``operator-<page>-<language>-<w>x<h>.jpg``, JPEG quality 70. Needs the ``test`` extra
 (playwright) and /usr/bin/chromium (Debian's ``chromium``).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
@@ -51,6 +53,8 @@ PAGES = {
     "calibration": ("/calibration", "#charts[data-points]"),
     "recipes": ("/recipes/floor_panel", "table.diff"),
     "gauge": ("/gauge", "main section"),
+    "alarms": ("/alarms", '#standing-alarms tr[data-state="active"]'),
+    "cameras": ("/cameras", "#camera-grid figure img[src]"),
     "docs": ("/docs", ".swagger-ui .opblock"),  # Swagger UI's own words: English only
 }
 
@@ -125,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     from mvpose_core.station import load_station
     from server.app import create_app
     from server.station.client import StationClient
+    from server.station.options import StationOptions
     from server.station.process import StationProcess
 
     parser = argparse.ArgumentParser(prog="python -m server.web.screenshots",
@@ -142,13 +147,18 @@ def main(argv: list[str] | None = None) -> int:
         writer = open_services(settings)  # the station process's side: it writes the records
         station = load_station(STATION1)
         modbus = {**station.links.get("modbus", {}), "host": "127.0.0.1", "port": 0}
+        # the simulated part lies at the recipe's reference: the Cameras page sees it
         proc = StationProcess(settings, station.model_copy(update={
-            "links": {**station.links, "modbus": modbus}}))
+            "links": {**station.links, "modbus": modbus}}),
+            StationOptions(sim_part_at_reference=True))
         try:
             line = populate(writer, end=datetime.now(UTC) - timedelta(seconds=20))
             newest = writer.store.measurements.summary_page(MeasurementFilter(), None, 1)[0]
             line.store(*line.record(missing="B2", frames=True))  # Live and Line show a NOK
             proc.start()
+            # no PLC on the link: the station's alarm watch raises LINK_NO_PLC after its
+            # on-delay, the active alarm the Alarms page shows
+            standing(writer, timeout_s=120)
             app = create_app(settings, StationClient(settings.resolved_control_socket))
             with serve(app) as base, sync_playwright() as pw:
                 browser = launch(pw)
@@ -161,6 +171,15 @@ def main(argv: list[str] | None = None) -> int:
             proc.stop()
             writer.close()
     return 0
+
+
+def standing(services: Services, timeout_s: float) -> None:
+    """Wait for an active alarm in the store (the station's watch writes it)."""
+    end = time.monotonic() + timeout_s
+    while not any(a.active for a in services.store.alarms.standing()):
+        if time.monotonic() > end:
+            raise RuntimeError(f"no active alarm within {timeout_s:g} s for the Alarms page")
+        time.sleep(0.5)
 
 
 def shoot(browser: Any, base: str, token: str, code: str, size: dict[str, int], record: int,
