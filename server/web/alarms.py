@@ -56,7 +56,8 @@ TEXTS = {
 def words(a: Alarm) -> str:
     """The alarm's message in the page's language, from its text key and arguments."""
     code = a.text_key.removeprefix("alarm.")
-    args = {k: i18n.num(v, 1) if isinstance(v, float) else v for k, v in a.text_args.items()}
+    args = {k: i18n.num(v, 1) if isinstance(v, float) else "—" if v is None else v
+            for k, v in a.text_args.items()}
     try:
         if code == "NOK_STREAK":
             return ngettext("{count} NOK result in a row (recipe {recipe})",

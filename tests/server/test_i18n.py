@@ -19,11 +19,15 @@ from babel.messages.pofile import read_po
 from babel.support import Translations
 from pydantic import ValidationError
 
+from mvpose_core.calibration.codes import HandEyeCode
 from mvpose_core.reasons import CHECKS, DESCRIPTIONS
 from mvpose_core.spc import RULES
 from mvpose_core.station import PAGE_LANGUAGES, load_station
 from server.app import create_app
-from server.web import i18n, jstext, spc
+from server.station import alarms as alarm_watch
+from server.store.alarms import Alarm
+from server.web import alarms as web_alarms
+from server.web import handeye, i18n, jstext, spc
 
 ROOT = Path(__file__).resolve().parents[2]
 LOCALES = ROOT / "server" / "web" / "locale"
@@ -208,3 +212,38 @@ async def test_a_kiosk_speaks_the_plants_language_and_offers_no_choice(tmp_path:
         assert 'id="lang-select"' not in line.text  # read-only: no control at all
         # the login page offers the choice before anyone is logged in
         assert 'id="lang-select"' in (await client.get("/login")).text
+
+
+def _alarm(code: str, text: str, args: dict[str, Any]) -> Alarm:
+    return Alarm(id=1, station="station1", source="test", code=code, priority="high", text=text,
+                 text_key=f"alarm.{code}", text_args=args, raised_at=datetime.now(UTC),
+                 cleared_at=None, acked_at=None, acked_by=None)
+
+
+def test_every_alarm_code_has_a_message_and_is_said_from_its_arguments() -> None:
+    # the watch's codes and the supervisor's STATION_DOWN; NOK_STREAK is a plural of its own
+    assert set(alarm_watch.CODES) | {"STATION_DOWN"} == set(web_alarms.TEXTS) | {"NOK_STREAK"}
+    with i18n.use("de"):
+        down = _alarm("CAMERA_DOWN", "camera left1 is down: timeout",
+                      {"camera": "left1", "reason": "timeout"})
+        assert web_alarms.words(down) == "Kamera left1 ist ausgefallen: timeout"
+        streak = _alarm("NOK_STREAK", "3 NOK results in a row (recipe door)",
+                        {"count": 3, "recipe": "door"})
+        assert web_alarms.words(streak) == "3 n.i.O.-Ergebnisse in Folge (Rezept door)"
+        age = _alarm("CALIBRATION_AGE", "…", {"version": 4, "age_days": 31.5,
+                                              "limit_days": 30, "created": "2026-10-27"})
+        assert web_alarms.words(age) == ("die Kalibrierung (Version 4) ist 31,5 Tage alt; die "
+                                         "Grenze ist 30 Tage")
+        assert web_alarms.count_words(1, 2) == "1 aktiver Alarm (2 nicht quittiert)"
+        # an alarm without the arguments its message names, or of a code the page does not
+        # know, shows the English text it was stored with
+        assert web_alarms.words(_alarm("LINK_DOWN", "link x is down", {})) == "link x is down"
+        assert web_alarms.words(_alarm("NEW_CODE", "something new", {"a": 1})) == "something new"
+
+
+def test_hand_eye_codes_are_named_in_the_language() -> None:
+    assert set(handeye.CODE_WORDS) == set(HandEyeCode)
+    with i18n.use("de"):
+        assert handeye.code_words(int(HandEyeCode.BOARD_NOT_FOUND)) == (
+            "Kalibrierplatte nicht gefunden")
+        assert handeye.code_words(999) == "999"

@@ -1,7 +1,8 @@
 """The operator page in each of its languages, in a real browser (Debian's Chromium driven by
 Playwright): the line view and the history in English, German, Simplified Chinese and Spanish,
 with the locale's numbers and dates in the plant's time zone; the language selector; the
-script's messages (SPC, Live) in the chosen language; the Alarms and Cameras pages in German;
+script's messages (SPC, Live) in the chosen language; the Alarms and Cameras pages and the
+hand-eye panel in German;
 axe-core on each.
 """
 
@@ -206,7 +207,7 @@ def test_the_browsers_language_then_the_selector(site: Site) -> None:
     page.context.close()
 
 
-def test_the_alarms_and_the_cameras_page_in_german(site: Site) -> None:
+def test_the_alarms_cameras_and_hand_eye_pages_in_german(site: Site) -> None:
     page = site.page("de")
     page.goto(f"{site.base}/alarms")
     assert page.get_attribute("html", "lang") == "de"
@@ -231,5 +232,10 @@ def test_the_alarms_and_the_cameras_page_in_german(site: Site) -> None:
     page.wait_for_function(
         "document.getElementById('camera-note').textContent.startsWith('Keine Bilder:')")
     assert_accessible(page, "/cameras in de")
+
+    # the Calibration page's hand-eye panel (no station process: it says so)
+    page.goto(f"{site.base}/calibration")
+    assert page.locator("#handeye h2").inner_text() == "Robotergeführte Hand-Auge-Kalibrierung"
+    assert "Die Station ist ausgefallen: keine Sitzung anzuzeigen." in page.inner_text("#handeye")
     assert not page.errors, page.errors
     page.context.close()
