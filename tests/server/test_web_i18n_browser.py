@@ -2,8 +2,7 @@
 Playwright): the line view and the history in English, German, Simplified Chinese and Spanish,
 with the locale's numbers and dates in the plant's time zone; the language selector; the
 script's messages (SPC, Live) in the chosen language; the Alarms and Cameras pages and the
-hand-eye panel in German;
-axe-core on each.
+hand-eye panel in German; axe-core on each.
 """
 
 from __future__ import annotations
