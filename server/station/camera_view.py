@@ -65,7 +65,7 @@ class CameraView:
         self._windows: dict[tuple[Any, ...], dict[str, list[Window]]] = {}
         self.counts = {"requests": 0, "grabs": 0, "frames": 0, "preempted": 0, "skipped": 0}
         self.last_grab_at: str | None = None
-        self.grabbing = False  # a preview is in flight
+        self.grabbing = False  # a request is being answered (a preview may be in flight)
 
     def close(self) -> None:
         ex, self._exec = self._exec, None
@@ -87,31 +87,35 @@ class CameraView:
 
     # ------------------------------------------------------------------ its thread
     def take(self, width: int) -> CameraViewAnswer:
-        """The newest frame set, grabbed first when it is older than PERIOD_S."""
+        """The newest frame set, grabbed first when it is older than PERIOD_S. ``grabbing`` is
+        true from the request's arrival to its answer, the frames' figures included."""
         with self._lock:
-            self.counts["requests"] += 1
-            now = time.monotonic()
-            if self._last is not None and self._last.cameras and now - self._last_t < PERIOD_S:
-                return self._last
-            capture = self.measuring.capture
-            if capture is None:
-                raise ConflictError("the station's cameras are not open")
-            if self._trigger_running():
-                self.counts["skipped"] += 1
-                self._last_t = now  # look again a period later, not at once
-                return self._answer("a trigger is running: the frames shown are older")
             self.grabbing = True
             try:
-                results = capture.preview(GRAB_DEADLINE_S)
+                return self._take(width)
             finally:
                 self.grabbing = False
-            self._last_t = time.monotonic()
-            self.counts["grabs"] += 1
-            self.last_grab_at = datetime.now(UTC).isoformat()
-            windows = self._mark_windows()
-            for cid, res in results.items():
-                self._frames[cid] = self._frame(cid, res, width, windows.get(cid, []))
-            return self._answer("")
+
+    def _take(self, width: int) -> CameraViewAnswer:
+        self.counts["requests"] += 1
+        now = time.monotonic()
+        if self._last is not None and self._last.cameras and now - self._last_t < PERIOD_S:
+            return self._last
+        capture = self.measuring.capture
+        if capture is None:
+            raise ConflictError("the station's cameras are not open")
+        if self._trigger_running():
+            self.counts["skipped"] += 1
+            self._last_t = now  # look again a period later, not at once
+            return self._answer("a trigger is running: the frames shown are older")
+        results = capture.preview(GRAB_DEADLINE_S)
+        self._last_t = time.monotonic()
+        self.counts["grabs"] += 1
+        self.last_grab_at = datetime.now(UTC).isoformat()
+        windows = self._mark_windows()
+        for cid, res in results.items():
+            self._frames[cid] = self._frame(cid, res, width, windows.get(cid, []))
+        return self._answer("")
 
     def _answer(self, note: str) -> CameraViewAnswer:
         capture = self.measuring.capture
