@@ -14,14 +14,14 @@ from __future__ import annotations
 from typing import Any
 
 from .. import layout as r
-from ..base import Link, StationHandler
-from ..handshake import HandshakeRunner
+from ..base import StationHandler
+from ..handshake import HandshakeLink, HandshakeRunner
 from ..layout import ByteOrder
 from .settings import EnipLinkConfig
 from .transport import EnipServer
 
 
-class EnipLink(Link):
+class EnipLink(HandshakeLink):
     """EtherNet/IP adapter for the line's scanner (PLC)."""
 
     name = "enip"
@@ -29,7 +29,6 @@ class EnipLink(Link):
 
     def __init__(self, config: EnipLinkConfig, handler: StationHandler) -> None:
         super().__init__(config, handler)
-        self.runner: HandshakeRunner | None = None
         self.server: EnipServer | None = None
 
     async def start(self) -> None:
@@ -70,14 +69,6 @@ class EnipLink(Link):
 
     def ready(self) -> bool:
         return self.server is not None
-
-    def line_state(self) -> str | None:
-        return None if self.runner is None else self.runner.machine.state.name
-
-    def recipe_changed(self) -> None:
-        if self.runner is not None:
-            self.runner.recipe_selected(self.handler.selected_recipe(),
-                                        self.handler.convention().code)
 
     def status(self) -> dict[str, Any]:
         if self.server is None or self.runner is None or self.server.adapter is None:

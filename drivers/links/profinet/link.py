@@ -21,8 +21,8 @@ import sys
 from typing import Any
 
 from .. import layout as r
-from ..base import AlarmNotice, Link, StationHandler
-from ..handshake import HandshakeRunner
+from ..base import AlarmNotice, StationHandler
+from ..handshake import HandshakeLink, HandshakeRunner
 from ..layout import ByteOrder
 from .alarms import ERROR_CAMERA_DOWN, ERROR_STATION_DOWN
 from .settings import ProfinetLinkConfig
@@ -37,7 +37,7 @@ class ProfinetError(RuntimeError):
     """The device's process could not start (names why: no raw sockets, no interface)."""
 
 
-class ProfinetLink(Link):
+class ProfinetLink(HandshakeLink):
     """PROFINET IO-device for the line's IO-controller."""
 
     name = "profinet"
@@ -45,7 +45,6 @@ class ProfinetLink(Link):
 
     def __init__(self, config: ProfinetLinkConfig, handler: StationHandler) -> None:
         super().__init__(config, handler)
-        self.runner: HandshakeRunner | None = None
         self._proc: subprocess.Popen[bytes] | None = None
         self._pair: socket.socket | None = None
         self._poller: asyncio.Task[None] | None = None
@@ -213,14 +212,6 @@ class ProfinetLink(Link):
 
     def ready(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
-
-    def line_state(self) -> str | None:
-        return None if self.runner is None else self.runner.machine.state.name
-
-    def recipe_changed(self) -> None:
-        if self.runner is not None:
-            self.runner.recipe_selected(self.handler.selected_recipe(),
-                                        self.handler.convention().code)
 
     def status(self) -> dict[str, Any]:
         if self.runner is None or not self.ready():

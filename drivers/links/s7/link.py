@@ -23,8 +23,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-from ..base import Link, LinkOutcome, LinkRequest, StationHandler
-from ..handshake import HandshakeConfig, HandshakeRunner
+from ..base import LinkOutcome, LinkRequest, StationHandler
+from ..handshake import HandshakeConfig, HandshakeLink, HandshakeRunner
 from ..layout import INPUT_FIELDS, INPUT_SIZE, IR_STATUS, OUTPUT_SIZE, ByteOrder, Status
 from .poller import Backoff, Block, BlockError, Outage, ResultWriter, check_pdu
 from .settings import S7LinkConfig
@@ -74,7 +74,7 @@ class _Waking:
         return getattr(self._inner, name)
 
 
-class S7Link(Link):
+class S7Link(HandshakeLink):
     """S7 client of the PLC: the trigger DB polled, the result DB written."""
 
     name = "s7"
@@ -85,7 +85,6 @@ class S7Link(Link):
         c = config
         self.trigger = Block("trigger", c.trigger_db, c.trigger_start, OUTPUT_SIZE)
         self.result = Block("result", c.result_db, c.result_start, INPUT_SIZE)
-        self.runner: HandshakeRunner | None = None
         self.outage = Outage()
         self.stats = S7Stats()
         self.pdu_size = 0
@@ -127,14 +126,6 @@ class S7Link(Link):
     def ready(self) -> bool:
         # as the Modbus link: up while it runs; a lost PLC is the handshake's watchdog's to say
         return self.runner is not None
-
-    def line_state(self) -> str | None:
-        return None if self.runner is None else self.runner.machine.state.name
-
-    def recipe_changed(self) -> None:
-        if self.runner is not None:
-            self.runner.recipe_selected(self.handler.selected_recipe(),
-                                        self.handler.convention().code)
 
     def status(self) -> dict[str, Any]:
         if self.runner is None:
