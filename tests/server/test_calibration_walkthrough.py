@@ -27,7 +27,8 @@ def walkthrough() -> list[tuple[str, list[str]]]:
     """(command, the output lines the guide shows) for every ``$ mvpose`` line of the section."""
     text = DOC.read_text()
     start = text.index("\n## Walkthrough")
-    end = text.index("\n## ", start + 1)
+    end = text.find("\n## ", start + 1)  # the section ends at the next one or the page's end
+    end = len(text) if end < 0 else end
     steps: list[tuple[str, list[str]]] = []
     lines = text[start:end].splitlines()
     k = 0
