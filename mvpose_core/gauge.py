@@ -8,11 +8,16 @@ Sources of the formulas (see docs/gauge.md for the full references):
   ``Cg = (K/100 · T) / (L · s)`` and ``Cgk = (K/200 · T − |x̄ − xm|) / (L/2 · s)`` with
   K = 20 % and L = 6 (six standard deviations); the bias ``x̄ − xm`` is tested with Student's t
   on n − 1 degrees of freedom; ``%Var = K / Cg`` is the tolerance share the repeatability takes.
+  Published example: the type-1 example of Thomas Roth's vignette *Working with the qualityTools
+  package* (CRAN qualityTools 1.55, Figure 3): Cg 1.08, Cgk 0.91, t 2.307, p 0.03, printed with
+  the package's spread L = 2·Φ⁻¹(0.9973) = 5.5643; ``Type1Options(spread=5.5643…)`` gives them,
+  our default L = 6 gives 1.00 and 0.84 (tests/mvpose_core/test_gauge.py).
 - Type 3: AIAG *Measurement Systems Analysis*, 4th edition (2010), the ANOVA method, for a gauge
   without operator influence (Booklet 10 procedure 3): a one-way ANOVA of parts × repeats, whose
   within-part mean square is the repeatability (EV = GRR) and whose between-part mean square less
   it, per repeat, the part variation (PV). Spreads are 6σ (the 4th edition and Booklet 10; the
-  3rd edition used 5.15σ). ``ndc = floor(1.41 · PV / GRR)``.
+  3rd edition used 5.15σ). ``ndc = floor(1.41 · PV / GRR)``. No published no-operator example
+  with its data and ANOVA results was at hand; its test derives the figures by hand.
 - Linearity: AIAG MSA 4th edition, Chapter III Section B, the linearity study: every reading's
   bias regressed on its reference value by least squares; slope and intercept tested with t on
   g·m − 2 degrees of freedom. The manual's worked example (5 parts × 12 readings at 2, 4, 6, 8,

@@ -1,4 +1,5 @@
-"""The gauge formulas against a published worked example (linearity) and hand-derived ones.
+"""The gauge formulas against published worked examples (linearity, type 1) and hand-derived
+ones (type 3).
 
 Published: AIAG, *Measurement Systems Analysis*, 4th edition (2010), Chapter III Section B, the
 linearity example: five parts with reference values 2, 4, 6, 8, 10, each read 12 times. The
@@ -9,9 +10,18 @@ manual prints the fitted line y = 0.7367 − 0.1317 x, R² 0.71, and the bias av
 0.125, 0.025, −0.291667, −0.616667 (quoted in the Elsmar forum thread "Linearity Analysis - AIAG's
 MSA Manual 3rd Edition - Question", where the same example appears).
 
-No published type-1 (Bosch Booklet 10) or no-operator type-3 example with its data could be read
-here; those formulas are tested against values derived by hand below (closed forms in the
-comments) and, for the ANOVA, against scipy's independent one-way ANOVA.
+Published: Thomas Roth, *Working with the qualityTools package* (the vignette of the CRAN package
+qualityTools 1.55, 2016), section "Gage Capability - MSA Type I", its Figure 3 "Potentially
+capable gage with bias": 25 readings of one unit (printed in the vignette's code), target
+10.003, tolerance 9.903 to 10.103; the figure prints x̄ = 10.01, s = 0.01, Cg = 1.08, Cgk = 0.91,
+t-value 2.307, p-value 0.03. Read here in the vignette's source and PDF (github.com/cran/
+qualityTools, inst/doc/qualityTools.rnw and .pdf) and again in r6qualitytools' rendering of the
+same example (github.com/Fabianenc/r6qualitytools, man/cg.Rd and docs/reference/cg-1.png). Its
+convention differs from ours in one place, stated in the test below.
+
+No published no-operator type-3 example with its data and ANOVA results could be read here; the
+type-3 formulas are tested against values derived by hand below (closed forms in the comments)
+and against scipy's independent one-way ANOVA.
 """
 
 from __future__ import annotations
@@ -47,6 +57,41 @@ def test_linearity_matches_the_aiag_msa_example_to_its_printed_digits() -> None:
     assert res.t_slope == pytest.approx(fit.slope / fit.stderr, rel=1e-12)
     assert res.t_intercept == pytest.approx(fit.intercept / fit.intercept_stderr, rel=1e-12)
     assert not res.acceptable  # the manual's conclusion: the gauge has a linearity problem
+
+
+# qualityTools vignette, section "Gage Capability - MSA Type I" (order as printed there)
+QT_TYPE1 = [9.991, 10.013, 10.001, 10.007, 10.010, 10.013, 10.008, 10.017, 10.005, 10.005,
+            10.002, 10.017, 10.005, 10.002, 9.996, 10.011, 10.009, 10.006, 10.008, 10.003,
+            10.002, 10.006, 10.010, 9.992, 10.013]
+
+
+def test_type1_matches_the_qualitytools_vignette_example_to_its_printed_digits() -> None:
+    # The vignette states Cg = 0.2·T / (6·s) with K = 20 % as we do (VDA 5, Booklet 10), and its
+    # Cgk = (0.1·T − |bias|) / (L/2 · s) is ours too. Its printed figures, though, come from the
+    # package's code, whose reference spread L·s is the 99.73 % quantile minus the 0.27 %
+    # quantile of N(x̄, s): L = 2·Φ⁻¹(Φ(3) − Φ(−3)) = 5.5643 rather than 6. Type1Options.spread
+    # is that L, so their convention is ours with one option changed.
+    their_spread = 2.0 * float(stats.norm.ppf(stats.norm.cdf(3.0) - stats.norm.cdf(-3.0)))
+    assert round(their_spread, 4) == 5.5643
+    tol = 10.103 - 9.903
+    theirs = type1(QT_TYPE1, tol, 10.003, options=Type1Options(spread=their_spread))
+    assert theirs.n == 25
+    assert round(theirs.mean, 2) == 10.01 and round(theirs.std, 2) == 0.01
+    assert round(theirs.cg, 2) == 1.08
+    assert round(theirs.cgk or 0, 2) == 0.91
+    assert round(theirs.t or 0, 3) == 2.307  # "H0: Bias = 0, t-value: 2.307, p-value: 0.03"
+    assert round(theirs.p or 0, 2) == 0.03
+    assert theirs.bias_significant is True
+    # Our default (L = 6, VDA 5 / Booklet 10) on the same readings: Cg = 0.04 / (6·s) and
+    # Cgk = (0.02 − |x̄ − 10.003|) / (3·s), i.e. theirs scaled by L/6; the t-test is the same.
+    ours = type1(QT_TYPE1, tol, 10.003)
+    s = float(np.std(QT_TYPE1, ddof=1))
+    assert ours.cg == pytest.approx(0.2 * tol / (6 * s), rel=1e-12)
+    assert ours.cg == pytest.approx(theirs.cg * their_spread / 6.0, rel=1e-12)
+    assert ours.cgk == pytest.approx((theirs.cgk or 0) * their_spread / 6.0, rel=1e-12)
+    assert (round(ours.cg, 2), round(ours.cgk or 0, 2)) == (1.00, 0.84)
+    assert ours.t == theirs.t and ours.p == theirs.p
+    assert not ours.capable and not theirs.capable  # Cg < 1.33 in either convention
 
 
 def test_type1_by_hand() -> None:
