@@ -1,5 +1,6 @@
-"""Gauge capability studies on arrays: type 1 (Cg, Cgk, bias), type 3 (one-way ANOVA %GRR, ndc)
-and linearity (bias regressed on the reference value). No I/O; docs/gauge.md has the sources.
+"""Gauge capability studies on arrays: type 1 (Cg, Cgk, bias), the crossed gauge R&R ANOVA and its
+one-appraiser case type 3 (%GRR, ndc), and linearity (bias regressed on the reference value).
+No I/O; docs/gauge.md has the sources.
 
 Sources of the formulas (see docs/gauge.md for the full references):
 
@@ -12,12 +13,20 @@ Sources of the formulas (see docs/gauge.md for the full references):
   package* (CRAN qualityTools 1.55, Figure 3): Cg 1.08, Cgk 0.91, t 2.307, p 0.03, printed with
   the package's spread L = 2·Φ⁻¹(0.9973) = 5.5643; ``Type1Options(spread=5.5643…)`` gives them,
   our default L = 6 gives 1.00 and 0.84 (tests/mvpose_core/test_gauge.py).
-- Type 3: AIAG *Measurement Systems Analysis*, 4th edition (2010), the ANOVA method, for a gauge
-  without operator influence (Booklet 10 procedure 3): a one-way ANOVA of parts × repeats, whose
-  within-part mean square is the repeatability (EV = GRR) and whose between-part mean square less
-  it, per repeat, the part variation (PV). Spreads are 6σ (the 4th edition and Booklet 10; the
-  3rd edition used 5.15σ). ``ndc = floor(1.41 · PV / GRR)``. No published no-operator example
-  with its data and ANOVA results was at hand; its test derives the figures by hand.
+- Crossed gauge R&R (n parts × a appraisers × r trials): AIAG *Measurement Systems Analysis*,
+  4th edition (2010), the ANOVA method (VDA 5 / Booklet 10 procedure 2 is the same model): a
+  two-way ANOVA with interaction, AIAG's variance components, %Contribution, %Study Var,
+  %Tolerance, ``ndc = floor(1.41 · PV / GRR)``. The interaction is pooled into repeatability when
+  its p ≥ 0.25 or its component is negative (the rule of qualityTools' ``gageRR``,
+  alpha = 0.25). Published example: Roth's qualityTools vignette (above), section 3.2 "Gage
+  Repeatability&Reproducibility - MSA Type II", 10 parts × 3 operators × 2: its printed ANOVA
+  table (Df, SS, MS, F, p of each term), variance components (1.209, 0.455, 1.664, 1.781, 3.446)
+  and contributions (35 %, 13 %, 48 %, 51.7 %) are reproduced to their digits by
+  ``crossed_anova`` (tests/mvpose_core/test_gauge.py).
+- Type 3 (no operator influence, Booklet 10 procedure 3): the one-appraiser case of the crossed
+  ANOVA, computed by ``crossed_anova`` (a one-way ANOVA of parts × repeats: EV = GRR, PV from
+  the between-part mean square). Spreads are 6σ (the 4th edition and Booklet 10; the 3rd edition
+  used 5.15σ). No published no-operator example with its data and ANOVA results could be read.
 - Linearity: AIAG MSA 4th edition, Chapter III Section B, the linearity study: every reading's
   bias regressed on its reference value by least squares; slope and intercept tested with t on
   g·m − 2 degrees of freedom. The manual's worked example (5 parts × 12 readings at 2, 4, 6, 8,
@@ -132,6 +141,168 @@ def type1(values: Array | list[float], tolerance: float, reference: float | None
     )
 
 
+POOL_ALPHA = 0.25  # the interaction is pooled into repeatability when its p ≥ this (qualityTools)
+
+
+@dataclass(frozen=True)
+class AnovaTerm:
+    """One row of an ANOVA table. F and p are against the repeatability mean square of the same
+    table (the fixed-effects table R's ``aov`` prints, as the qualityTools vignette shows it)."""
+
+    source: str  # "part", "appraiser", "part × appraiser", "repeatability"
+    df: int
+    ss: float
+    ms: float
+    f: float | None  # None for the repeatability row
+    p: float | None
+
+
+@dataclass(frozen=True)
+class CrossedAnova:
+    """A crossed gauge R&R: n parts × a appraisers × r trials, two-way ANOVA with interaction
+    (AIAG MSA 4th ed., the ANOVA method). Variances are the variance components (σ²); with one
+    appraiser there is no appraiser and no interaction term (a type-3 study)."""
+
+    name: str
+    n_parts: int
+    appraisers: int
+    trials: int
+    table: tuple[AnovaTerm, ...]  # the full model
+    reduced: tuple[AnovaTerm, ...] | None  # the model without interaction, when it was pooled
+    pool_alpha: float
+    var_repeatability: float  # σ²_EV
+    var_appraiser: float  # σ²_AV (appraiser alone)
+    var_interaction: float  # σ²_INT (0 when pooled)
+    var_part: float  # σ²_PV
+    tolerance: float | None
+    spread: float  # σ multiple of the study variation (6)
+
+    @property
+    def pooled(self) -> bool:
+        return self.reduced is not None
+
+    def term(self, source: str, *, reduced: bool = False) -> AnovaTerm:
+        rows = self.reduced if reduced and self.reduced is not None else self.table
+        for t in rows:
+            if t.source == source:
+                return t
+        raise KeyError(f"no ANOVA row {source!r}; the rows are {[t.source for t in rows]}")
+
+    @property
+    def var_reproducibility(self) -> float:
+        return self.var_appraiser + self.var_interaction
+
+    @property
+    def var_grr(self) -> float:
+        return self.var_repeatability + self.var_reproducibility
+
+    @property
+    def var_total(self) -> float:
+        return self.var_grr + self.var_part
+
+    def sd(self, component: str) -> float:
+        """σ of ``repeatability``, ``reproducibility``, ``appraiser``, ``interaction``, ``grr``,
+        ``part`` or ``total``."""
+        return math.sqrt(getattr(self, f"var_{component}"))
+
+    def contribution(self, component: str) -> float:
+        """%Contribution: the component's share of the total variance."""
+        return 100.0 * getattr(self, f"var_{component}") / self.var_total
+
+    def study_var(self, component: str) -> float:
+        """%Study Var (%TV): the component's σ over the total σ."""
+        return 100.0 * self.sd(component) / self.sd("total")
+
+    def tolerance_percent(self, component: str) -> float | None:
+        """%Tolerance: spread · σ of the component over the tolerance's full width."""
+        if self.tolerance is None:
+            return None
+        return 100.0 * self.spread * self.sd(component) / self.tolerance
+
+    @property
+    def ndc(self) -> int:
+        """floor(1.41 · PV / GRR) (AIAG MSA 4th ed.)."""
+        return int(math.floor(1.41 * self.sd("part") / self.sd("grr")))
+
+    @property
+    def verdict(self) -> str:
+        return _grr_verdict(self.tolerance_percent("grr"), self.study_var("grr"), self.ndc)
+
+
+def _grr_verdict(grr_tol: float | None, grr_tv: float, ndc: int) -> str:
+    grr = grr_tol if grr_tol is not None else grr_tv
+    if grr > GRR_CONDITIONAL or ndc < NDC_MIN:
+        return "not acceptable"
+    return "acceptable" if grr <= GRR_ACCEPTABLE else "conditional"
+
+
+def _table(terms: list[tuple[str, int, float]], ss_e: float, df_e: int) -> tuple[AnovaTerm, ...]:
+    ms_e = ss_e / df_e
+    rows = [AnovaTerm(src, df, ss, ss / df, ss / df / ms_e,
+                      float(stats.f.sf(ss / df / ms_e, df, df_e))) for src, df, ss in terms]
+    return (*rows, AnovaTerm("repeatability", df_e, ss_e, ms_e, None, None))
+
+
+def crossed_anova(values: Array | list[list[list[float]]], tolerance: float | None = None, *,
+                  name: str = "x", spread: float = 6.0,
+                  pool_alpha: float = POOL_ALPHA) -> CrossedAnova:
+    """A crossed gauge R&R of one characteristic: ``values[i, j, k]`` is part i read by
+    appraiser j on trial k (AIAG MSA 4th ed., ANOVA method; VDA 5 / Booklet 10 procedure 2).
+
+    Variance components of the random model: ``σ²_EV = MS_e``, ``σ²_INT = (MS_pa − MS_e)/r``,
+    ``σ²_AV = (MS_a − MS_pa)/(n·r)``, ``σ²_PV = (MS_p − MS_pa)/(a·r)``, each at least 0. The
+    interaction is pooled into repeatability when its p ≥ ``pool_alpha`` or its variance
+    component is negative (the rule of qualityTools' ``gageRR``, alpha = 0.25): MS_e is then
+    the pooled (SS_pa + SS_e)/(df_pa + df_e) and MS_pa is replaced by it.
+    """
+    x = np.asarray(values, dtype=float)
+    if x.ndim != 3:
+        raise GaugeError(f"{name}: expected values [parts, appraisers, trials], got shape "
+                         f"{x.shape}")
+    n, a, r = x.shape
+    if n < 2 or a < 1 or r < 2:
+        raise GaugeError(f"{name}: a gauge R&R needs at least 2 parts × 1 appraiser × 2 trials, "
+                         f"got {n} × {a} × {r}")
+    if not np.all(np.isfinite(x)):
+        i, j, k = (int(v) for v in np.argwhere(~np.isfinite(x))[0])
+        raise GaugeError(f"{name}: part {i + 1}, appraiser {j + 1}, trial {k + 1} is "
+                         f"{float(x[i, j, k])!r}")
+    if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
+        raise GaugeError(f"{name}: the tolerance must be a positive width, got {tolerance!r}")
+    if not 0.0 <= pool_alpha <= 1.0:
+        raise GaugeError(f"{name}: pool_alpha is a probability, got {pool_alpha!r}")
+    grand = float(x.mean())
+    m_p, m_a, m_pa = x.mean(axis=(1, 2)), x.mean(axis=(0, 2)), x.mean(axis=2)
+    ss_p = float(a * r * np.sum((m_p - grand) ** 2))
+    ss_a = float(n * r * np.sum((m_a - grand) ** 2))
+    ss_pa = float(r * np.sum((m_pa - m_p[:, None] - m_a[None, :] + grand) ** 2))
+    ss_e = float(np.sum((x - m_pa[:, :, None]) ** 2))
+    df_p, df_a, df_pa, df_e = n - 1, a - 1, (n - 1) * (a - 1), n * a * (r - 1)
+    if ss_e == 0.0:
+        raise GaugeError(f"{name}: every part read the same value on every repeat; the "
+                         "resolution is too coarse for a gauge study")
+    if a == 1:
+        table = _table([("part", df_p, ss_p)], ss_e, df_e)
+        ms_e = ss_e / df_e
+        return CrossedAnova(name, n, a, r, table, None, pool_alpha, ms_e, 0.0, 0.0,
+                            max(0.0, (table[0].ms - ms_e) / r), tolerance, spread)
+    table = _table([("appraiser", df_a, ss_a), ("part", df_p, ss_p),
+                    ("part × appraiser", df_pa, ss_pa)], ss_e, df_e)
+    ms_a, ms_p, ms_pa, ms_e = (t.ms for t in table)
+    reduced = None
+    p_pa = table[2].p
+    if ms_pa < ms_e or (p_pa is not None and p_pa >= pool_alpha):
+        reduced = _table([("appraiser", df_a, ss_a), ("part", df_p, ss_p)], ss_pa + ss_e,
+                         df_pa + df_e)
+        ms_e = ms_pa = reduced[-1].ms
+    return CrossedAnova(
+        name, n, a, r, table, reduced, pool_alpha, var_repeatability=ms_e,
+        var_appraiser=max(0.0, (ms_a - ms_pa) / (n * r)),
+        var_interaction=max(0.0, (ms_pa - ms_e) / r),
+        var_part=max(0.0, (ms_p - ms_pa) / (a * r)), tolerance=tolerance, spread=spread,
+    )
+
+
 @dataclass(frozen=True)
 class Type3Result:
     """One characteristic of a type-3 study (no operator influence): n parts × r repeats."""
@@ -167,12 +338,7 @@ class Type3Result:
     def verdict(self) -> str:
         """``acceptable`` / ``conditional`` / ``not acceptable`` by the %GRR that decides (against
         the tolerance when there is one, else against TV) and ndc ≥ 5 (AIAG MSA 4th ed.)."""
-        grr = self.grr_tol_percent if self.grr_tol_percent is not None else self.grr_tv_percent
-        if grr > GRR_CONDITIONAL:
-            return "not acceptable"
-        if self.ndc < NDC_MIN:
-            return "not acceptable"
-        return "acceptable" if grr <= GRR_ACCEPTABLE else "conditional"
+        return _grr_verdict(self.grr_tol_percent, self.grr_tv_percent, self.ndc)
 
 
 def type3(values: Array | list[list[float]], tolerance: float | None = None, *,
@@ -180,8 +346,8 @@ def type3(values: Array | list[list[float]], tolerance: float | None = None, *,
           spread: float = 6.0) -> Type3Result:
     """A type-3 study of one characteristic: ``values[i, j]`` is part i's j-th repeat.
 
-    One-way ANOVA (AIAG MSA 4th ed., ANOVA method without the appraiser terms):
-    ``σ²_EV = MS_e``, ``σ²_PV = max(0, (MS_p − MS_e) / r)``.
+    The one-appraiser case of :func:`crossed_anova` (a one-way ANOVA of parts × repeats):
+    ``σ²_EV = MS_e``, ``σ²_PV = max(0, (MS_p − MS_e) / r)``, GRR = EV.
     """
     x = np.asarray(values, dtype=float)
     if x.ndim != 2:
@@ -191,32 +357,19 @@ def type3(values: Array | list[list[float]], tolerance: float | None = None, *,
         raise GaugeError(f"{name}: a type-3 study needs at least 2 parts × 2 repeats, got "
                          f"{n} × {r}")
     _clean(x, name)
-    if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
-        raise GaugeError(f"{name}: the tolerance must be a positive width, got {tolerance!r}")
     labels = tuple(parts) if parts is not None else tuple(str(i + 1) for i in range(n))
     if len(labels) != n:
         raise GaugeError(f"{name}: {len(labels)} part names for {n} parts")
-    part_means = x.mean(axis=1)
-    grand = float(x.mean())
-    ss_p = float(r * np.sum((part_means - grand) ** 2))
-    ss_e = float(np.sum((x - part_means[:, None]) ** 2))
-    df_p, df_e = n - 1, n * (r - 1)
-    ms_p, ms_e = ss_p / df_p, ss_e / df_e
-    if ms_e == 0.0:
-        raise GaugeError(f"{name}: every part read the same value on every repeat; the "
-                         "resolution is too coarse for a type-3 study")
-    f = ms_p / ms_e
-    p = float(stats.f.sf(f, df_p, df_e))
-    ev = math.sqrt(ms_e)
-    pv = math.sqrt(max(0.0, (ms_p - ms_e) / r))
-    tv = math.hypot(ev, pv)
+    res = crossed_anova(x[:, None, :], tolerance, name=name, spread=spread)
+    part, err = res.term("part"), res.term("repeatability")
     return Type3Result(
         name=name, unit=unit, values=tuple(tuple(float(v) for v in row) for row in x),
-        parts=labels, n_parts=n, repeats=r, ss_parts=ss_p, ss_error=ss_e, df_parts=df_p,
-        df_error=df_e, ms_parts=ms_p, ms_error=ms_e, f=f, p=p, ev=ev, pv=pv, tv=tv,
-        tolerance=tolerance, spread=spread, grr_tv_percent=100.0 * ev / tv,
-        grr_tol_percent=None if tolerance is None else 100.0 * spread * ev / tolerance,
-        ndc=int(math.floor(1.41 * pv / ev)),
+        parts=labels, n_parts=n, repeats=r, ss_parts=part.ss, ss_error=err.ss,
+        df_parts=part.df, df_error=err.df, ms_parts=part.ms, ms_error=err.ms,
+        f=float(part.f or 0.0), p=float(part.p or 0.0), ev=res.sd("grr"), pv=res.sd("part"),
+        tv=res.sd("total"), tolerance=tolerance, spread=spread,
+        grr_tv_percent=res.study_var("grr"), grr_tol_percent=res.tolerance_percent("grr"),
+        ndc=res.ndc,
     )
 
 

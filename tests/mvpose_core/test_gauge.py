@@ -1,5 +1,5 @@
-"""The gauge formulas against published worked examples (linearity, type 1) and hand-derived
-ones (type 3).
+"""The gauge formulas against published worked examples (linearity, type 1, the crossed gauge
+R&R ANOVA whose one-appraiser case is type 3) and hand-derived ones (type 3).
 
 Published: AIAG, *Measurement Systems Analysis*, 4th edition (2010), Chapter III Section B, the
 linearity example: five parts with reference values 2, 4, 6, 8, 10, each read 12 times. The
@@ -19,9 +19,17 @@ qualityTools, inst/doc/qualityTools.rnw and .pdf) and again in r6qualitytools' r
 same example (github.com/Fabianenc/r6qualitytools, man/cg.Rd and docs/reference/cg-1.png). Its
 convention differs from ours in one place, stated in the test below.
 
-No published no-operator type-3 example with its data and ANOVA results could be read here; the
-type-3 formulas are tested against values derived by hand below (closed forms in the comments)
-and against scipy's independent one-way ANOVA.
+Published: the same vignette, section 3.2 "Gage Repeatability&Reproducibility - MSA Type II"
+(a crossed gauge R&R: 10 parts × 3 operators × 2 measurements, its 60 readings printed in the
+vignette's code): the ANOVA table printed by ``gageRR`` (Df, Sum Sq, Mean Sq, F value, Pr(>F) of
+Operator, Part, Operator:Part and Residuals) and, in its paragraph "Components of variation" and
+the text under Figure 4, the variance components (totalRR 1.664 = repeatability 1.209 +
+reproducibility 0.455, Part to Part 1.781, total 3.446) and their contributions (48 %, 35 %,
+13 %, 51.7 %). Read in the PDF (inst/doc/qualityTools.pdf, its text streams decompressed) and
+the source (inst/doc/qualityTools.rnw) at github.com/cran/qualityTools, version 1.55. A type-3
+study is that ANOVA's one-appraiser case (``type3`` calls ``crossed_anova``). No published
+no-operator example with its data and ANOVA results could be read; type 3 is also tested against
+values derived by hand below (closed forms in the comments) and against scipy's one-way ANOVA.
 """
 
 from __future__ import annotations
@@ -32,7 +40,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mvpose_core.gauge import GaugeError, Type1Options, linearity, type1, type3
+from mvpose_core.gauge import (
+    GaugeError,
+    Type1Options,
+    crossed_anova,
+    linearity,
+    type1,
+    type3,
+)
 
 AIAG_LINEARITY = {
     2.0: [2.7, 2.5, 2.4, 2.5, 2.7, 2.3, 2.5, 2.5, 2.4, 2.4, 2.6, 2.4],
@@ -160,3 +175,132 @@ def test_type3_refuses_what_it_cannot_judge() -> None:
         type3([[1.0, 2.0, 3.0]])
     with pytest.raises(GaugeError, match="resolution is too coarse"):
         type3([[1.0, 1.0], [2.0, 2.0]])
+
+
+# qualityTools vignette, section 3.2: response(design) of gageRRDesign(Operators=3, Parts=10,
+# Measurements=2, randomize=FALSE), in the design's standard order: the operator changes fastest,
+# then the part, then the measurement (so the table printed below is reproduced).
+QT_GAGE_RR = [23, 22, 22, 22, 22, 25, 23, 22, 23, 22, 20, 22, 22, 22, 24, 25, 27, 28,
+              23, 24, 23, 24, 24, 22, 22, 22, 24, 23, 22, 24, 20, 20, 25, 24, 22, 24, 21, 20,
+              21, 22, 21, 22, 21, 21, 24, 27, 25, 27, 23, 22, 25, 23, 23, 22, 22, 23, 25, 21,
+              24, 23]
+
+
+def _qt_gage_rr() -> np.ndarray:
+    """The vignette's readings as [part, operator, measurement]."""
+    return np.asarray(QT_GAGE_RR, float).reshape(2, 10, 3).transpose(1, 2, 0)
+
+
+def test_crossed_anova_matches_the_qualitytools_vignette_gage_rr_to_its_printed_digits() -> None:
+    res = crossed_anova(_qt_gage_rr())
+    assert (res.n_parts, res.appraisers, res.trials) == (10, 3, 2)
+    op, part, inter, rep = res.table
+    assert [t.source for t in res.table] == ["appraiser", "part", "part × appraiser",
+                                             "repeatability"]
+    # "Operator 2 20.63 10.317 8.597 0.00112 **"
+    assert (op.df, round(op.ss, 2), round(op.ms, 3), round(op.f or 0, 3),
+            round(op.p or 0, 5)) == (2, 20.63, 10.317, 8.597, 0.00112)
+    # "Part 9 107.07 11.896 9.914 7.31e-07 ***"
+    assert (part.df, round(part.ss, 2), round(part.ms, 3), round(part.f or 0, 3),
+            f"{part.p:.2e}") == (9, 107.07, 11.896, 9.914, "7.31e-07")
+    # "Operator:Part 18 22.03 1.224 1.020 0.46732"
+    assert (inter.df, round(inter.ss, 2), round(inter.ms, 3), round(inter.f or 0, 3),
+            round(inter.p or 0, 5)) == (18, 22.03, 1.224, 1.020, 0.46732)
+    # "Residuals 30 36.00 1.200"
+    assert (rep.df, round(rep.ss, 2), round(rep.ms, 3)) == (30, 36.00, 1.200)
+    # "an interaction between parts and operators is not existing": p 0.467 ≥ 0.25, pooled
+    assert res.pooled and res.pool_alpha == 0.25 and res.var_interaction == 0.0
+    pooled = res.term("repeatability", reduced=True)
+    assert pooled.df == 48 and pooled.ss == pytest.approx(22.0333 + 36.0, abs=1e-4)
+    # "1.664 is the sum of 1.209 (repeatability ...) and 0.455 (reproducibility) ... Part to
+    # Part amounts to 1.781 ... σ²_Total = 3.446"
+    assert round(res.var_grr, 3) == 1.664
+    assert round(res.var_repeatability, 3) == 1.209
+    assert round(res.var_reproducibility, 3) == 0.455
+    assert round(res.var_appraiser, 3) == 0.455
+    assert round(res.var_part, 3) == 1.781
+    assert round(res.var_total, 3) == 3.446
+    # "48% of the variance is due to 35% repeatability ... and 13% reproducibility", "The
+    # remaining 52% (51.7 in column VarCompContrib) ... stems from differences between parts"
+    assert round(res.contribution("grr")) == 48
+    assert round(res.contribution("repeatability")) == 35
+    assert round(res.contribution("reproducibility")) == 13
+    assert round(res.contribution("part")) == 52 and round(res.contribution("part"), 1) == 51.7
+    # Not printed in the vignette, ours from the components above: %Study Var of GRR is
+    # 100·√(1.6644/3.4456) = 69.50 %, ndc = floor(1.41·√(1.7812/1.6644)) = floor(1.459) = 1.
+    assert round(res.study_var("grr"), 2) == 69.50
+    assert res.ndc == 1 and res.verdict == "not acceptable"
+    assert res.tolerance_percent("grr") is None
+    t = crossed_anova(_qt_gage_rr(), 20.0)
+    assert t.tolerance_percent("grr") == pytest.approx(100 * 6 * math.sqrt(t.var_grr) / 20)
+
+
+def test_type3_is_the_one_appraiser_case_of_the_crossed_anova() -> None:
+    xa = _qt_gage_rr()[:, 0, :]  # operator A alone: 10 parts × 2
+    one = crossed_anova(xa[:, None, :], 5.0)
+    assert [t.source for t in one.table] == ["part", "repeatability"] and not one.pooled
+    assert one.var_appraiser == one.var_interaction == one.var_reproducibility == 0.0
+    res = type3(xa, 5.0)
+    assert (res.ms_parts, res.ms_error, res.f, res.p) == (
+        one.term("part").ms, one.term("repeatability").ms, one.term("part").f,
+        one.term("part").p)
+    assert (res.ev, res.pv, res.ndc) == (one.sd("grr"), one.sd("part"), one.ndc)
+    assert res.grr_tol_percent == one.tolerance_percent("grr")
+    f, p = stats.f_oneway(*xa)  # scipy's one-way ANOVA, computed independently
+    assert res.f == pytest.approx(f, rel=1e-12) and res.p == pytest.approx(p, rel=1e-9)
+
+
+def _rss(y: np.ndarray, *factors: np.ndarray) -> float:
+    """Residual sum of squares of y on the dummy columns of the given factor codes."""
+    cols = [np.ones_like(y)] + [(f == v).astype(float) for f in factors for v in np.unique(f)]
+    design = np.column_stack(cols)
+    beta = np.linalg.lstsq(design, y, rcond=None)[0]
+    return float(np.sum((y - design @ beta) ** 2))
+
+
+def test_crossed_anova_keeps_a_significant_interaction() -> None:
+    rng = np.random.default_rng(11)
+    n, a, r = 8, 3, 3
+    x = (rng.normal(0, 1.0, (n, 1, 1)) + rng.normal(0, 0.3, (1, a, 1))
+         + rng.normal(0, 0.4, (n, a, 1)) + rng.normal(0, 0.1, (n, a, r)))
+    res = crossed_anova(x, pool_alpha=0.25)
+    app, part, inter, rep = res.table
+    assert not res.pooled and (inter.p or 1) < 0.25
+    # The sums of squares as differences of nested least-squares fits (balanced design).
+    y = x.reshape(-1)
+    pi, ai, _ = np.meshgrid(np.arange(n), np.arange(a), np.arange(r), indexing="ij")
+    pi, ai = pi.reshape(-1), ai.reshape(-1)
+    cell = pi * a + ai
+    assert rep.ss == pytest.approx(_rss(y, cell), rel=1e-9)
+    assert inter.ss == pytest.approx(_rss(y, pi, ai) - _rss(y, cell), rel=1e-9)
+    assert app.ss == pytest.approx(_rss(y, pi) - _rss(y, pi, ai), rel=1e-9)
+    assert part.ss == pytest.approx(_rss(y, ai) - _rss(y, pi, ai), rel=1e-9)
+    # AIAG's components with the interaction kept: main effects over MS_pa, not MS_e.
+    assert res.var_interaction == pytest.approx((inter.ms - rep.ms) / r)
+    assert res.var_appraiser == pytest.approx(max(0.0, (app.ms - inter.ms) / (n * r)))
+    assert res.var_part == pytest.approx((part.ms - inter.ms) / (a * r))
+    assert res.var_repeatability == rep.ms
+    # Pooled when its p ≥ pool_alpha: a level at half its p pools it, then MS_e is the pooled one.
+    lax = crossed_anova(x, pool_alpha=(inter.p or 0) / 2)
+    assert lax.pooled and lax.var_interaction == 0.0
+    pooled_ms = (inter.ss + rep.ss) / (inter.df + rep.df)
+    assert lax.var_repeatability == pytest.approx(pooled_ms, rel=1e-12)
+    assert lax.var_part == pytest.approx((part.ms - pooled_ms) / (a * r), rel=1e-12)
+    assert lax.term("part", reduced=True).f == pytest.approx(part.ms / pooled_ms, rel=1e-12)
+
+
+def test_crossed_anova_refuses_what_it_cannot_judge() -> None:
+    with pytest.raises(GaugeError, match=r"X: expected values \[parts, appraisers, trials\]"):
+        crossed_anova(np.ones((3, 2)), name="X")
+    with pytest.raises(GaugeError, match="2 parts × 1 appraiser × 2 trials, got 5 × 3 × 1"):
+        crossed_anova(np.ones((5, 3, 1)))
+    bad = _qt_gage_rr()
+    bad[4, 1, 0] = math.nan
+    with pytest.raises(GaugeError, match="X: part 5, appraiser 2, trial 1 is nan"):
+        crossed_anova(bad, name="X")
+    with pytest.raises(GaugeError, match="positive width"):
+        crossed_anova(_qt_gage_rr(), -1.0)
+    with pytest.raises(GaugeError, match="pool_alpha is a probability, got 25"):
+        crossed_anova(_qt_gage_rr(), pool_alpha=25)
+    with pytest.raises(KeyError, match="no ANOVA row 'operator'"):
+        crossed_anova(_qt_gage_rr()).term("operator")
