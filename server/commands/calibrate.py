@@ -1,6 +1,8 @@
 """``mvpose calibrate intrinsics|stereo|handeye|station``: board images (+ robot poses) to a
 versioned calibration file, a text report and a residual plot. ``mvpose calibrate synthetic``
-and ``compare`` (rehearsing the steps on a laptop) live in :mod:`server.commands.rehearsal`.
+and ``compare`` (rehearsing the steps on a laptop) live in :mod:`server.commands.rehearsal`,
+``rehearse-handeye`` and ``rehearse-verify`` (through the PLC twin) in
+:mod:`server.commands.rehearse_robot`.
 
 Images live in ``IMAGES/<camera id>/<sample id>.<png|bmp|tif|jpg>``; the file stem is the sample
 id that pairs an image with its robot pose (never the position in a list).
@@ -18,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from server.cli import CliError
-from server.commands import rehearsal
+from server.commands import rehearsal, rehearse_robot
 
 _EXTS = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -32,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "station": "fixed cameras: relations from images, then one rigid placement in RF",
     }
     rehearsal.add_parsers(sub)
+    rehearse_robot.add_parsers(sub)
     for name, text in helps.items():
         p = sub.add_parser(name, help=text, description=text)
         p.add_argument(
@@ -498,6 +501,7 @@ def _write(
 
 _STEPS = {
     **rehearsal.STEPS,
+    **rehearse_robot.STEPS,
     "intrinsics": _step_intrinsics,
     "stereo": _step_stereo,
     "handeye": _step_handeye,

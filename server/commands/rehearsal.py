@@ -160,42 +160,58 @@ def _step_compare(args: argparse.Namespace) -> int:
     import json
 
     from mvpose_core.calibration.files import load_calibration
-    from mvpose_core.transforms import invert, transform_error
 
     calib = load_calibration(args.calibration)
     try:
         truth = json.loads(args.truth.read_text())
         if "T_rf_from_cf" in truth:
             return _compare_station(calib, truth)
-        T_true = {c: np.array(T) for c, T in truth["T_gf_from_cf"].items()}
-        # Without --station the calibration names its rig "rig"; one rig is the one meant.
-        rigs = calib.rigs
-        rig = rigs[truth["rig"]] if truth["rig"] in rigs else next(iter(rigs.values()))
+        lines = rig_against_truth(calib, truth)
     except (OSError, ValueError, KeyError, TypeError, StopIteration) as err:
         raise CliError(f"{args.truth}: not the truth of this calibration's rig ({err!r})") from None
+    except LookupError as err:
+        raise CliError(f"{args.calibration}: {err.args[0]}") from None
+    print("\n".join(lines))
+    return 0
+
+
+def rig_against_truth(calib: Any, truth: dict[str, Any]) -> list[str]:
+    """The lines of ``calibrate compare`` for a robot-mounted rig's set: each camera's
+    T_gf_from_cf (a stereo file: its pose in the first camera's) against the truth, and the 1σ
+    the calibration reports. KeyError or TypeError: not such a truth; LookupError with a
+    message: the calibration holds none of its cameras."""
+    from mvpose_core.transforms import invert, transform_error
+
+    T_true = {c: np.array(T) for c, T in truth["T_gf_from_cf"].items()}
+    # Without --station the calibration names its rig "rig"; one rig is the one meant.
+    rigs = calib.rigs
+    rig = rigs[truth["rig"]] if truth["rig"] in rigs else next(iter(rigs.values()))
     sigma: dict[str, float] = {}
     for rep in calib.report.values():
         sigma.update(rep.get("sigma", {}))
     cams = [c for c in T_true if c in rig.T_rig_from_cf]
     if not cams:
-        raise CliError(f"{args.calibration}: rig {truth['rig']!r} holds none of {list(T_true)}")
+        raise LookupError(f"rig {truth['rig']!r} holds none of {list(T_true)}")
+    lines = []
     if rig.T_gf_from_rig is not None:
         X = rig.T_gf_from_rig.matrix
         for c in cams:
             deg, mm = transform_error(X @ rig.T_rig_from_cf[c].matrix, T_true[c])
-            print(f"{c}: T_gf_from_cf is {mm:.3f} mm / {deg:.4f}° from the truth")
+            lines.append(f"{c}: T_gf_from_cf is {mm:.3f} mm / {deg:.4f}° from the truth")
         key = "T_gf_from_cf"
     else:
         ref = cams[0]
         for c in cams[1:]:
             est = invert(rig.T_rig_from_cf[ref].matrix) @ rig.T_rig_from_cf[c].matrix
             deg, mm = transform_error(est, invert(T_true[ref]) @ T_true[c])
-            print(f"{c}: its pose in {ref}'s frame is {mm:.3f} mm / {deg:.4f}° from the truth")
+            lines.append(
+                f"{c}: its pose in {ref}'s frame is {mm:.3f} mm / {deg:.4f}° from the truth"
+            )
         key = "T_cf1_from_cf2"
     mm_s, deg_s = sigma.get(f"{key} translation mm"), sigma.get(f"{key} rotation deg")
     if mm_s is not None and deg_s is not None:
-        print(f"reported 1σ ({key}): {mm_s:g} mm / {deg_s:g}°")
-    return 0
+        lines.append(f"reported 1σ ({key}): {mm_s:g} mm / {deg_s:g}°")
+    return lines
 
 
 def _scaled(c: Any, k: float) -> Any:
@@ -282,6 +298,16 @@ def _scaled_station_file(src: Path, dst: Path, k: float) -> None:
     import yaml
 
     data = yaml.safe_load(src.read_text())
+    scale_cameras(data, k)
+    dst.write_text(
+        f"# {src.name} with its cameras at {k:g} × their image size (mvpose calibrate "
+        "synthetic)\n" + yaml.safe_dump(data, sort_keys=False)
+    )
+
+
+def scale_cameras(data: dict[str, Any], k: float) -> None:
+    """A station file's data (as YAML loads it) with every camera's image size and intrinsics at
+    ``k`` times: the cameras a set rendered at ``--image-scale k`` was seen with."""
     for cam in data["cameras"]:
         # New dicts: YAML anchors share one intrinsics mapping between cameras.
         i = cam["intrinsics"]
@@ -293,10 +319,6 @@ def _scaled_station_file(src: Path, dst: Path, k: float) -> None:
             "cy": (i["cy"] + 0.5) * k - 0.5,
         }
         cam["image_size"] = [round(v * k) for v in cam["image_size"]]
-    dst.write_text(
-        f"# {src.name} with its cameras at {k:g} × their image size (mvpose calibrate "
-        "synthetic)\n" + yaml.safe_dump(data, sort_keys=False)
-    )
 
 
 def _compare_station(calib: Any, truth: dict[str, Any]) -> int:

@@ -1,29 +1,25 @@
 """The robot-driven hand-eye end to end on the simulated lab station, over every link.
 
 ``mvpose calibrate synthetic`` renders the board from the station's stereo rig at flange poses
-with a robot error; the test plays the robot: it shows the station's simulated cameras a
-pose's images (``SimScene.set_frames``) and sends that pose's recorded flange pose with the
-add, as a robot program does. Each link drives begin / add / calculate, the refusals answer
-with their codes, and the result is a calibration version waiting for activation whose
-hand-eye is as close to the synthetic truth as ``mvpose calibrate handeye`` gets on the same
-images.
+with a robot error; the test plays the robot with :mod:`server.handeye_rehearsal` (as ``mvpose
+calibrate rehearse-handeye`` does): it shows the station's simulated cameras a pose's images
+and sends that pose's recorded flange pose with the add, as a robot program does. Each link
+drives begin / add / calculate, the refusals answer with their codes, and the result is a
+calibration version waiting for activation whose hand-eye is as close to the synthetic truth
+as ``mvpose calibrate handeye`` gets on the same images.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
-import json
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import httpx
-import numpy as np
 import pytest
 import pytest_asyncio
 from asyncua import Client, ua
@@ -32,14 +28,14 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, station_file
 
-from drivers.links.codecs import int_scales
-from drivers.links.layout import Command, Status
+from drivers.links.layout import Status
 from drivers.links.opcua import MV_URI, MVPOSE_URI
 from drivers.links.opcua.settings import hash_password
 from mvpose_core.calibration.files import CalibrationFile, load_calibration
 from mvpose_core.calibration.session import HandEyeCode
-from mvpose_core.transforms import transform_error
 from server.cli import main
+from server.commands.rehearsal import scale_cameras
+from server.handeye_rehearsal import PlcHandEye, RehearsalSet, show_pose
 from server.loopback import RunningServer, attach_twin, detach_twin, running_server
 
 pytestmark = [pytest.mark.asyncio(loop_scope="module"), pytest.mark.timeout(900)]
@@ -53,12 +49,7 @@ SAMPLES = 12
 def _half_size_with_board(data: dict[str, Any]) -> None:
     """The lab's cameras at half resolution (a quarter of the rendering and detection), and
     the calibration board the station's hand-eye sessions look at."""
-    for cam in data["cameras"]:
-        w, h = cam["image_size"]
-        cam["image_size"] = [w // 2, h // 2]
-        i = dict(cam["intrinsics"])
-        cam["intrinsics"] = {"fx": i["fx"] / 2, "fy": i["fy"] / 2,
-                             "cx": (i["cx"] + 0.5) / 2 - 0.5, "cy": (i["cy"] + 0.5) / 2 - 0.5}
+    scale_cameras(data, 0.5)
     data["calibration_board"] = BOARD
 
 
@@ -77,30 +68,11 @@ def _links(tmp: Path) -> Callable[[dict[str, Any]], None]:
 
 
 @dataclass
-class Rehearsal:
-    """The rendered set: images per camera and pose, the poses as the robot reports them."""
-
-    root: Path
-    poses: dict[str, list[float]]
-    truth: dict[str, Any]
-
-    def frames(self, sid: str) -> dict[str, np.ndarray]:
-        return {cam.name: cv2.imread(str(cam / f"{sid}.png"), cv2.IMREAD_GRAYSCALE)
-                for cam in sorted((self.root / "images").iterdir())}
-
-    def error(self, calib: CalibrationFile) -> tuple[float, float]:
-        """(deg, mm) of the calibration's T_gf_from_rig against the truth."""
-        rig = calib.rigs[self.truth["rig"]]
-        assert rig.T_gf_from_rig is not None
-        return transform_error(rig.T_gf_from_rig.matrix, np.array(self.truth["T_gf_from_rig"]))
-
-
-@dataclass
 class Env:
     rs: RunningServer
     tmp: Path
     cert: tuple[Path, Path]  # an OPC UA client certificate the station trusts (key, cert)
-    set: Rehearsal
+    set: RehearsalSet
     cli_error: tuple[float, float]  # mvpose calibrate handeye on the same images
 
     @property
@@ -109,14 +81,7 @@ class Env:
 
     async def show(self, sid: str | None) -> None:
         """The robot is at pose ``sid``: the rig's cameras see its images (None: no board)."""
-        scene = self.station.scene
-        view = self.station.station.views[0].id
-        if sid is None:
-            w, h = self.station.station.cameras[0].image_size
-            frames = {c.id: np.full((h, w), 90, np.uint8) for c in self.station.station.cameras}
-        else:
-            frames = await asyncio.to_thread(self.set.frames, sid)
-        scene.set_frames(frames, view_id=view)
+        await asyncio.to_thread(show_pose, self.station, self.set, sid)
 
     def stored(self, version: int) -> tuple[bool, CalibrationFile]:
         store = self.station.services.store
@@ -139,11 +104,7 @@ async def env(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Env]:
         "--samples", str(SAMPLES), "--robot-error", "0.05", "0.01", "--seed", "5",
         "--no-progress"])
     assert code == 0
-    with (root / "poses.csv").open() as f:
-        poses = {row["id"]: [float(row[k]) for k in ("X", "Y", "Z", "W", "P", "R")]
-                 for row in csv.DictReader(f)}
-    truth = json.loads((root / "truth.json").read_text())
-    rehearsal = Rehearsal(root, poses, truth)
+    rehearsal = RehearsalSet.load(root)
     out = tmp / "cli" / "handeye.json"
     code = await asyncio.to_thread(main, [
         "calibrate", "handeye", "--images", str(root / "images"), "--board", BOARD,
@@ -311,33 +272,14 @@ async def test_plc_commands_drive_a_session(env: Env, link: str) -> None:
     the pose in the robot pose words (ROBOT_POSE_VALID), HANDEYE_CALCULATE; every answer in the
     command result word and the hand-eye block."""
     twin, beat = await attach_twin(env.station.link_port(link), 0.002, link=link)
-    scales = int_scales("fanuc")
-
-    def answer(st: Any) -> tuple[int, dict[str, Any]]:
-        done = st.has(Status.COMMAND_DONE)
-        assert done != st.has(Status.COMMAND_FAILED), st
-        assert done == (st.command_result == 0), st
-        figures = dict(zip(("sigma_mm", "sigma_deg", "holdout_rms_px", "holdout_mm",
-                            "holdout_deg"), st.handeye_figures, strict=True))
-        return st.command_result, {"poses": st.handeye_poses, "pose": st.handeye_pose,
-                                   "version": st.handeye_version, **figures}
-
-    async def begin(holdout: int) -> tuple[int, dict[str, Any]]:
-        return answer(await twin.command(Command.HANDEYE_BEGIN, holdout, timeout=30))
-
-    async def add(pose: list[float]) -> tuple[int, dict[str, Any]]:
-        counts = [round(v * k) for v, k in zip(pose, scales, strict=True)]
-        return answer(await twin.command_with_pose(Command.HANDEYE_ADD_POSE, counts, 60))
-
-    async def calculate() -> tuple[int, dict[str, Any]]:
-        return answer(await twin.command(Command.HANDEYE_CALCULATE, timeout=300))
+    plc = PlcHandEye(twin, env.set.convention)
 
     try:
         # without ROBOT_POSE_VALID an add has no pose: refused, nothing kept
-        await begin(2)
-        code, out = answer(await twin.command(Command.HANDEYE_ADD_POSE, timeout=30))
+        await plc.begin(2)
+        code, out = await plc.add(None)
         assert code == HandEyeCode.BAD_POSE and out["poses"] == 0, out
-        out = await run_session(env, begin, add, calculate, holdout=2)
+        out = await run_session(env, plc.begin, plc.add, plc.calculate, holdout=2)
         check_result(env, out, 2)
         # the station's trigger handshake still works after the session
         assert (await twin.read_status()).has(Status.READY)
