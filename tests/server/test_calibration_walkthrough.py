@@ -59,21 +59,31 @@ def test_the_guide_has_a_walkthrough() -> None:
     kinds = [shlex.split(c)[1:3] for c in cmds]
     for step in ("synthetic", "intrinsics", "stereo", "handeye", "station", "compare"):
         assert ["calibrate", step] in kinds, (step, cmds)
-    assert any(k[:1] == ["gauge"] for k in kinds), cmds
+    # the acceptance's order: synthetic -> intrinsics -> hand-eye driven over Modbus -> verify
+    # -> gauge study
+    order = [kinds.index(k) for k in (["calibrate", "synthetic"], ["calibrate", "intrinsics"],
+                                      ["calibrate", "rehearse-handeye"],
+                                      ["calibrate", "rehearse-verify"])]
+    gauge = next(i for i, k in enumerate(kinds) if k[:1] == ["gauge"])
+    assert order == sorted(order) and order[-1] < gauge, cmds
     assert all(shown for _, shown in walkthrough()), "every command shows its output"
 
 
 @pytest.mark.timeout(1800)
 def test_the_walkthrough_runs_as_written(tmp_path: Path) -> None:
     (tmp_path / "deploy").symlink_to(ROOT / "deploy")
-    # Station 1 with the relaxed deadline for the demo (as the guide says): a loaded machine
-    # misses the 50 ms cycle deadline, and the gauge study would find no OK measurement.
+    # Station 1 and the lab with the relaxed deadline for the demo and the rehearsed hand-eye (as
+    # the guide says): a loaded machine misses the 50 ms cycle deadline, and the gauge study
+    # would find no OK measurement, the verify no pose.
     relaxed = station_file(tmp_path, "station1", relaxed_deadline)
+    lab = station_file(tmp_path, "lab", relaxed_deadline)
     for cmd, shown in walkthrough():
         for big, small in SMALLER.items():
             cmd = cmd.replace(big, small)
         if cmd.startswith(("mvpose demo", "mvpose gauge")):
             cmd = cmd.replace("deploy/stations/station1.yaml", str(relaxed))
+        if cmd.startswith("mvpose calibrate rehearse-handeye"):
+            cmd = cmd.replace("deploy/stations/lab.yaml", str(lab))
         args = shlex.split(cmd)[1:]
         run = subprocess.run(
             [sys.executable, "-m", "server.cli", *args],
