@@ -208,7 +208,11 @@ async def _verify(args: argparse.Namespace, settings: Any) -> int:
                 if not quiet:
                     print(f"{method} /api/v1{url}{shown}: {r.status_code}")
                 if r.status_code != 200:
-                    raise CliError(f"{method} /api/v1{url}: {r.status_code} {r.text}")
+                    try:
+                        why = r.json().get("detail") or r.text
+                    except ValueError:
+                        why = r.text
+                    raise CliError(f"{method} /api/v1{url}: {r.status_code} {why}")
                 answer: dict[str, Any] = r.json()
                 return answer
 

@@ -8,6 +8,7 @@ import re
 import shlex
 import subprocess
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 
 import pytest
@@ -77,6 +78,7 @@ def test_the_walkthrough_runs_as_written(tmp_path: Path) -> None:
     # would find no OK measurement, the verify no pose.
     relaxed = station_file(tmp_path, "station1", relaxed_deadline)
     lab = station_file(tmp_path, "lab", relaxed_deadline)
+    steps = []
     for cmd, shown in walkthrough():
         for big, small in SMALLER.items():
             cmd = cmd.replace(big, small)
@@ -84,16 +86,35 @@ def test_the_walkthrough_runs_as_written(tmp_path: Path) -> None:
             cmd = cmd.replace("deploy/stations/station1.yaml", str(relaxed))
         if cmd.startswith("mvpose calibrate rehearse-handeye"):
             cmd = cmd.replace("deploy/stations/lab.yaml", str(lab))
-        args = shlex.split(cmd)[1:]
-        run = subprocess.run(
-            [sys.executable, "-m", "server.cli", *args],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            timeout=1500,
-        )
-        assert run.returncode == 0, (cmd, run.stdout[-2000:], run.stderr[-2000:])
-        printed = {_head(line) for line in run.stdout.splitlines()}
+        steps.append((cmd, shown))
+
+    def run(cmd: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "server.cli", *shlex.split(cmd)[1:]],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=1500)
+
+    # Steps that read nothing another wrote run side by side (the robot set's chain, the fixed
+    # station's, the demo's): on a machine shared by many jobs their waits overlap.
+    with ThreadPoolExecutor(max_workers=len(steps)) as pool:
+        done: list[Future[subprocess.CompletedProcess[str]]] = []
+        for k, (cmd, _) in enumerate(steps):
+            first = [done[j] for j in after(k, [c for c, _ in steps])]
+            done.append(pool.submit(lambda c=cmd, f=first: (wait(f), run(c))[1]))
+    for (cmd, shown), future in zip(steps, done, strict=True):
+        out = future.result()
+        assert out.returncode == 0, (cmd, out.stdout[-2000:], out.stderr[-2000:])
+        printed = {_head(line) for line in out.stdout.splitlines()}
         for line in shown:
             if _head(line) and not line.startswith(PER_SAMPLE) and "…" not in line:
-                assert _head(line) in printed, (cmd, line, run.stdout[-3000:])
+                assert _head(line) in printed, (cmd, line, out.stdout[-3000:])
+
+
+def after(k: int, cmds: list[str]) -> list[int]:
+    """The earlier steps step ``k`` reads from: those that wrote (``--out``, ``--data-dir``) a
+    file or folder named by one of its arguments or holding it."""
+    def written(cmd: str) -> list[str]:
+        args = shlex.split(cmd)
+        return [args[i + 1] for i, a in enumerate(args[:-1]) if a in ("--out", "--data-dir")]
+
+    reads = shlex.split(cmds[k])
+    return [j for j in range(k) for w in written(cmds[j])
+            if any(a == w or a.startswith(w.rstrip("/") + "/") for a in reads)]
