@@ -1,6 +1,7 @@
 """DCP, the Discovery and basic Configuration Protocol of the IO-device (IEC 61158-6-10,
 "DCP"), sans-I/O: Identify (all and by name), Get, Set (NameOfStation, Signal, IP), and what
-its answers say about the device (:class:`Identity`).
+its answers say about the device (:class:`Identity`); and the controller's side of it: the
+Identify and Set requests and what their responses say.
 """
 
 from __future__ import annotations
@@ -52,6 +53,56 @@ def valid_station_name(name: str) -> bool:
         if any(c not in "abcdefghijklmnopqrstuvwxyz0123456789-" for c in label):
             return False
     return True
+
+
+# ------------------------------------------------------------------ the controller's side
+
+def identify_request(src: bytes, xid: int, station_name: str | None = None) -> bytes:
+    """An Identify request to the DCP multicast address: by NameOfStation, or all."""
+    block = (fr.DcpBlock(*fr.Opt.NAME_OF_STATION, station_name.encode("ascii"))
+             if station_name is not None else fr.DcpBlock(*fr.Opt.ALL, b""))
+    pdu = fr.Dcp(fr.FRAME_ID_DCP_IDENTIFY_REQ, fr.Service.IDENTIFY, fr.Service.REQUEST, xid,
+                 1, (block,))
+    return fr.Ethernet(fr.DCP_MULTICAST, src, fr.ETHERTYPE_PN, pdu.pack()).pack()
+
+
+def set_request(src: bytes, dst: bytes, xid: int, key: tuple[int, int], value: bytes,
+                permanent: bool = True) -> bytes:
+    """A Set request of one block (BlockQualifier 1: permanent, 0: temporary), e.g.
+    NameOfStation or IP_PARAMETER (address, mask, gateway)."""
+    data = struct.pack(">H", 1 if permanent else 0) + value
+    pdu = fr.Dcp(fr.FRAME_ID_DCP_GET_SET, fr.Service.SET, fr.Service.REQUEST, xid, 0,
+                 (fr.DcpBlock(*key, data),))
+    return fr.Ethernet(dst, src, fr.ETHERTYPE_PN, pdu.pack()).pack()
+
+
+def found_device(eth: fr.Ethernet) -> Identity | None:
+    """The device an Identify response describes (None: not an Identify response)."""
+    pdu = fr.Dcp.unpack(eth.payload)
+    if pdu.frame_id != fr.FRAME_ID_DCP_IDENTIFY_RES or pdu.service_type != fr.Service.SUCCESS:
+        return None
+    blocks = {b.key: b.data[2:] for b in pdu.blocks}  # after BlockInfo
+    found = Identity(eth.src, blocks.get(fr.Opt.NAME_OF_STATION, b"").decode("ascii",
+                                                                            "replace"))
+    ip = blocks.get(fr.Opt.IP_PARAMETER, b"")
+    if len(ip) >= 12:
+        found.ip = (ip[0:4], ip[4:8], ip[8:12])
+    ids = blocks.get(fr.Opt.DEVICE_ID, b"")
+    if len(ids) >= 4:
+        found.vendor_id, found.device_id = struct.unpack_from(">HH", ids, 0)
+    found.vendor_text = blocks.get(fr.Opt.VENDOR, b"").decode("ascii", "replace")
+    return found
+
+
+def set_result(eth: fr.Ethernet, xid: int) -> int | None:
+    """The BlockError a Set response with ``xid`` carries (None: not that response)."""
+    pdu = fr.Dcp.unpack(eth.payload)
+    if pdu.frame_id != fr.FRAME_ID_DCP_GET_SET or pdu.xid != xid or \
+            pdu.service_id != fr.Service.SET or pdu.service_type == fr.Service.REQUEST:
+        return None
+    errors = [b.data[2] for b in pdu.blocks if b.key == fr.Opt.CONTROL_RESPONSE and
+              len(b.data) >= 3]
+    return max(errors, default=fr.BLOCK_OPTION_UNSUPPORTED)
 
 
 @dataclass

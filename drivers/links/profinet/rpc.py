@@ -95,6 +95,24 @@ class RpcHeader:
                    iver, frag, raw[7] << 8 | raw[79])
 
 
+def request(object_: uuid.UUID, activity: uuid.UUID, seqnum: int, opnum: int, body: bytes,
+            interface: uuid.UUID = IFACE_DEVICE, args_max: int = 16384) -> bytes:
+    """A whole PNIO request datagram (little-endian header and NDR wrapper, as controllers
+    send them): the header, then ArgsMaximum and the NDR counts, then ``body``."""
+    ndr = Ndr(args_max, body, args_max).pack(True, response=False)
+    return RpcHeader(REQUEST, object_, interface, activity, seqnum, opnum, len(ndr),
+                     True).pack() + ndr
+
+
+def response(head: RpcHeader, status: int, body: bytes) -> bytes:
+    """The response datagram to the request ``head``: PNIOStatus, then ``body``."""
+    ndr = Ndr(status, body, len(body)).pack(head.little, response=True)
+    return RpcHeader(RESPONSE, head.object, head.interface, head.activity, head.seqnum,
+                     head.opnum, len(ndr), head.little, flags1=0x0A,
+                     interface_version=head.interface_version, serial=head.serial
+                     ).pack() + ndr
+
+
 @dataclass(frozen=True)
 class Ndr:
     """The NDR wrapper of a PNIO request (ArgsMaximum) or response (PNIOStatus), with
@@ -112,11 +130,14 @@ class Ndr:
                                   0, len(self.body)) + self.body
 
     @classmethod
-    def unpack(cls, raw: bytes, little: bool) -> Ndr:
+    def unpack(cls, raw: bytes, little: bool, response: bool = False) -> Ndr:
+        """``response``: the first field is PNIOStatus, always big-endian."""
         if len(raw) < NDR_SIZE:
             raise FrameError(f"NDR data of {len(raw)} bytes is shorter than its 20-byte header")
         o = "<" if little else ">"
         args_max, args_len, max_count, _off, actual = struct.unpack_from(o + "IIIII", raw, 0)
+        if response:
+            args_max, = struct.unpack_from(">I", raw, 0)
         if NDR_SIZE + actual > len(raw) or actual > args_len + 4096:
             raise FrameError(f"NDR ActualCount {actual} runs past the datagram's "
                              f"{len(raw) - NDR_SIZE} bytes")
@@ -201,6 +222,15 @@ class ArRequest:
         return cls(ar_type, body[2:18], session, body[20:26], body[26:42], props, tf,
                    body[52:52 + nlen].decode("ascii", "replace"))
 
+    def pack(self) -> bytes:
+        """The controller's ARBlockReq (CMInitiatorUDPRTPort 0x8892: RT over Ethernet)."""
+        name = self.station_name.encode("ascii")
+        return block(BLOCK_AR_REQ, struct.pack(">H", self.ar_type) + self.ar_uuid
+                     + struct.pack(">H", self.session_key) + self.initiator_mac
+                     + self.initiator_object
+                     + struct.pack(">IHHH", self.properties, self.timeout_factor, 0x8892,
+                                   len(name)) + name)
+
     def response(self, responder_mac: bytes) -> bytes:
         return block(BLOCK_AR_REQ | RESPONSE_BIT,
                      struct.pack(">H", self.ar_type) + self.ar_uuid
@@ -261,6 +291,19 @@ class IocrRequest:
             raise FrameError("IOCRBlockReq's API list runs past the block") from None
         return cls(itype, ref, props, dlen, fid, scf, rr, wdf, dhf, tuple(data), tuple(iocs))
 
+    def pack(self) -> bytes:
+        """The controller's IOCRBlockReq: LT 0x8892, phase 1, FrameSendOffset 0xFFFFFFFF (as
+        soon as possible), VLAN priority 6, no multicast address, API 0."""
+        body = struct.pack(">HHHIHHHHHHIHHH", self.iocr_type, self.reference, 0x8892,
+                           self.properties, self.data_length, self.frame_id,
+                           self.send_clock_factor, self.reduction_ratio, 1, 0, 0xFFFFFFFF,
+                           self.watchdog_factor, self.data_hold_factor, 0xC000)
+        body += bytes(6) + struct.pack(">HI", 1, 0)
+        for objs in (self.data, self.iocs):
+            body += struct.pack(">H", len(objs)) + b"".join(
+                struct.pack(">HHH", o.slot, o.subslot, o.offset) for o in objs)
+        return block(BLOCK_IOCR_REQ, body)
+
     def response(self, frame_id: int) -> bytes:
         return block(BLOCK_IOCR_REQ | RESPONSE_BIT,
                      struct.pack(">HHH", self.iocr_type, self.reference, frame_id))
@@ -283,6 +326,12 @@ class AlarmCrRequest:
         if len(body) < 20:
             raise FrameError(f"AlarmCRBlockReq of {len(body)} bytes is too short")
         return cls(*struct.unpack_from(">HHIHHHH", body, 0))
+
+    def pack(self) -> bytes:
+        """The controller's AlarmCRBlockReq (tag headers: priority 6 high, 5 low)."""
+        return block(BLOCK_ALARM_CR_REQ, struct.pack(
+            ">HHIHHHHHH", self.cr_type, self.lt, self.properties, self.timeout_factor,
+            self.retries, self.local_reference, self.max_data_length, 0xC000, 0xA000))
 
     def response(self, device_reference: int) -> bytes:
         return block(BLOCK_ALARM_CR_REQ | RESPONSE_BIT,
@@ -326,6 +375,77 @@ def expected_submodules(body: bytes) -> list[ExpectedSubmodule]:
     except struct.error:
         raise FrameError("ExpectedSubmoduleBlockReq runs past its block") from None
     return out
+
+
+def expected_submodules_block(subs: list[ExpectedSubmodule]) -> bytes:
+    """An ExpectedSubmoduleBlockReq (0x0104) listing ``subs``, one entry per (API, slot);
+    SubmoduleProperties.Type from the lengths (no IO, input, output, both), IOCS and IOPS of
+    one byte each."""
+    slots: dict[tuple[int, int], list[ExpectedSubmodule]] = {}
+    for s in subs:
+        slots.setdefault((s.api, s.slot), []).append(s)
+    body = struct.pack(">H", len(slots))
+    for (api, slot), group in slots.items():
+        body += struct.pack(">IHIHH", api, slot, group[0].module_ident, 0, len(group))
+        for s in group:
+            kind = (1 if s.input_length else 0) | (2 if s.output_length else 0)
+            body += struct.pack(">HIH", s.subslot, s.submodule_ident, kind)
+            if kind != 2:  # no IO data is described as an input of length 0
+                body += struct.pack(">HHBB", 1, s.input_length, 1, 1)
+            if kind & 2:
+                body += struct.pack(">HHBB", 2, s.output_length, 1, 1)
+    return block(BLOCK_EXPECTED_SUBMODULE, body)
+
+
+@dataclass(frozen=True)
+class ConnectResponse:
+    """What a device's Connect response says: its MAC (ARBlockRes), the frame id of each IOCR
+    by reference (IOCRBlockRes), its alarm reference (AlarmCRBlockRes) and the rows of a
+    ModuleDiffBlock, if any (api, slot, module state, subslot, submodule state)."""
+
+    device_mac: bytes
+    frame_ids: dict[int, int]
+    alarm_reference: int
+    diff: tuple[tuple[int, int, int, int, int], ...]
+
+    @classmethod
+    def unpack(cls, body: bytes) -> ConnectResponse:
+        mac, alarm_ref = b"", 0
+        frame_ids: dict[int, int] = {}
+        diff: list[tuple[int, int, int, int, int]] = []
+        try:
+            for btype, b in split_blocks(body):
+                if btype == BLOCK_AR_REQ | RESPONSE_BIT:
+                    mac = b[20:26]
+                elif btype == BLOCK_IOCR_REQ | RESPONSE_BIT:
+                    _t, ref, fid = struct.unpack_from(">HHH", b, 0)
+                    frame_ids[ref] = fid
+                elif btype == BLOCK_ALARM_CR_REQ | RESPONSE_BIT:
+                    alarm_ref, = struct.unpack_from(">H", b, 2)
+                elif btype == 0x8104:
+                    diff += _module_diff_rows(b)
+        except struct.error:
+            raise FrameError("Connect response's blocks run past their data") from None
+        if len(mac) != 6:
+            raise FrameError("Connect response without an ARBlockRes")
+        return cls(mac, frame_ids, alarm_ref, tuple(diff))
+
+
+def _module_diff_rows(b: bytes) -> list[tuple[int, int, int, int, int]]:
+    rows = []
+    n_apis, = struct.unpack_from(">H", b, 0)
+    at = 2
+    for _ in range(n_apis):
+        api, n_mods = struct.unpack_from(">IH", b, at)
+        at += 6
+        for _ in range(n_mods):
+            slot, _mident, mstate, n_subs = struct.unpack_from(">HIHH", b, at)
+            at += 10
+            for _ in range(n_subs):
+                subslot, _sident, sstate = struct.unpack_from(">HIH", b, at)
+                at += 8
+                rows.append((api, slot, mstate, subslot, sstate))
+    return rows
 
 
 # ModuleState / SubmoduleState (IEC 61158-6-10, "ModuleDiffBlock")
