@@ -5,7 +5,9 @@ A bus gives the station file's ``links`` blocks it needs (merged over the file's
 loopback) and, once the station runs, the twin's :class:`~drivers.links.twin.PlcPort`. Where the
 station is the server (Modbus/TCP, EtherNet/IP) the port connects to the station's link; where
 it is the client (S7) the bus first starts the PLC's CPU (python-snap7's server with the two
-DBs) that the station's link connects to.
+DBs) that the station's link connects to; for PROFINET (the station is the IO-device) it makes
+a veth pair with the controller's end in a network namespace, and the port is our own
+IO-controller there (root needed; the bus says so otherwise).
 """
 
 from __future__ import annotations
@@ -69,11 +71,34 @@ def _s7() -> Bus:
         cpu.stop)
 
 
-#: bus name → a factory of the bus (each starts what the twin needs on loopback)
+def _profinet() -> Bus:
+    from drivers.links.profinet.netns import VethLine, why_not
+    from drivers.links.profinet.twin import ProfinetPort
+
+    why = why_not()
+    if why is not None:
+        raise ValueError(f"--link profinet: {why}")
+    name = "mvpose-demo"
+    line = VethLine.create()
+    # the station's Modbus link is off: the station's state is the PROFINET handshake's
+    return Bus(
+        "profinet", {"profinet": {"interface": line.device_if, "station_name": name,
+                                  "rpc_host": line.device_ip},
+                     "modbus": {"enabled": False}},
+        lambda _st: ProfinetPort(line.controller_if, name, netns=line.ns),
+        lambda _st: (f"PROFINET  device {name!r} on {line.device_if} ({line.device_ip}); the "
+                     f"PLC twin's IO-controller on {line.controller_if} ({line.controller_ip}) "
+                     f"in namespace {line.ns}, RT_CLASS_1 every 4 ms"),
+        line.remove)
+
+
+#: bus name → a factory of the bus (each starts what the twin needs: on loopback, or for
+#: PROFINET a veth pair and a network namespace of its own)
 BUSES: dict[str, Callable[[], Bus]] = {
     "modbus": _modbus,
     "enip": _enip,
     "s7": _s7,
+    "profinet": _profinet,
 }
 
 

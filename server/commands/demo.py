@@ -1,7 +1,8 @@
 """``mvpose demo``: the whole station server on simulated hardware, driven by the PLC twin.
 
 ``mvpose demo`` runs station 1 (four simulated 2048 × 2048 cameras, SQLite under ./var/demo,
-Modbus/TCP on loopback (EtherNet/IP class 1 I/O with ``--link enip``, S7 with ``--link s7``), the
+Modbus/TCP on loopback (EtherNet/IP class 1 I/O with ``--link enip``, S7 with ``--link s7``,
+PROFINET with ``--link profinet`` on a veth pair into a network namespace of the demo's own), the
 REST API): the PLC twin moves the part to random known displacements (the simulated cameras
 render the new position before the trigger), triggers, and the demo prints
 per trigger the true and the measured offset, the error, the 1σ and the server's latency. The
@@ -132,7 +133,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--link", choices=sorted(BUSES), default="modbus",
                         help="the fieldbus between the PLC twin and the station (default "
                         "modbus; enip: EtherNet/IP class 1 I/O; s7: the station polls a "
-                        "simulated S7 CPU's DBs)")
+                        "simulated S7 CPU's DBs; profinet: the station is an IO-device on a "
+                        "veth pair, our IO-controller in a network namespace, root needed)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -88,7 +88,7 @@ def test_identify_connect_prm_end_application_ready_and_cyclic_data_both_ways() 
     wire.run(lambda: ctl.input_image == dev.input_image)
     # both send a frame per 4 ms cycle
     sent = ctl.stats.frames_out, dev.stats.frames_out
-    wire.run(lambda: False if wire.now < 1.0 else True)
+    wire.run(lambda: wire.now >= 1.0)
     assert 240 <= ctl.stats.frames_out - sent[0] <= 260
     assert 240 <= dev.stats.frames_out - sent[1] <= 260
     # a diagnosis alarm is acknowledged (the device's one in flight is done)

@@ -1,9 +1,13 @@
-"""``mvpose demo --triggers N``: the whole server on station 1 and the PLC twin (over Modbus or
-EtherNet/IP); REST printed."""
+"""``mvpose demo --triggers N``: the whole server on station 1 and the PLC twin (over Modbus,
+EtherNet/IP, S7 or PROFINET); REST printed."""
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -49,6 +53,46 @@ def test_demo_runs_the_line_over_s7(tmp_path: Path, capsys: pytest.CaptureFixtur
     answered = re.findall(r"^\s+(?:meas\..*OK|NOK: .*)$", out, flags=re.M)
     assert len(answered) == 2, out
     assert "2 triggers:" in out
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(os.geteuid() != 0, reason="--link profinet creates a network namespace and "
+                    "a veth pair: root only (CI runs as root)")
+def test_demo_runs_the_line_over_profinet_and_removes_its_namespace(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--link profinet``: the station's IO-device on one end of a veth pair, our own
+    IO-controller (the twin's port) in a namespace on the other; both gone afterwards."""
+    rc = main(["demo", "--link", "profinet", "--triggers", "3", "--port", "0", "--data-dir",
+               str(tmp_path / "var"), "--seed", "3"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    found = re.search(r"^PROFINET\s+device 'mvpose-demo' on (\S+) .* in namespace (\S+),", out,
+                      re.M)
+    assert found, out
+    assert "Modbus " not in out  # the station's Modbus link is off: the PLC is on PROFINET
+    answered = re.findall(r"^\s+(?:meas\..*OK|NOK: .*)$", out, flags=re.M)
+    assert len(answered) == 3, out
+    assert "3 triggers:" in out
+    names = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert found.group(2) not in names
+    assert subprocess.run(["ip", "link", "show", found.group(1)], capture_output=True
+                          ).returncode != 0
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
+                    reason="runs the demo as an unprivileged user: needs root and setpriv")
+def test_demo_over_profinet_without_root_says_why_in_one_line(tmp_path: Path) -> None:
+    env = dict(os.environ, HOME=str(tmp_path), MPLCONFIGDIR=str(tmp_path))
+    done = subprocess.run(
+        ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-m",
+         "server.cli", "demo", "--link", "profinet", "--triggers", "1", "--data-dir",
+         str(tmp_path / "var")], capture_output=True, text=True, env=env, timeout=120,
+        cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        "mvpose demo: error: --link profinet: it creates a network namespace and a veth pair, "
+        "which needs root: run it as root (e.g. sudo)")
 
 
 def test_demo_refuses_an_unknown_link(capsys: pytest.CaptureFixture[str]) -> None:

@@ -41,15 +41,16 @@ def _ifaddr(sock: socket.socket, iface: str, request: int) -> bytes:
         return bytes(4)
 
 
-def open_sockets(iface: str, rpc_host: str, rpc_port: int
+def open_sockets(iface: str, rpc_host: str, rpc_port: int, who: str = "the PROFINET link"
                  ) -> tuple[socket.socket, socket.socket, bytes, tuple[bytes, bytes, bytes]]:
-    """The raw socket on ``iface``, the RPC socket, the interface's MAC and IP parameters."""
+    """The raw socket on ``iface``, the RPC socket, the interface's MAC and IP parameters
+    (``who`` opens them, for the error that says why not)."""
     try:
         raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
     except PermissionError:
         raise PermissionError(
-            "the PROFINET link needs raw Ethernet sockets: run the station as root or give its "
-            "python CAP_NET_RAW (setcap cap_net_raw+ep)") from None
+            f"{who} needs raw Ethernet sockets: run it as root or give its python CAP_NET_RAW "
+            "(setcap cap_net_raw+ep)") from None
     try:
         raw.bind((iface, 0))
     except OSError as err:
