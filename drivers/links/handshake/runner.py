@@ -64,6 +64,9 @@ class HandshakeRunner:
         self._tasks: set[asyncio.Task[None]] = set()
         self._ticker: asyncio.Task[None] | None = None
         self._last_output: bytes | None = None
+        #: called whenever the machine's image may have changed (a cyclic backend sends its
+        #: input image then, instead of polling for it)
+        self.on_change: Callable[[], None] | None = None
 
     # ------------------------------------------------------------------ life cycle
 
@@ -122,6 +125,7 @@ class HandshakeRunner:
             return
         for effect in effects:
             self._spawn(effect)
+        self._changed()
 
     def write_output(self, data: bytes, order: ByteOrder) -> None:
         """A whole output image from a cyclic bus. Call it with every image received: an
@@ -142,6 +146,14 @@ class HandshakeRunner:
         """The station selected recipe ``number`` by another way than this link."""
         self.machine.set_recipe(number)
         self.machine.set_convention(convention_code)
+        self._changed()
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            try:
+                self.on_change()
+            except Exception as err:  # noqa: BLE001 — the backend's problem, not the machine's
+                self.note(f"on_change failed: {err!r}")
 
     def note(self, text: str) -> None:
         """Log a link problem and keep the last ten for the link's status."""
@@ -157,6 +169,7 @@ class HandshakeRunner:
                 self.machine.tick(self.clock())
             except Exception as err:  # noqa: BLE001 — keep the heartbeat and watchdog running
                 self.note(f"tick failed: {err!r}")
+            self._changed()
 
     def _spawn(self, effect: Effect) -> None:
         if isinstance(effect, Measure):
@@ -204,6 +217,7 @@ class HandshakeRunner:
             self.note(text)
             outcome = await self._failed(req, Reason.HANDLER_FAILED, text, t0)
         self.machine.measured(outcome)
+        self._changed()
 
     async def _failed(self, req: LinkRequest, code: Reason, text: str,
                       t0: float) -> LinkOutcome:
@@ -250,6 +264,7 @@ class HandshakeRunner:
             self.note(f"command {effect.command.name} raised {err!r}")
             result = int(Reason.HANDLER_FAILED)
         self.machine.command_done(effect.command, effect.argument, result)
+        self._changed()
 
     async def _handeye(self, effect: RunCommand, timeout: float | None) -> int:
         """A hand-eye step: its block, then its code as the command result."""
@@ -279,3 +294,4 @@ class HandshakeRunner:
             self.stats.handler_errors += 1
             self.note(f"pipeline reset raised {err!r}")
             self.machine.pipeline_reset_failed()
+            self._changed()

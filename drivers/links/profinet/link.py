@@ -18,6 +18,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from typing import Any
 
 from .. import layout as r
@@ -51,6 +52,7 @@ class ProfinetLink(HandshakeLink):
         self._sent: bytes = b""
         self._started: asyncio.Future[dict[str, Any]] | None = None
         self.child_stats: dict[str, Any] = {}
+        self.stats_at = 0.0  # when the device's last stats came (monotonic)
         self.events: list[dict[str, Any]] = []  # the device's last 20 events
         self._restart: asyncio.Task[None] | None = None
         self.restarts = 0
@@ -61,6 +63,7 @@ class ProfinetLink(HandshakeLink):
                                  link="profinet")
         await runner.start()
         self.runner = runner
+        runner.on_change = self._push  # the answer goes to the device as it is published
         try:
             await self._spawn()
         except BaseException:
@@ -176,6 +179,7 @@ class ProfinetLink(HandshakeLink):
                     log.info("profinet link: %s", event["text"])
             elif kind == b"S":
                 self.child_stats = json.loads(body)
+                self.stats_at = time.monotonic()
 
     def _push(self) -> None:
         if self.runner is None or self._pair is None:
@@ -229,6 +233,7 @@ class ProfinetLink(HandshakeLink):
             "refused_connects": st.get("refused_connects", 0), "restarts": self.restarts,
             # the input frames' interval: p50 and p99 − p50 over the last 2000 (ms)
             "cycle_p50_ms": st.get("cycle_p50_ms"), "cycle_jitter_ms": st.get("cycle_jitter_ms"),
+            "scheduling": st.get("scheduling"),
             "handler_errors": self.runner.stats.handler_errors,
             "last_errors": [*st.get("last_errors", []), *self.runner.stats.last_errors][-5:],
             "server_heartbeat": image[r.IR_HEARTBEAT],

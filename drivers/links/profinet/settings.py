@@ -31,8 +31,13 @@ class ProfinetLinkConfig(BaseModel):
     serial: str = Field("1", max_length=16, pattern=r"^[ -~]*$")
     min_cycle_ms: float = Field(1.0, ge=1.0, le=512,
                                 description="shortest send clock × reduction ratio accepted")
-    poll_s: float = Field(0.001, gt=0, le=0.05,
-                          description="how often the station looks for a new input image")
+    poll_s: float = Field(0.05, gt=0, le=0.05,
+                          description="a backstop: the input image goes to the device as it "
+                          "changes, and at least this often")
+    realtime_priority: int = Field(
+        10, ge=0, le=99, description="SCHED_FIFO priority of the device's process, so that "
+        "the host's other work does not delay a cycle (0: normal scheduling; needs root or "
+        "CAP_SYS_NICE, else the device runs with normal scheduling and its status says so)")
     watchdog_s: float = Field(1.0, ge=0, le=60, description="PLC heartbeat timeout; 0 = off")
     trigger_hold_s: float = Field(1.0, ge=0, le=60,
                                   description="TRIGGER high this long after the answer = error")
@@ -62,4 +67,4 @@ class ProfinetLinkConfig(BaseModel):
         """What the device's process needs (JSON)."""
         return {k: getattr(self, k) for k in (
             "interface", "station_name", "rpc_host", "rpc_port", "vendor_id", "device_id",
-            "order_id", "serial", "min_cycle_ms")}
+            "order_id", "serial", "min_cycle_ms", "realtime_priority")}

@@ -64,6 +64,18 @@ def open_sockets(iface: str, rpc_host: str, rpc_port: int, who: str = "the PROFI
     return raw, udp, mac, ip
 
 
+def realtime(priority: int) -> str:
+    """Put this process under SCHED_FIFO at ``priority`` (0: leave it), so that a loaded host's
+    other work does not delay a cycle; what it got, said for the log and the status."""
+    if priority <= 0:
+        return "normal scheduling"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as err:  # no CAP_SYS_NICE, or a container without real-time budget
+        return f"normal scheduling (SCHED_FIFO {priority} refused: {err.strerror})"
+    return f"SCHED_FIFO {priority}"
+
+
 def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
     def event(kind: str, text: str, **more: Any) -> None:
         pair.send(b"E" + json.dumps({"kind": kind, "text": text, **more}).encode())
@@ -76,8 +88,9 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
     dev = Device(Identity(mac, cfg["station_name"], ip, cfg["vendor_id"], cfg["device_id"],
                           order_id=cfg["order_id"], serial=cfg["serial"]),
                  min_cycle_ms=cfg["min_cycle_ms"])
+    scheduling = realtime(cfg.get("realtime_priority", 0))
     event("started", f"PROFINET device {cfg['station_name']!r} on {cfg['interface']} "
-          f"({fr.mac_text(mac)})", mac=fr.mac_text(mac))
+          f"({fr.mac_text(mac)}), {scheduling}", mac=fr.mac_text(mac))
     next_lldp = next_stats = time.monotonic()
     intervals: deque[float] = deque(maxlen=2000)  # between input frames sent, for the jitter
     last_cyclic = [0.0]
@@ -143,7 +156,8 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             pair.send(b"S" + json.dumps({
                 **{k: v for k, v in vars(st).items() if k != "last_errors"},
                 "last_errors": st.last_errors[-5:], "station_name": dev.identity.station_name,
-                "dcp_requests": dev.dcp.requests, **_jitter(intervals),
+                "dcp_requests": dev.dcp.requests, "scheduling": scheduling,
+                **_jitter(intervals),
                 "ar": None if dev.ar is None else {
                     "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
                     "cycle_ms": dev.ar.input_cr.cycle_us / 1000,

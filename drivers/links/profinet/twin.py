@@ -33,7 +33,7 @@ from . import frames as fr
 from . import rpc
 from .controller import Controller
 from .device import Out
-from .transport import _jitter, open_sockets
+from .transport import _jitter, open_sockets, realtime
 
 START_S = 30.0
 RESTART_S = 1.0
@@ -59,8 +59,10 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
 
     ctl = new()
     outputs = ctl.output_image
-    event("started", f"PROFINET PLC twin on {cfg['interface']} ({fr.mac_text(mac)}), looking "
-          f"for {cfg['station_name']!r}")
+    # a hardware PLC's cycle does not wait for the host's other work; this one's neither
+    scheduling = realtime(cfg["realtime_priority"])
+    event("started", f"PROFINET PLC twin on {cfg['interface']} ({fr.mac_text(mac)}), "
+          f"{scheduling}, looking for {cfg['station_name']!r}")
     intervals: deque[float] = deque(maxlen=2000)  # between output frames sent, for the jitter
     last_cyclic = 0.0
     restart_at: float | None = None
@@ -121,6 +123,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             pair.send(b"S" + json.dumps({
                 **{k: v for k, v in vars(st).items() if k != "last_errors"},
                 "last_errors": st.last_errors[-5:], "phase": ctl.phase,
+                "scheduling": scheduling,
                 **_jitter(intervals)}).encode())
             next_stats = now + STATS_EVERY_S
 
@@ -136,19 +139,22 @@ class ProfinetPort:
     word_order = ByteOrder.BIG.word_order
 
     def __init__(self, interface: str, station_name: str, *, netns: str | None = None,
-                 cycle_ms: float = 4.0, data_hold_factor: int = 100) -> None:
+                 cycle_ms: float = 4.0, data_hold_factor: int = 100,
+                 realtime_priority: int = 10) -> None:
         # the data hold time is 100 cycles by default: a Python controller on a shared host
         # can miss cycles that a hardware PLC does not (the device's own is the controller's)
         Controller(bytes(6), station_name, cycle_ms=cycle_ms,
                    data_hold_factor=data_hold_factor)  # the settings' errors, here
         self.cfg = {"interface": interface, "station_name": station_name,
-                    "cycle_ms": cycle_ms, "data_hold_factor": data_hold_factor}
+                    "cycle_ms": cycle_ms, "data_hold_factor": data_hold_factor,
+                    "realtime_priority": realtime_priority}
         self.netns = netns
         self.cycle_s = cycle_ms / 1000
         self.inputs = bytes(layout.INPUT_SIZE)
         self.outputs = bytearray(layout.OUTPUT_SIZE)
         self.events: list[dict[str, Any]] = []  # the controller's last 20
-        self.stats: dict[str, Any] = {}
+        self.stats: dict[str, Any] = {}  # the controller's, every second
+        self.stats_at = 0.0  # when they came (monotonic)
         self._proc: subprocess.Popen[bytes] | None = None
         self._pair: socket.socket | None = None
         self._fresh = asyncio.Event()
@@ -214,6 +220,7 @@ class ProfinetPort:
                     self._running.set_result(None)
             elif kind == b"S":
                 self.stats = json.loads(body)
+                self.stats_at = time.monotonic()
 
     async def read_inputs(self) -> bytes:
         if not self._fresh.is_set():
