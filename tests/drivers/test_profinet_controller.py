@@ -35,11 +35,14 @@ class Wire:
         self.ctl_events: list[str] = []
         self.texts: list[str] = []  # the controller's events, said
         self.outputs: list[bytes] = []  # the device's output images, as they changed
+        self.sends: dict[bool, list[float]] = {True: [], False: []}  # cyclic frames, by sender
 
     def deliver(self, out: Out, from_ctl: bool) -> None:
         todo = [(out, from_ctl)]
         while todo:
             o, ctl_sent = todo.pop(0)
+            if o.cyclic:
+                self.sends[ctl_sent].append(self.now)
             (self.ctl_events if ctl_sent else self.dev_events).extend(e.kind for e in o.events)
             if ctl_sent:
                 self.texts.extend(e.text for e in o.events)
@@ -99,6 +102,30 @@ def test_identify_connect_prm_end_application_ready_and_cyclic_data_both_ways() 
     wire.deliver(ctl.release(wire.now), True)
     assert "released" in wire.dev_events and wire.ctl_events[-1] == "released"
     assert dev.ar is None and ctl.tick(wire.now + 1).frames == []
+
+
+def test_the_device_sends_its_input_frame_half_a_cycle_after_the_controllers_output_frame(
+) -> None:
+    dev = make_device()
+    ctl = Controller(PLC_MAC, dev.identity.station_name)
+    wire = Wire(dev, ctl)
+    wire.now = 0.0003  # the controller's cycle starts off the device's clock
+    wire.deliver(ctl.start(wire.now), True)
+    wire.run(lambda: wire.now >= 0.5, step=0.00025)
+    assert dev.ar is not None and dev.ar.realigned == 1
+    ctl_t, dev_t = wire.sends[True][-50:], wire.sends[False][-50:]
+    lags = [(d - max(c for c in ctl_t if c <= d)) * 1000 for d in dev_t]
+    assert all(1.99 < lag < 2.26 for lag in lags), lags  # 2 ms, on a clock of 0.25 ms steps
+    # an answer ready within those 2 ms leaves with the next input frame
+    before = len(wire.sends[False])
+    ctl.output_image = bytes([1]) + bytes(layout.OUTPUT_SIZE - 1)
+    wire.run(lambda: dev.output_image == ctl.output_image, step=0.00025)
+    dev.input_image = bytes([2]) + bytes(layout.INPUT_SIZE - 1)  # the station's answer
+    wire.run(lambda: ctl.input_image == dev.input_image, step=0.00025)
+    assert len(wire.sends[False]) == before + 1
+    # one late output frame does not move the phase; eight in a row do
+    dev._phase(dev.ar, wire.now + 0.002)
+    assert dev.ar.realigned == 1
 
 
 def test_a_cycle_of_8_ms_and_the_data_hold_factor_reach_the_device() -> None:

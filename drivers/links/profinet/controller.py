@@ -261,7 +261,7 @@ class Controller:
                             rpc.CMD_DONE).pack()
         out.datagrams.append((rpc.response(head, status, reply), addr))
         if status == 0 and self.phase in ("prm_end", "app_ready"):
-            self.phase = "data"
+            self.phase, self._since = "data", now
             out.events.append(Event("running", "ApplicationReady answered: data exchange"))
 
     # ------------------------------------------------------------------ cyclic data
@@ -341,8 +341,8 @@ class Controller:
                 out.datagrams.append((p.data, p.addr))
         if self.phase == "app_ready" and now - self._since > APP_READY_WAIT_S:
             self._fail(out, f"{self.station_name!r} sent no ApplicationReady")
-        if self.phase == "data" and self._last_input is not None \
-                and now - self._last_input > self.hold_s:
+        last = self._last_input if self._last_input is not None else self._since
+        if self.phase == "data" and now - max(last, self._since) > self.hold_s:
             self._fail(out, f"no input frame from {self.station_name!r} for "
                        f"{self.hold_s * 1000:g} ms (data hold time)", kind="lost")
         if self.phase in ("prm_end", "app_ready", "data") and now >= self._next_send:

@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 
 APP_READY_RETRY_S: Final = 1.0
 APP_READY_TRIES: Final = 5
+REALIGN_AFTER: Final = 8  # output frames off the input phase in a row before it moves
 
 
 @dataclass
@@ -64,6 +65,8 @@ class Ar:
     app_ready_at: float = 0.0
     app_ready_tries: int = 0
     app_ready_activity: uuid.UUID = field(default_factory=uuid.uuid4)
+    off_phase: int = 0  # output frames in a row that came off the input frames' phase
+    realigned: int = 0
 
     @property
     def input_period_s(self) -> float:
@@ -91,10 +94,13 @@ class Device:
     """The IO-device's protocol state. ``input_image`` is the layout's INPUT block (big-endian)
     the station publishes; ``output_image`` the OUTPUT block the controller last sent."""
 
-    def __init__(self, identity: Identity, min_cycle_ms: float = 1.0) -> None:
+    def __init__(self, identity: Identity, min_cycle_ms: float = 1.0,
+                 input_phase_ms: float | None = None) -> None:
         self.identity = identity
         self.dcp = DcpResponder(identity)
         self.min_cycle_us = min_cycle_ms * 1000
+        # None: half the cycle (what a loaded host's station needs to answer within it)
+        self.input_phase_s = None if input_phase_ms is None else input_phase_ms / 1000
         self.stats = Stats()
         self.ar: Ar | None = None
         self.input_image = bytes(layout.INPUT_SIZE)
@@ -403,6 +409,7 @@ class Device:
         if not frame.data_status & fr.DATA_STATUS_VALID:
             return
         running = bool(frame.data_status & fr.DATA_STATUS_RUN)
+        self._phase(ar, now)
         ar.last_output = now
         image = bytearray(layout.OUTPUT_SIZE)
         if running:
@@ -420,6 +427,25 @@ class Device:
         if data != self.output_image:
             self.output_image = data
             out.output = data
+
+    def _phase(self, ar: Ar, now: float) -> None:
+        """Keep the input frames ``input_phase_s`` after the controller's output frames
+        (FrameSendOffset "best effort" leaves the phase in the cycle to the device): what the
+        station answers to an output frame within that time leaves with the next input frame,
+        not up to a cycle later. The first output frame sets the phase; it moves again only
+        after REALIGN_AFTER frames in a row came more than a quarter cycle off it (a clock
+        drift, the controller's restart), not with one late frame."""
+        period = ar.input_period_s
+        phase = period / 2 if self.input_phase_s is None else self.input_phase_s
+        want = now + min(phase, period / 2)
+        off = (ar.next_send - want) % period
+        if ar.last_output is not None and min(off, period - off) <= period / 4:
+            ar.off_phase = 0
+            return
+        ar.off_phase += 1
+        if ar.last_output is None or ar.off_phase >= REALIGN_AFTER:
+            ar.next_send, ar.off_phase = want, 0
+            ar.realigned += 1
 
     def _input_frame(self, ar: Ar) -> bytes:
         sdu = bytearray(ar.input_cr.data_length)

@@ -31,6 +31,10 @@ class ProfinetLinkConfig(BaseModel):
     serial: str = Field("1", max_length=16, pattern=r"^[ -~]*$")
     min_cycle_ms: float = Field(1.0, ge=1.0, le=512,
                                 description="shortest send clock × reduction ratio accepted")
+    input_phase_ms: float | None = Field(
+        None, ge=0, le=256, description="the input frame leaves this long after the "
+        "controller's output frame (at most half a cycle; default half a cycle): an answer "
+        "ready by then goes with it")
     poll_s: float = Field(0.05, gt=0, le=0.05,
                           description="a backstop: the input image goes to the device as it "
                           "changes, and at least this often")
@@ -67,4 +71,4 @@ class ProfinetLinkConfig(BaseModel):
         """What the device's process needs (JSON)."""
         return {k: getattr(self, k) for k in (
             "interface", "station_name", "rpc_host", "rpc_port", "vendor_id", "device_id",
-            "order_id", "serial", "min_cycle_ms", "realtime_priority")}
+            "order_id", "serial", "min_cycle_ms", "realtime_priority", "input_phase_ms")}

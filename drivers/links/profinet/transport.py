@@ -87,7 +87,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
         return
     dev = Device(Identity(mac, cfg["station_name"], ip, cfg["vendor_id"], cfg["device_id"],
                           order_id=cfg["order_id"], serial=cfg["serial"]),
-                 min_cycle_ms=cfg["min_cycle_ms"])
+                 min_cycle_ms=cfg["min_cycle_ms"], input_phase_ms=cfg.get("input_phase_ms"))
     scheduling = realtime(cfg.get("realtime_priority", 0))
     event("started", f"PROFINET device {cfg['station_name']!r} on {cfg['interface']} "
           f"({fr.mac_text(mac)}), {scheduling}", mac=fr.mac_text(mac))
@@ -162,6 +162,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
                     "controller": dev.ar.controller_addr[0], "phase": dev.ar.phase,
                     "cycle_ms": dev.ar.input_cr.cycle_us / 1000,
                     "data_hold_ms": dev.ar.hold_s * 1000, "alarms_sent": dev.ar.alarm.sent,
+                    "phase_moves": dev.ar.realigned,
                     "alarms_acked": dev.ar.alarm.acked},
                 "diagnoses": sorted(dev.diagnoses)}).encode())
             next_stats = now + STATS_EVERY_S
