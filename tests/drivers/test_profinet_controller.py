@@ -195,3 +195,21 @@ def test_random_bytes_are_counted_never_raised() -> None:
         wire.ctl.on_datagram(junk, DEV_IP, wire.now)
     assert wire.ctl.stats.malformed > 0 and wire.ctl.phase == "data"
     assert fr.FRAME_ID_RTC1_MIN <= wire.ctl.output_frame_id <= fr.FRAME_ID_RTC1_MAX
+
+
+def test_the_product_never_imports_profinet_py() -> None:
+    """profinet-py is GPL and a test dependency only: no product module imports it."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    found = []
+    for package in ("mvpose_core", "drivers", "server", "bench"):
+        for path in (root / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                         [node.module or ""] if isinstance(node, ast.ImportFrom)
+                         and node.level == 0 else [])
+                found += [f"{path.relative_to(root)}: {n}" for n in names
+                          if n == "profinet" or n.startswith("profinet.")]
+    assert found == ["bench/bench_profinet.py: profinet"]  # only to see whether it is there
