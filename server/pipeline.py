@@ -3,9 +3,10 @@
 One trigger, in order (every stage timed, the times go into the record)::
 
     capture   every camera of the view at once (CaptureGroup, one deadline)
-    detect    each image in windows predicted from the recipe at the taught reference pose: the
-              windows searched (on the trigger thread, or detection threads or processes), then
-              every candidate of every image measured in one batch
+    detect    each image in windows predicted from the recipe at the taught reference pose
+              (first near where the last good part was, when it sat away from the reference):
+              the windows searched (on the trigger thread, or detection threads or processes),
+              then every candidate of every image measured in one batch
     measure   estimate + offset + uncertainty + gate (mvpose_core.measure) from every observation
               of every view gathered so far
     correct   the perspective correction of each centre recomputed at the estimated pose (detect
@@ -43,6 +44,7 @@ from mvpose_core.detect import (
     detect_marks_many,
     recorrect,
 )
+from mvpose_core.detect.follow import next_near
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
 from mvpose_core.reasons import Reason
@@ -145,6 +147,9 @@ class Pipeline:
         self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
+        # Where the last good part was (its recipe, its pose): the next trigger's first windows
+        # are searched there (mvpose_core.detect.follow.next_near). Trigger thread only.
+        self._near: tuple[RecipeConfig, Array] | None = None
 
     def warm_up(self, recipe: RecipeConfig, passes: int = 8) -> None:
         """Run a trigger's computations on made-up input before the station is ready (nothing
@@ -256,8 +261,9 @@ class Pipeline:
         if batch:
             # One call for the view's images: their windows are searched on the pool's
             # threads, and all their candidates measured in one batch (mvpose_core.detect).
+            near = self._near[1] if self._near is not None and self._near[0] is recipe else None
             found = detect_marks_many([(img, vc) for _, img, vc in batch], recipe, prior,
-                                      self.options.detect, map_fn=self._map)
+                                      self.options.detect, map_fn=self._map, near=near)
             for (cid, _, _), dets in zip(batch, found, strict=True):
                 vcap.detections[cid] = dets
         for cid, fut in jobs.items():
@@ -328,6 +334,11 @@ class Pipeline:
             message = f"{message}; {errs}"
         if code == 0 and meas is not None and not _finite_measurement(meas):
             code, message = int(Reason.INTERNAL_ERROR), "the estimate is not finite"
+        if code == 0 and meas is not None:
+            last = self._near[1] if self._near is not None and self._near[0] is rc else None
+            near = next_near(last, meas.T_rf_from_pf, rc.T_rf_from_pf0.matrix, rc,
+                             self.options.detect)
+            self._near = None if near is None else (rc, near)
 
         # Keep the usual slow append in reserve: the p90 of the last 50 without the slowest one.
         # Never the maximum: one fsync stall would otherwise fail the next triggers (with a few
@@ -343,6 +354,11 @@ class Pipeline:
         timings["total"] = (time.monotonic() - t0) * 1e3
         return StationResult(code=code, message=message, measurement=meas, views=tuple(views),
                              timings_ms=timings, frames=frames, observations=tuple(obs))
+
+    def forget_last_part(self) -> None:
+        """The next trigger's first windows at the reference, as if no part had been measured
+        (``python -m bench displaced``: a part first seen where it sits)."""
+        self._near = None
 
     def note_append_ms(self, ms: float) -> None:
         """How long the last record's append took (the deadline reserve learns from it)."""

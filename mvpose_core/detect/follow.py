@@ -20,6 +20,7 @@ import numpy as np
 
 from mvpose_core.detect.geometry import MarkPrediction
 from mvpose_core.detect.refine import Candidate
+from mvpose_core.detect.types import DetectOptions
 from mvpose_core.estimate import EstimateOptions, estimate_pose
 from mvpose_core.problem import Observation, PoseInputError
 from mvpose_core.scene import ViewCamera
@@ -30,16 +31,23 @@ from mvpose_core.transforms import Array
 #: the estimator's outlier rule; a pose whose kept blobs are not all within it is not used
 AGREE_PX = 12.0
 _OPTIONS = EstimateOptions(outlier_px=AGREE_PX, max_iterations=10, max_rejections=2)
+#: the last part's pose is remembered anew for the next trigger's windows only when it moved by
+#: more than this share of the first reach (5 mm / 0.5° for 25 mm / 2.5°): the windows around
+#: it are predicted once, and a part that close is far inside them
+NEAR_SHARE = 0.2
 
 
 def pose_from_blobs(
     blobs: Sequence[tuple[ViewCamera, list[MarkPrediction], list[tuple[int, Candidate]]]],
     recipe: RecipeConfig,
     T_prior: Array,
+    start: Array | None = None,
 ) -> Array | None:
     """``T_rf_from_pf`` from each camera's blobs (index in its predictions, blob), or None.
 
-    Each mark's blob nearest its prediction at the prior stands for it in that camera.
+    Each mark's blob nearest its prediction stands for it in that camera. The estimator starts
+    at ``start`` (default: the prior) when the layout gives no start of its own; the pose must
+    be within the recipe's tolerance of the prior ``T_prior``.
     """
     obs: list[Observation] = []
     for cam, preds, cands in blobs:
@@ -55,7 +63,7 @@ def pose_from_blobs(
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     try:
         res = estimate_pose(obs, [c for c, _, _ in blobs], marks_pf, _OPTIONS,
-                            initial_T_rf_from_pf=T_prior)
+                            initial_T_rf_from_pf=T_prior if start is None else start)
     except (PoseInputError, np.linalg.LinAlgError):
         return None
     used = res.used if len(res.used) else np.ones(len(obs), dtype=bool)
@@ -70,12 +78,39 @@ def pose_from_blobs(
     return T
 
 
-def _within_tolerance(T: Array, T_prior: Array, recipe: RecipeConfig) -> bool:
-    """Whether ``T`` is within the recipe's tolerance of the prior (the marks' centroid moved
-    no more than ``max_offset_mm``, the rotation no more than ``max_offset_deg``)."""
+def next_near(
+    near: Array | None, T: Array, T_prior: Array, recipe: RecipeConfig, options: DetectOptions,
+) -> Array | None:
+    """Where the next trigger's first windows go, after a part measured at ``T``.
+
+    A line's parts vary around the last one: the first search of the next trigger is made in
+    the first reach's windows around where the last part was (``near``; None: the prior).
+    ``near`` moves to ``T`` only when ``T`` is more than :data:`NEAR_SHARE` of the first reach
+    away from it (so the windows around it are predicted once, not at every trigger), and goes
+    back to None when ``T`` is that close to the prior. None when the recipe has one reach."""
     tol = recipe.tolerances
-    D = np.linalg.solve(T_prior, T)
+    if options.first_reach(tol.max_offset_mm, tol.max_offset_deg) is None:
+        return None
+    assert options.first_reach_mm is not None  # first_reach is None without it
+    step = (NEAR_SHARE * options.first_reach_mm, NEAR_SHARE * options.first_reach_deg)
+    if near is not None and _within(T, near, recipe, *step):
+        return near
+    if _within(T, T_prior, recipe, *step):
+        return None
+    return np.array(T, dtype=float)
+
+
+def _within_tolerance(T: Array, T_prior: Array, recipe: RecipeConfig) -> bool:
+    """Whether ``T`` is within the recipe's tolerance of the prior."""
+    tol = recipe.tolerances
+    return _within(T, T_prior, recipe, tol.max_offset_mm, tol.max_offset_deg)
+
+
+def _within(T: Array, T_ref: Array, recipe: RecipeConfig, mm: float, deg: float) -> bool:
+    """Whether ``T`` is within ``mm`` / ``deg`` of ``T_ref`` (the marks' centroid moved no more
+    than ``mm``, the rotation no more than ``deg``)."""
+    D = np.linalg.solve(T_ref, T)
     c = np.asarray(recipe.mark_centroid(), dtype=float)
     moved = float(np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c))
     cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return moved <= tol.max_offset_mm and float(np.degrees(np.arccos(cos))) <= tol.max_offset_deg
+    return moved <= mm and float(np.degrees(np.arccos(cos))) <= deg

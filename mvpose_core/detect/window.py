@@ -21,6 +21,7 @@ from functools import partial
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.detect.follow import pose_from_blobs
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
@@ -47,6 +48,7 @@ def detect_marks_many(
     T_rf_from_pf_prior: Array,
     options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
     map_fn: Callable[..., Iterable[_Search]] = map,
+    near: Array | None = None,
 ) -> list[list[MarkDetection]]:
     """:func:`detect_marks` for the images of several cameras of one part, in their order.
 
@@ -65,6 +67,9 @@ def detect_marks_many(
     all in its small window, the pose of the blobs that the small windows held (three marks or
     more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
     there; only an image still missing a blob then gets the whole tolerance's windows.
+    ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
+    puts the first search's small windows there instead of at the prior, held to what the
+    whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
@@ -72,8 +77,13 @@ def detect_marks_many(
     tol = recipe.tolerances
     first = options.first_reach(tol.max_offset_mm, tol.max_offset_deg)
     reaches = (1.0,) if first is None else (first, 1.0)
+    start = T_rf_from_pf_prior if near is None or first is None else near
     for n, reach in enumerate(reaches):
-        search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
+        if n == 0 and start is not T_rf_from_pf_prior:
+            search = partial(_search_followed, checked, recipe, T_rf_from_pf_prior, start,
+                             options, reach)
+        else:
+            search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
         searches = dict(zip(todo, map_fn(search, todo), strict=True))
         if n + 1 < len(reaches):
             # An image with a mark that has no blob in its small window would be searched again
@@ -83,8 +93,8 @@ def detect_marks_many(
             # windows; only those blobs are measured, in the same batch as the other images'.
             wider = [k for k in todo if _unfound(searches[k])]
             if wider:
-                wider = _follow(checked, recipe, T_rf_from_pf_prior, options, reach, map_fn,
-                                searches)
+                wider = _follow(checked, recipe, T_rf_from_pf_prior, start, options, reach,
+                                map_fn, searches)
             if wider:
                 search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options,
                                  reaches[-1])
@@ -104,15 +114,16 @@ def detect_marks_many(
 
 def _follow(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
-    options: DetectOptions, reach: float, map_fn: Callable[..., Iterable[_Search]],
-    searches: dict[int, _Search],
+    start: Array, options: DetectOptions, reach: float,
+    map_fn: Callable[..., Iterable[_Search]], searches: dict[int, _Search],
 ) -> list[int]:
     """Search every image in the small windows around the pose of the blobs found so far
-    (``searches`` is updated); the images that still lack a blob for a facing mark, to be
-    searched over the whole tolerance (all the unfound ones when there is no pose)."""
+    (``searches``, made around ``start``, is updated); the images that still lack a blob for
+    a facing mark, to be searched over the whole tolerance (all the unfound ones when there is
+    no pose)."""
     keys = list(searches)
     T = pose_from_blobs([(checked[k][1], searches[k].live, searches[k].cands) for k in keys],
-                        recipe, T_prior)
+                        recipe, T_prior, start)
     if T is None:
         return [k for k in keys if _unfound(searches[k])]
     search = partial(_search_followed, checked, recipe, T_prior, T, options, reach)
@@ -126,25 +137,56 @@ def _search_followed(
 ) -> _Search:
     """The small windows around the pose ``T``, held to what the whole tolerance's search at
     the prior accepts: only blobs inside the mark's whole window, sizes and shapes within its
-    ranges, and the perspective correction at the prior (as that search reports it)."""
+    ranges. The perspective correction is the one at ``T``, nearer the part than the prior's
+    (the server then seldom measures the pose a second time, docs/detection.md)."""
     image, cam = checked[k]
     s = _search(image, cam, recipe, T, options, reach)
-    whole = {p.mark.mark_id: p for p in predict_marks_cached(
-        cam, recipe, T_prior, options.size_tolerance, options.shape_slack_deg, 1.0)}
     H, W = image.shape
-    live = []
-    for p in s.live:
-        w = whole[p.mark.mark_id]
-        live.append(replace(
-            p, correction=w.correction,
-            radius_range=(max(p.radius_range[0], w.radius_range[0]),
-                          min(p.radius_range[1], w.radius_range[1])),
-            ratio_range=(max(p.ratio_range[0], w.ratio_range[0]),
-                         min(p.ratio_range[1], w.ratio_range[1]))))
+    whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
+    held = {p.mark.mark_id: p for p in _held(cam, recipe, T_prior, T, options, reach)}
+    live = [held[p.mark.mark_id] for p in s.live]
     kept = [(j, (k_, c)) for j, (k_, c) in enumerate(s.cands)
-            if _holds(_box(whole[live[k_].mark.mark_id], options, W, H), *c.ellipse.centre)]
+            if _holds(whole[live[k_].mark.mark_id], *c.ellipse.centre)]
     return replace(s, live=live, cands=[kc for _, kc in kept],
                    scales=[s.scales[j] for j, _ in kept])
+
+
+def _predictions(cam: ViewCamera, recipe: RecipeConfig, T: Array, options: DetectOptions,
+                 reach: float) -> list[MarkPrediction]:
+    return predict_marks_cached(cam, recipe, T, options.size_tolerance, options.shape_slack_deg,
+                                reach)
+
+
+_HELD: IdentityCache[list[MarkPrediction]] = IdentityCache(32)
+
+
+def _held(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, T: Array,
+          options: DetectOptions, reach: float) -> list[MarkPrediction]:
+    """The predictions at ``T`` (one per mark, in their order) with their size and shape ranges
+    narrowed to the whole tolerance's at the prior; remembered like the predictions."""
+    preds = _predictions(cam, recipe, T, options, reach)
+    whole = _predictions(cam, recipe, T_prior, options, 1.0)
+
+    def make() -> list[MarkPrediction]:
+        w = {p.mark.mark_id: p for p in whole}
+        out = []
+        for p in preds:
+            q = w[p.mark.mark_id]
+            out.append(replace(
+                p,
+                radius_range=(max(p.radius_range[0], q.radius_range[0]),
+                              min(p.radius_range[1], q.radius_range[1])),
+                ratio_range=(max(p.ratio_range[0], q.ratio_range[0]),
+                             min(p.ratio_range[1], q.ratio_range[1]))))
+        return out
+
+    return _HELD.get((cam, recipe, preds, whole), options, make)
+
+
+def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options: DetectOptions,
+                 W: int, H: int) -> dict[str, tuple[int, int, int, int]]:
+    return {p.mark.mark_id: _box(p, options, W, H)
+            for p in _predictions(cam, recipe, T_prior, options, 1.0)}
 
 
 def _unfound(s: _Search) -> bool:

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mvpose_core.detect import DetectOptions, detect_marks_many
-from mvpose_core.detect.follow import pose_from_blobs
+from mvpose_core.detect import DetectOptions, detect_marks_many, recorrect
+from mvpose_core.detect.follow import next_near, pose_from_blobs
 from mvpose_core.detect.window import _search, _unfound
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.scene import view_cameras
@@ -44,9 +44,29 @@ def _frames(cams, recipe, T, clutter: bool):  # type: ignore[no-untyped-def]
             for c in cams]
 
 
+def _same_as_whole(cams, recipe, T, followed, whole, once=True) -> None:  # type: ignore[no-untyped-def]
+    """The same marks found, at the same ellipse centres within the detector's noise (the
+    measurement starts from another coarse blob: ~0.01 px), and the same centres once both are
+    corrected at the part's pose; with ``once``, the followed corrections are already within
+    the server's recorrect_px (0.01 px) of those at the part's pose (it measures the pose once;
+    an image that went to the whole tolerance's windows has the prior's)."""
+    assert sum(d.found for dets in whole for d in dets) == 8
+    for a_dets, b_dets in zip(followed, whole, strict=True):
+        for a, b in zip(a_dets, b_dets, strict=True):
+            assert a.mark_id == b.mark_id and a.found == b.found
+            if b.found:
+                assert np.abs(a.uv_ellipse - b.uv_ellipse).max() < 0.01
+    a_at, moved = recorrect(list(zip(cams, followed, strict=True)), recipe, T)
+    b_at, _ = recorrect(list(zip(cams, whole, strict=True)), recipe, T)
+    assert moved <= 0.01 or not once
+    for a_dets, b_dets in zip(a_at, b_at, strict=True):
+        for a, b in zip(a_dets, b_dets, strict=True):
+            if b.found:
+                assert np.abs(a.uv - b.uv).max() < 0.01
+
+
 # The followed windows find the marks the whole tolerance's search finds, at its centres within
-# the detector's noise (the measurement starts from another coarse blob: ~0.01 px), with and
-# without clutter; never a mark it does not find.
+# the detector's noise, with and without clutter; never a mark it does not find.
 @pytest.mark.parametrize("clutter", [False, True])
 @pytest.mark.parametrize("share", [0.5, 0.75, 0.9])
 def test_a_followed_part_gives_the_whole_tolerance_result(  # type: ignore[no-untyped-def]
@@ -54,15 +74,50 @@ def test_a_followed_part_gives_the_whole_tolerance_result(  # type: ignore[no-un
 ) -> None:
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
-    frames = _frames(cams, recipe, _displaced(recipe, share), clutter)
+    T = _displaced(recipe, share)
+    frames = _frames(cams, recipe, T, clutter)
     followed = detect_marks_many(frames, recipe, T0, DetectOptions())
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
-    assert sum(d.found for dets in whole for d in dets) == 8
-    for a_dets, b_dets in zip(followed, whole, strict=True):
-        for a, b in zip(a_dets, b_dets, strict=True):
-            assert a.mark_id == b.mark_id and a.found == b.found
-            if b.found:
-                assert np.abs(a.uv - b.uv).max() < 0.01
+    _same_as_whole(cams, recipe, T, followed, whole)
+
+
+# The first windows around where the last part was: a part that sits near it (a few mm from it)
+# gives the whole tolerance's result from one small-window search; a part that does not (the
+# last part at the opposite side of the tolerance, or at the reference) is still found, by the
+# pose of the blobs or the whole tolerance's windows.
+@pytest.mark.parametrize("clutter", [False, True])
+@pytest.mark.parametrize(("share", "last"), [(0.9, 0.88), (0.5, -0.5), (0.0, 0.9), (0.9, 0.0)])
+def test_windows_near_the_last_part_give_the_whole_tolerance_result(  # type: ignore[no-untyped-def]
+    station1, share: float, last: float, clutter: bool
+) -> None:
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    T = _displaced(recipe, share)
+    frames = _frames(cams, recipe, T, clutter)
+    near = _displaced(recipe, last)
+    followed = detect_marks_many(frames, recipe, T0, DetectOptions(), near=near)
+    whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
+    _same_as_whole(cams, recipe, T, followed, whole, once=abs(share - last) < 0.1)
+    if abs(share - last) < 0.1:  # the part within the first windows around the last one
+        first = [_search(img, cam, recipe, near, DetectOptions(), 0.25) for img, cam in frames]
+        assert not any(_unfound(s) for s in first)
+
+
+# The last part's pose is remembered anew only when it moved by more than a fifth of the first
+# reach (5 mm / 0.5°) from the remembered one, and forgotten near the reference.
+def test_the_next_windows_follow_the_last_part_in_steps(station1) -> None:  # type: ignore[no-untyped-def]
+    _, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    opts = DetectOptions()
+    a = next_near(None, _displaced(recipe, 0.5), T0, recipe, opts)
+    assert a is not None and np.allclose(a, _displaced(recipe, 0.5))
+    assert next_near(a, _displaced(recipe, 0.52), T0, recipe, opts) is a  # 2 mm / 0.2°
+    b = next_near(a, _displaced(recipe, 0.6), T0, recipe, opts)  # 10 mm / 1°
+    assert b is not a and b is not None and np.allclose(b, _displaced(recipe, 0.6))
+    assert next_near(b, _displaced(recipe, 0.03), T0, recipe, opts) is None
+    assert next_near(None, _displaced(recipe, 0.03), T0, recipe, opts) is None
+    assert next_near(a, _displaced(recipe, 0.5), T0, recipe,
+                     DetectOptions(first_reach_mm=None)) is None  # one reach: no windows to move
 
 
 # Without clutter the small windows' coarse blobs give the part's pose: a part displaced up to
