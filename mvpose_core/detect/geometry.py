@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mvpose_core.cache import IdentityCache
-from mvpose_core.scene import ProjectedMark, ViewCamera, project_recipe_marks
+from mvpose_core.scene import ProjectedMark, ViewCamera, sighted_marks
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array, compose, invert
 
@@ -373,67 +373,79 @@ def predict_marks(
     Windows, sizes and shapes allow for any part offset within ``reach`` times the recipe's
     tolerances (``max_offset_mm``, ``max_offset_deg``).
     """
-    pms = [
-        pm
-        for pm in project_recipe_marks(cam, recipe, T_rf_from_pf, only_sighted=mark_ids is None)
-        if mark_ids is None or pm.mark_id in mark_ids
-    ]
-    if not pms:
+    if mark_ids is None:
+        ids = sighted_marks(recipe, cam.view, cam.camera_id)
+    else:
+        ids = [m.id for m in recipe.marks if m.id in mark_ids]
+    if not ids:
         return []
-    # Everything below is batched over the marks: one projection, one ellipse fit.
-    M = len(pms)
-    p_cf = np.array([pm.p_cf for pm in pms])
-    n_cf = np.array([pm.n_cf for pm in pms])
-    uv = np.array([pm.uv for pm in pms])
+    # Everything below is batched over the marks: one projection (centres, rims and the
+    # displaced centres together), one ellipse fit.
+    positions, normals = _mark_geometry(recipe)
+    diameters, darks = _mark_looks(recipe)
+    index = {m.id: k for k, m in enumerate(recipe.marks)}
+    ks = [index[i] for i in ids]
+    M = len(ks)
+    T = compose(invert(cam.T_rf_from_cf), np.asarray(T_rf_from_pf, dtype=float))
+    R, t = T[:3, :3], T[:3, 3]
+    p_cf = positions[ks] @ R.T + t
+    n_cf = normals[ks] @ R.T
     z = p_cf[:, 2]
     in_front = z > 1.0
-    index = {m.id: k for k, m in enumerate(recipe.marks)}
-    ks = [index[pm.mark_id] for pm in pms]
-    diam = recipe.mark_diameters()[ks]
-    dark = recipe.mark_dark()[ks]
+    diam = diameters[ks]
     rim = rims(p_cf, n_cf, diam / 2.0)  # [M, n, 3]
     rim[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
-    ells = fit_ellipses(
-        cam.model.project(rim.reshape(-1, 3)).reshape(M, -1, 2), np.ones(rim.shape[:2])
-    )
     D = displacement_mm(recipe, reach)[ks]
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
     ahead = moved[..., 2] > 0.2 * np.maximum(z, 1.0)[:, None]
     moved[..., 2] = np.where(ahead, moved[..., 2], 1.0)
-    shift_all = np.linalg.norm(
-        cam.model.project(moved.reshape(-1, 3)).reshape(M, -1, 2) - uv[:, None], axis=2
-    )
+    n_rim, n_dir = rim.shape[1], _DIRS.shape[0]
+    uv_all = cam.model.project(
+        np.concatenate([p_cf, rim.reshape(-1, 3), moved.reshape(-1, 3)]))
+    uv = uv_all[:M]
+    ells = fit_ellipses(uv_all[M : M + M * n_rim].reshape(M, n_rim, 2), np.ones((M, n_rim)))
+    moved_uv = uv_all[M + M * n_rim :].reshape(M, n_dir, 2) - uv[:, None]
+    shift_all = np.sqrt(np.einsum("mdi,mdi->md", moved_uv, moved_uv))
     shift = np.where(ahead.all(axis=1), shift_all.max(axis=1), 1e9)
     view = p_cf / np.linalg.norm(p_cf, axis=1, keepdims=True)
-    tilt = np.degrees(np.arccos(np.clip(np.abs(np.sum(n_cf * view, axis=1)), 0.0, 1.0)))
+    tilt = np.degrees(np.arccos(np.clip(np.abs(np.einsum("mi,mi->m", n_cf, view)), 0.0, 1.0)))
     spread = reach * recipe.tolerances.max_offset_deg + shape_slack_deg
+    facing = in_front & ells.ok & (np.einsum("mi,mi->m", n_cf, p_cf) < 0.0)
+    # a mark that does not face the camera gets a unit circle at its centre (never searched)
+    centre = np.where(facing[:, None], ells.centre, uv)
+    a = np.where(facing, ells.a, 1.0)
+    b = np.where(facing, ells.b, 1.0)
+    angle = np.where(facing, ells.angle, 0.0)
+    r = np.sqrt(a * b)
+    near, far = np.maximum(z - D, 0.2 * z), z + D
+    r_lo = r * z / far * (1.0 - size_tolerance)
+    r_hi = r * z / near * (1.0 + size_tolerance)
+    ratio_lo = np.cos(np.deg2rad(np.minimum(tilt + spread, 85.0))) * (1.0 - size_tolerance)
+    ratio_hi = np.where(
+        tilt - spread > 0,
+        np.minimum(1.0, np.cos(np.deg2rad(np.maximum(tilt - spread, 0.0)))
+                   * (1.0 + size_tolerance)),
+        1.0,
+    )
+    corr = uv - centre
     out: list[MarkPrediction] = []
-    for k, pm in enumerate(pms):
-        facing = bool(in_front[k] and ells.ok[k] and float(n_cf[k] @ p_cf[k]) < 0.0)
-        ell = ells[k] if facing else Ellipse(centre=pm.uv, a=1.0, b=1.0, angle=0.0)
-        near, far = max(z[k] - D[k], 0.2 * z[k]), z[k] + D[k]
-        r = ell.radius
-        radius_range = (
-            r * z[k] / far * (1.0 - size_tolerance),
-            r * z[k] / near * (1.0 + size_tolerance),
-        )
-        ratio_lo = float(np.cos(np.deg2rad(min(tilt[k] + spread, 85.0)))) * (1.0 - size_tolerance)
-        ratio_hi = 1.0
-        if tilt[k] - spread > 0:
-            ratio_hi = min(
-                1.0, float(np.cos(np.deg2rad(tilt[k] - spread))) * (1.0 + size_tolerance)
-            )
+    for k, (mid, zk, ak, bk, gk, sk, lo, hi, qlo, qhi, fk, dk, dm) in enumerate(zip(
+        ids, z.tolist(), a.tolist(), b.tolist(), angle.tolist(), shift.tolist(), r_lo.tolist(),
+        r_hi.tolist(), ratio_lo.tolist(), ratio_hi.tolist(), facing.tolist(),
+        darks[ks].tolist(), diam.tolist(), strict=True,
+    )):
         out.append(
             MarkPrediction(
-                mark=pm,
-                ellipse=ell,
-                correction=pm.uv - ell.centre,
-                max_shift_px=float(shift[k]),
-                radius_range=(float(radius_range[0]), float(radius_range[1])),
-                ratio_range=(ratio_lo, ratio_hi),
-                facing=facing,
-                dark=bool(dark[k]),
-                diameter_mm=float(diam[k]),
+                mark=ProjectedMark(mark_id=mid, uv=uv[k], depth_mm=zk, p_cf=p_cf[k],
+                                   n_cf=n_cf[k]),
+                ellipse=Ellipse(centre=centre[k], a=ak, b=bk, angle=gk),
+                correction=corr[k],
+                max_shift_px=sk,
+                radius_range=(lo, hi),
+                ratio_range=(qlo, qhi),
+                facing=fk,
+                dark=dk,
+                diameter_mm=dm,
             )
         )
     return out
@@ -513,3 +525,17 @@ def _mark_geometry(recipe: RecipeConfig) -> tuple[Array, Array]:
         return p, n
 
     return _GEOMETRY.get((recipe,), None, make)
+
+
+_LOOKS: IdentityCache[tuple[Array, Array]] = IdentityCache(16)
+
+
+def _mark_looks(recipe: RecipeConfig) -> tuple[Array, Array]:
+    """Each mark's diameter ``["M"]`` (mm) and polarity (dark on light), read-only."""
+
+    def make() -> tuple[Array, Array]:
+        d, dark = recipe.mark_diameters(), recipe.mark_dark()
+        d.flags.writeable = dark.flags.writeable = False
+        return d, dark
+
+    return _LOOKS.get((recipe,), None, make)

@@ -18,6 +18,7 @@ from mvpose_core.detect import (
     detect_marks_many,
     epipolar_distance_px,
     predict_marks,
+    recorrect,
     search_marks,
     stereo_check,
 )
@@ -278,7 +279,9 @@ def test_the_first_reach_is_used_only_inside_wider_tolerances() -> None:
 # whole tolerance's windows and are measured once. Every mark is found, at the centre the
 # one-pass search (first_reach_mm=None) measures, from beyond the first reach to the tolerance:
 # exactly for an image searched again, within the detector's noise (~0.01 px) for one whose
-# marks all lay in their small windows (the measurement starts from another blob there).
+# marks all lay in their small windows (the measurement starts from another blob there); an
+# image searched around the blobs' pose carries the correction at that pose, so the centres are
+# compared before the correction and with both corrected at the part's pose.
 @pytest.mark.parametrize("share", [0.5, 0.75, 1.0])
 def test_a_displaced_part_is_found_where_the_whole_tolerance_finds_it(  # type: ignore[no-untyped-def]
     lab, share: float
@@ -295,6 +298,11 @@ def test_a_displaced_part_is_found_where_the_whole_tolerance_finds_it(  # type: 
     for a_dets, b_dets in zip(two, one, strict=True):
         for a, b in zip(a_dets, b_dets, strict=True):
             assert a.found and b.found and a.mark_id == b.mark_id
+            assert np.abs(a.uv_ellipse - b.uv_ellipse).max() < 0.01
+    two_at, _ = recorrect(list(zip(cams, two, strict=True)), recipe, T)
+    one_at, _ = recorrect(list(zip(cams, one, strict=True)), recipe, T)
+    for a_dets, b_dets in zip(two_at, one_at, strict=True):
+        for a, b in zip(a_dets, b_dets, strict=True):
             assert np.abs(a.uv - b.uv).max() < 0.01
 
 
