@@ -46,7 +46,7 @@ def _warm() -> int:
 
 
 def _detect(name: str, shape: tuple[int, int], token: int, models: bytes,
-            prior: Array, options: DetectOptions) -> list[MarkDetection]:
+            prior: Array, options: DetectOptions, near: Array | None) -> list[MarkDetection]:
     block = _attached.get(name)
     if block is None:
         block = _attached[name] = shared_memory.SharedMemory(name=name)
@@ -57,7 +57,7 @@ def _detect(name: str, shape: tuple[int, int], token: int, models: bytes,
             _models.popitem(last=False)
     _models.move_to_end(token)
     image = np.ndarray(shape, dtype=np.uint8, buffer=block.buf)
-    return detect_marks(image, pair[0], pair[1], prior, options)
+    return detect_marks(image, pair[0], pair[1], prior, options, near)
 
 
 class DetectPool:
@@ -78,13 +78,14 @@ class DetectPool:
             f.result(timeout=120)
 
     def submit(self, cam: ViewCamera, image: np.ndarray, recipe: RecipeConfig, prior: Array,
-               options: DetectOptions) -> Future[list[MarkDetection]]:
+               options: DetectOptions, near: Array | None = None,
+               ) -> Future[list[MarkDetection]]:
         image = np.asarray(image)
         if image.dtype != np.uint8 or image.ndim != 2:
             # The detector's own check names the problem; it runs here, in-process.
             fut: Future[list[MarkDetection]] = Future()
             try:
-                fut.set_result(detect_marks(image, cam, recipe, prior, options))
+                fut.set_result(detect_marks(image, cam, recipe, prior, options, near))
             except Exception as err:
                 fut.set_exception(err)
             return fut
@@ -98,7 +99,8 @@ class DetectPool:
         np.ndarray(image.shape, dtype=np.uint8, buffer=block.buf)[...] = image
         shape = (int(image.shape[0]), int(image.shape[1]))
         token, models = self._token(cam, recipe)
-        return self._pool.submit(_detect, block.name, shape, token, models, prior, options)
+        return self._pool.submit(_detect, block.name, shape, token, models, prior, options,
+                                 near)
 
     def _token(self, cam: ViewCamera, recipe: RecipeConfig) -> tuple[int, bytes]:
         return self._sent.get((cam, recipe), None,

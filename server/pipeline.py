@@ -232,6 +232,7 @@ class Pipeline:
         prior = recipe.T_rf_from_pf0.matrix
         jobs = {}
         batch: list[tuple[str, np.ndarray, ViewCamera]] = []
+        near = self._near[1] if self._near is not None and self._near[0] is recipe else None
         t = time.monotonic()
         for cid, vc in cams.items():
             res = grabbed.get(cid)
@@ -245,7 +246,8 @@ class Pipeline:
                     self._detect_failed(vcap, recipe, cid, err)
                     continue
                 if self._procs is not None:
-                    jobs[cid] = self._procs.submit(vc, image, recipe, prior, self.options.detect)
+                    jobs[cid] = self._procs.submit(vc, image, recipe, prior, self.options.detect,
+                                                   near)
                 else:
                     batch.append((cid, image, vc))
             elif isinstance(res, FrameFormatError):  # a frame of the wrong format: never
@@ -261,7 +263,6 @@ class Pipeline:
         if batch:
             # One call for the view's images: their windows are searched on the pool's
             # threads, and all their candidates measured in one batch (mvpose_core.detect).
-            near = self._near[1] if self._near is not None and self._near[0] is recipe else None
             found = detect_marks_many([(img, vc) for _, img, vc in batch], recipe, prior,
                                       self.options.detect, map_fn=self._map, near=near)
             for (cid, _, _), dets in zip(batch, found, strict=True):

@@ -37,9 +37,11 @@ def detect_marks(
     recipe: RecipeConfig,
     T_rf_from_pf_prior: Array,
     options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
+    near: Array | None = None,
 ) -> list[MarkDetection]:
-    """One detection per mark the recipe expects ``cam`` to see: found, or the reason why not."""
-    return detect_marks_many([(image, cam)], recipe, T_rf_from_pf_prior, options)[0]
+    """One detection per mark the recipe expects ``cam`` to see: found, or the reason why not
+    (``near``: as for :func:`detect_marks_many`)."""
+    return detect_marks_many([(image, cam)], recipe, T_rf_from_pf_prior, options, near=near)[0]
 
 
 def detect_marks_many(

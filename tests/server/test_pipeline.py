@@ -372,10 +372,18 @@ def _moved(recipe: Any, share: float) -> np.ndarray:
 # last good part was (mvpose_core.detect.follow.next_near). That memory never keeps a part from
 # being found: a part far from the reference, one a little beside it, one back at the
 # reference, one at the opposite side of the tolerance and one there again are each measured OK
-# at their own pose.
-async def test_each_part_is_measured_wherever_the_last_one_was(tmp_path: Path) -> None:
+# at their own pose, on the trigger thread and on detection processes.
+@pytest.mark.parametrize("processes", [0, 2])
+async def test_each_part_is_measured_wherever_the_last_one_was(
+    tmp_path: Path, processes: int
+) -> None:
+    from server.pipeline import PipelineOptions
+    from server.station.core import StationOptions
+
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
-    async with running_station(settings, runtime_options(), http_port=None) as lb:
+    opts = StationOptions(sim_seed=0, sim_render=runtime_options().sim_render,
+                          pipeline=PipelineOptions(detect_processes=processes))
+    async with running_station(settings, opts, http_port=None) as lb:
         recipe = lb.runtime.active.config
         for n, share in enumerate((0.6, 0.63, 0.0, -0.8, -0.8)):
             T = _moved(recipe, share)
