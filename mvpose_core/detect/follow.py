@@ -1,24 +1,31 @@
-"""A displaced part's pose from the blobs of the first reach's windows, to predict its windows.
+"""Small windows away from the prior: around the last part, or the pose of a displaced part's blobs.
 
 When a part lies beyond the first reach (docs/detection.md, "Two reaches"), some of its marks
 still leave blobs in their small windows (a mark near the rotation's centre moves little; a mark
 at a window's edge is clipped but found). Their coarse centres (before measurement, within a few
 pixels of the marks) give a pose with the estimator the measurement uses
-(:func:`mvpose_core.estimate.estimate_pose`, started at the prior); the windows of the first
-reach around that pose then hold the marks, and are searched instead of the whole tolerance's.
+(:func:`mvpose_core.estimate.estimate_pose`, started at the first windows' pose); the windows of
+the first reach around that pose then hold the marks, and are searched instead of the whole
+tolerance's.
 
 A pose is given only when it is trustworthy: three or more distinct marks, every kept blob within
 :data:`AGREE_PX` of its projection at the pose, and the pose within the recipe's tolerance of the
 prior. Otherwise ``None``: the caller searches the whole tolerance, as without this step.
+
+Windows away from the prior (around that pose, or around the last good part's,
+:func:`next_near`) keep the size and shape ranges of the whole tolerance's at the prior too
+(:func:`held_predictions`): they never accept a blob that search would not.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
-from mvpose_core.detect.geometry import MarkPrediction
+from mvpose_core.cache import IdentityCache
+from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate
 from mvpose_core.detect.types import DetectOptions
 from mvpose_core.estimate import EstimateOptions, estimate_pose
@@ -76,6 +83,38 @@ def pose_from_blobs(
     if not _within_tolerance(T, T_prior, recipe):
         return None
     return T
+
+
+def _predictions(cam: ViewCamera, recipe: RecipeConfig, T: Array, options: DetectOptions,
+                 reach: float) -> list[MarkPrediction]:
+    return predict_marks_cached(cam, recipe, T, options.size_tolerance, options.shape_slack_deg,
+                                reach)
+
+
+_HELD: IdentityCache[list[MarkPrediction]] = IdentityCache(32)
+
+
+def held_predictions(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, T: Array,
+                     options: DetectOptions, reach: float) -> list[MarkPrediction]:
+    """The predictions at ``T`` (one per mark, in their order) with their size and shape ranges
+    narrowed to the whole tolerance's at the prior; remembered like the predictions."""
+    preds = _predictions(cam, recipe, T, options, reach)
+    whole = _predictions(cam, recipe, T_prior, options, 1.0)
+
+    def make() -> list[MarkPrediction]:
+        w = {p.mark.mark_id: p for p in whole}
+        out = []
+        for p in preds:
+            q = w[p.mark.mark_id]
+            out.append(replace(
+                p,
+                radius_range=(max(p.radius_range[0], q.radius_range[0]),
+                              min(p.radius_range[1], q.radius_range[1])),
+                ratio_range=(max(p.ratio_range[0], q.ratio_range[0]),
+                             min(p.ratio_range[1], q.ratio_range[1]))))
+        return out
+
+    return _HELD.get((cam, recipe, preds, whole), options, make)
 
 
 def next_near(

@@ -2,11 +2,12 @@
 
 A mark's window is its predicted ellipse widened by how far the mark can move when the part is
 anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
-geometry of this camera. The search first uses windows for a part near the prior pose
-(``DetectOptions.first_reach_mm`` / ``first_reach_deg``, when the tolerances are wider: small
-windows, quickly searched). When a mark had no blob there, the blobs the small windows did hold
-give the part's pose (follow.py) and every image is searched in the small windows around that
-pose; an image where a mark is still not found is searched over the whole tolerance. Accepted
+geometry of this camera. The search first uses small windows, quickly searched: for a part near
+the prior pose, or near where the last good part was (``near``), within
+``DetectOptions.first_reach_mm`` / ``first_reach_deg`` when the tolerances are wider. When a
+mark had no blob there, the blobs the small windows did hold give the part's pose (follow.py)
+and every image is searched in the small windows around that pose; an image where a mark is
+still not found is searched over the whole tolerance. Accepted
 candidates from all windows are assigned to marks jointly (least total distance to the
 predictions), so two marks never take the same blob.
 """
@@ -21,8 +22,7 @@ from functools import partial
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_core.cache import IdentityCache
-from mvpose_core.detect.follow import pose_from_blobs
+from mvpose_core.detect.follow import held_predictions, pose_from_blobs
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
@@ -145,7 +145,8 @@ def _search_followed(
     s = _search(image, cam, recipe, T, options, reach)
     H, W = image.shape
     whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
-    held = {p.mark.mark_id: p for p in _held(cam, recipe, T_prior, T, options, reach)}
+    held = {p.mark.mark_id: p for p in held_predictions(cam, recipe, T_prior, T, options,
+                                                           reach)}
     live = [held[p.mark.mark_id] for p in s.live]
     kept = [(j, (k_, c)) for j, (k_, c) in enumerate(s.cands)
             if _holds(whole[live[k_].mark.mark_id], *c.ellipse.centre)]
@@ -153,42 +154,11 @@ def _search_followed(
                    scales=[s.scales[j] for j, _ in kept])
 
 
-def _predictions(cam: ViewCamera, recipe: RecipeConfig, T: Array, options: DetectOptions,
-                 reach: float) -> list[MarkPrediction]:
-    return predict_marks_cached(cam, recipe, T, options.size_tolerance, options.shape_slack_deg,
-                                reach)
-
-
-_HELD: IdentityCache[list[MarkPrediction]] = IdentityCache(32)
-
-
-def _held(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, T: Array,
-          options: DetectOptions, reach: float) -> list[MarkPrediction]:
-    """The predictions at ``T`` (one per mark, in their order) with their size and shape ranges
-    narrowed to the whole tolerance's at the prior; remembered like the predictions."""
-    preds = _predictions(cam, recipe, T, options, reach)
-    whole = _predictions(cam, recipe, T_prior, options, 1.0)
-
-    def make() -> list[MarkPrediction]:
-        w = {p.mark.mark_id: p for p in whole}
-        out = []
-        for p in preds:
-            q = w[p.mark.mark_id]
-            out.append(replace(
-                p,
-                radius_range=(max(p.radius_range[0], q.radius_range[0]),
-                              min(p.radius_range[1], q.radius_range[1])),
-                ratio_range=(max(p.ratio_range[0], q.ratio_range[0]),
-                             min(p.ratio_range[1], q.ratio_range[1]))))
-        return out
-
-    return _HELD.get((cam, recipe, preds, whole), options, make)
-
-
 def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options: DetectOptions,
                  W: int, H: int) -> dict[str, tuple[int, int, int, int]]:
     return {p.mark.mark_id: _box(p, options, W, H)
-            for p in _predictions(cam, recipe, T_prior, options, 1.0)}
+            for p in predict_marks_cached(cam, recipe, T_prior, options.size_tolerance,
+                                          options.shape_slack_deg, 1.0)}
 
 
 def _unfound(s: _Search) -> bool:
