@@ -1,15 +1,18 @@
 """Our IO-controller's sans-I/O core against the device's, frame by frame on a clock we move:
 Identify by name, Connect, PrmEnd, ApplicationReady, cyclic data both ways, a diagnosis alarm
-acknowledged, Release, a ModuleDiff, a silent device (data hold) and DCP Set."""
+acknowledged, Release, a ModuleDiff, a silent device (data hold), DCP Set (name, IP) and the
+I&M records read and written."""
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 
 import pytest
 
 from drivers.links import layout
 from drivers.links.profinet import frames as fr
+from drivers.links.profinet import im
 from drivers.links.profinet import modules as mod
 from drivers.links.profinet.controller import Controller
 from drivers.links.profinet.device import Device, Identity, Out
@@ -51,13 +54,14 @@ class Wire:
             for frame in o.frames:
                 todo.append((self.dev.on_frame(frame, self.now), False) if ctl_sent else
                             (self.ctl.on_frame(frame, self.now), True))
+            dev_ip = (".".join(map(str, self.dev.identity.ip[0])), DEV_IP[1])
             for data, addr in o.datagrams:
                 if ctl_sent:
-                    assert addr == DEV_IP
+                    assert addr == dev_ip
                     todo.append((self.dev.on_datagram(data, PLC_IP, self.now), False))
                 else:
                     assert addr == PLC_IP
-                    todo.append((self.ctl.on_datagram(data, DEV_IP, self.now), True))
+                    todo.append((self.ctl.on_datagram(data, dev_ip, self.now), True))
 
     def run(self, until: Callable[[], bool], step: float = 0.001, limit: float = 5.0) -> None:
         end = self.now + limit
@@ -213,3 +217,58 @@ def test_the_product_never_imports_profinet_py() -> None:
                 found += [f"{path.relative_to(root)}: {n}" for n in names
                           if n == "profinet" or n.startswith("profinet.")]
     assert found == ["bench/bench_profinet.py: profinet"]  # only to see whether it is there
+
+
+def test_set_ip_by_dcp_then_the_controller_connects_at_the_new_address() -> None:
+    dev = make_device()
+    ctl = Controller(PLC_MAC, dev.identity.station_name)
+    wire = Wire(dev, ctl)
+    new = (bytes([10, 0, 0, 7]), bytes([255, 255, 255, 0]), bytes(4))
+    wire.deliver(ctl.set_ip(DEV_MAC, new, 0.0), True)
+    assert wire.texts[-1].endswith("done") and dev.identity.ip == new
+    wire.deliver(ctl.start(0.0), True)
+    wire.run(lambda: ctl.phase == "data")
+    assert ctl.device_addr == ("10.0.0.7", 34964) and "10.0.0.7" in wire.texts[-3]
+    # while the AR is open another address is refused (its RPC endpoint is the address)
+    wire.deliver(ctl.set_ip(DEV_MAC, (bytes([10, 0, 0, 8]), *new[1:]), wire.now), True)
+    assert wire.texts[-1].endswith(f"(BlockError {fr.BLOCK_IN_OPERATION})")
+    # a gateway outside the subnet is refused
+    wire.deliver(ctl.release(wire.now), True)
+    wire.deliver(ctl.set_ip(DEV_MAC, (new[0], new[1], bytes([10, 0, 1, 1])), wire.now), True)
+    assert wire.texts[-1].endswith(f"(BlockError {fr.BLOCK_SUBOPTION_NOT_SET})")
+    assert dev.identity.ip == new
+
+
+def test_im_records_are_read_and_written_and_bad_lengths_refused() -> None:
+    dev = make_device()
+    wire = connected(dev)
+    ctl = wire.ctl
+
+    def call(out: Out) -> tuple[int, bytes]:
+        wire.deliver(out, True)
+        assert ctl.record is not None
+        return ctl.record
+
+    status, im0 = call(ctl.read_record(0, 1, 0xAFF0, wire.now))
+    assert status == 0 and struct.unpack_from(">H", im0, len(im0) - 2)[0] == 0x001E
+    rec1 = im.RECORDS[0xAFF1]
+    status, data = call(ctl.read_record(0, 1, 0xAFF1, wire.now))
+    assert status == 0 and data == im.block(rec1, b" " * 54)  # nobody wrote it yet
+    written = im.block(rec1, im.text(rec1, {"IM_Tag_Function": "body-in-white vision",
+                                            "IM_Tag_Location": "hall 4 cell 7"}))
+    assert call(ctl.write_record(0, 1, 0xAFF1, written, wire.now))[0] == 0
+    assert call(ctl.read_record(0, 1, 0xAFF1, wire.now)) == (0, written)
+    assert len(written) == 60 and dev.im[0xAFF1][32:].rstrip() == b"hall 4 cell 7"
+    rec4 = im.RECORDS[0xAFF4]
+    signature = im.block(rec4, bytes(range(54)))
+    assert call(ctl.write_record(0, 1, 0xAFF4, signature, wire.now))[0] == 0
+    # a wrong length (here: with two bytes of padding after the header), another block type
+    status, _ = call(ctl.write_record(0, 1, 0xAFF2, im.block(im.RECORDS[0xAFF2], b"  " +
+                                                              b"2026-11-27 05:10"), wire.now))
+    assert status == 0xDF80B100  # IODWriteRes, PNIORW, write length error
+    wrong = im.block(im.RECORDS[0xAFF1], b" " * 54)
+    assert call(ctl.write_record(0, 1, 0xAFF3, wrong, wire.now))[0] == 0xDF80B800
+    assert ctl.phase == "data"  # a refused Write leaves the AR as it was
+    # what the state file keeps comes back in a device started again
+    again = Device(dev.identity, im=dev.im)
+    assert again.im[0xAFF1] == written[6:] and again.im[0xAFF4] == bytes(range(54))

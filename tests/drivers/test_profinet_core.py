@@ -58,23 +58,57 @@ def test_identify_all_and_by_name() -> None:
     assert dev.on_frame(other, 0.0).frames == []
 
 
-def test_set_name_signal_and_an_ip_the_host_owns() -> None:
+def test_set_name_signal_and_ip() -> None:
     dev = make_device()
 
-    def set_(opt: tuple[int, int], value: bytes) -> tuple[int, ...]:
-        out = dev.on_frame(dcp_frame(fr.Service.SET, [fr.DcpBlock(*opt, b"\0\0" + value)],
+    def set_(opt: tuple[int, int], value: bytes, qualifier: bytes = b"\0\0") -> tuple[int, ...]:
+        out = dev.on_frame(dcp_frame(fr.Service.SET, [fr.DcpBlock(*opt, qualifier + value)],
                                      DEV_MAC, fr.FRAME_ID_DCP_GET_SET), 0.0)
         return tuple(reply_blocks(out.frames)[fr.Opt.CONTROL_RESPONSE])
+
+    def ip(*suite: str) -> bytes:
+        return b"".join(bytes(int(x) for x in a.split(".")) for a in suite)
 
     assert set_(fr.Opt.NAME_OF_STATION, b"cell-8") == (2, 2, fr.BLOCK_OK)
     assert dev.identity.station_name == "cell-8"
     assert set_(fr.Opt.NAME_OF_STATION, b"Bad_Name") == (2, 2, fr.BLOCK_SET_NOT_POSSIBLE)
     assert set_(fr.Opt.CONTROL_SIGNAL, b"\x01\x00") == (5, 3, fr.BLOCK_OK)
-    assert set_(fr.Opt.IP_PARAMETER, bytes([10, 0, 0, 9]) + bytes(8)) == (
-        1, 2, fr.BLOCK_SET_NOT_POSSIBLE)
+    # a Set IP takes effect (here: the identity; the transport's hook sets the interface)
+    assert set_(fr.Opt.IP_PARAMETER, ip("10.0.0.9", "255.255.255.0", "10.0.0.254"),
+                b"\0\x01") == (1, 2, fr.BLOCK_OK)
+    assert dev.identity.ip == (bytes([10, 0, 0, 9]), bytes([255, 255, 255, 0]),
+                               bytes([10, 0, 0, 254]))
+    got = reply_blocks(dev.on_frame(dcp_frame(fr.Service.GET, [fr.DcpBlock(1, 2, b"")], DEV_MAC,
+                                              fr.FRAME_ID_DCP_GET_SET), 0.0).frames)
+    assert got[fr.Opt.IP_PARAMETER][2:] == ip("10.0.0.9", "255.255.255.0", "10.0.0.254")
+    # bad suites: SuboptionNotSet, the address unchanged
+    for bad in (("10.0.0.7", "255.0.255.0", "0.0.0.0"),  # netmask not contiguous
+                ("0.0.0.0", "255.255.255.0", "0.0.0.0"),
+                ("224.0.0.9", "255.255.255.0", "0.0.0.0"),  # multicast
+                ("10.0.0.0", "255.255.255.0", "0.0.0.0"),  # the network's own address
+                ("10.0.0.7", "255.255.255.0", "10.0.1.1")):  # gateway outside the subnet
+        assert set_(fr.Opt.IP_PARAMETER, ip(*bad)) == (1, 2, fr.BLOCK_SUBOPTION_NOT_SET), bad
+    assert set_(fr.Opt.IP_PARAMETER, ip("10.0.0.7")) == (1, 2, fr.BLOCK_SUBOPTION_NOT_SET)
+    assert dev.identity.ip[0] == bytes([10, 0, 0, 9])
     got = reply_blocks(dev.on_frame(dcp_frame(fr.Service.GET, [fr.DcpBlock(2, 2, b"")], DEV_MAC,
                                               fr.FRAME_ID_DCP_GET_SET), 0.0).frames)
     assert got[fr.Opt.NAME_OF_STATION][2:] == b"cell-8"
+
+
+def test_set_ip_refused_by_the_setting_said_once_and_a_failing_host() -> None:
+    dev = Device(Identity(DEV_MAC, "cell-8"), accept_ip=False)
+    req = dcp_frame(fr.Service.SET, [fr.DcpBlock(1, 2, b"\0\x01" + bytes([10, 0, 0, 9]) +
+                                                 bytes([255, 255, 255, 0]) + bytes(4))],
+                    DEV_MAC, fr.FRAME_ID_DCP_GET_SET)
+    outs = [dev.on_frame(req, 0.0) for _ in range(3)]
+    assert {tuple(reply_blocks(o.frames)[fr.Opt.CONTROL_RESPONSE]) for o in outs} == {
+        (1, 2, fr.BLOCK_SET_NOT_POSSIBLE)}
+    assert [e.kind for o in outs for e in o.events] == ["ip_refused"]
+    assert "accept_ip_from_controller is false" in outs[0].events[0].text
+    dev = Device(Identity(DEV_MAC, "cell-8"), set_ip=lambda suite, permanent: "no such device")
+    out = dev.on_frame(req, 0.0)
+    assert reply_blocks(out.frames)[fr.Opt.CONTROL_RESPONSE][2] == fr.BLOCK_RESOURCE_ERROR
+    assert dev.identity.ip[0] == bytes(4) and "no such device" in out.events[0].text
 
 
 def iocr(itype: int, ref: int, rr: int, data: list[tuple[int, int, int]],

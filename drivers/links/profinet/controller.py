@@ -82,7 +82,8 @@ class Controller:
     """The IO-controller's protocol state for one device named ``station_name``.
     ``output_image`` is the layout's OUTPUT block (big-endian) it sends every cycle;
     ``input_image`` the INPUT block the device last sent. Events: found, connected (with a
-    ModuleDiff: ``module_diff``), running, alarm, released, lost, failed, set."""
+    ModuleDiff: ``module_diff``), running, alarm, released, lost, failed, set, record (a
+    Read or Write answered: ``record`` holds its PNIOStatus and data)."""
 
     def __init__(self, mac: bytes, station_name: str, *, cycle_ms: float = 4.0,
                  data_hold_factor: int = 3, own_name: str = "mvpose-plc-twin",
@@ -124,6 +125,7 @@ class Controller:
         self._last_input: float | None = None
         self._since = 0.0
         self.data_status_in = 0
+        self.record: tuple[int, bytes] | None = None  # the last Read/Write: status, data
 
     # ------------------------------------------------------------------ the user's calls
 
@@ -142,6 +144,28 @@ class Controller:
     def set_ip(self, device_mac: bytes, ip: tuple[bytes, bytes, bytes], now: float) -> Out:
         """DCP Set IP (address, mask, gateway) of the device at ``device_mac``."""
         return self._set(device_mac, fr.Opt.IP_PARAMETER, b"".join(ip), now)
+
+    def read_record(self, slot: int, subslot: int, index: int, now: float) -> Out:
+        """RPC Read of record ``index`` (e.g. 0xAFF0..0xAFF4, I&M0..4) within the AR."""
+        req = rpc.RecordRequest(rpc.BLOCK_READ_REQ, self._seq, self.ar_uuid, mod.API, slot,
+                                subslot, index, 4096)
+        return self._record_call(rpc.OP_READ, req, now)
+
+    def write_record(self, slot: int, subslot: int, index: int, data: bytes,
+                     now: float) -> Out:
+        """RPC Write of ``data`` to record ``index`` within the AR."""
+        req = rpc.RecordRequest(rpc.BLOCK_WRITE_REQ, self._seq, self.ar_uuid, mod.API, slot,
+                                subslot, index, len(data), data)
+        return self._record_call(rpc.OP_WRITE, req, now)
+
+    def _record_call(self, opnum: int, req: rpc.RecordRequest, now: float) -> Out:
+        if self.phase not in ("app_ready", "data") or self._pending is not None:
+            raise RuntimeError(f"a record call needs an AR without a request in flight "
+                               f"(phase {self.phase})")
+        out = Out()
+        self.record = None
+        self._rpc(out, opnum, req.pack(), now)
+        return out
 
     def release(self, now: float) -> Out:
         """End the AR (RPC Release); the cyclic frames stop at once."""
@@ -224,6 +248,12 @@ class Controller:
         return out
 
     def _answer(self, opnum: int, status: int, body: bytes, now: float, out: Out) -> None:
+        if opnum in (rpc.OP_READ, rpc.OP_WRITE):
+            self.record = (status, rpc.record_data(body) if status == 0 else b"")
+            what = "Read" if opnum == rpc.OP_READ else "Write"
+            out.events.append(Event("record", f"{what} " + (
+                "done" if status == 0 else f"refused: PNIOStatus 0x{status:08x}")))
+            return
         if status != 0:
             what = {rpc.OP_CONNECT: "Connect", rpc.OP_CONTROL: "PrmEnd",
                     rpc.OP_RELEASE: "Release"}.get(opnum, f"operation {opnum}")

@@ -6,7 +6,9 @@ Identify and Set requests and what their responses say.
 
 from __future__ import annotations
 
+import ipaddress
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
 
@@ -21,7 +23,8 @@ ROLE_IO_DEVICE: Final = 0x01
 @dataclass
 class Event:
     """Something the station should know: ``kind`` is connected, running, released,
-    data_hold_expired, aborted, diagnosis, name_set, signal; ``text`` says it for the log."""
+    data_hold_expired, aborted, diagnosis, name_set, ip_set, ip_refused, im_written, signal;
+    ``text`` says it for the log."""
 
     kind: str
     text: str
@@ -53,6 +56,28 @@ def valid_station_name(name: str) -> bool:
         if any(c not in "abcdefghijklmnopqrstuvwxyz0123456789-" for c in label):
             return False
     return True
+
+
+def ip_suite_error(addr: bytes, mask: bytes, gateway: bytes) -> str | None:
+    """Why an IP suite (IEC 61158-6-10 "IPParameterValue") cannot be the device's, or None:
+    a netmask that is not contiguous ones, an address that is 0.0.0.0, multicast, loopback,
+    broadcast or its subnet's own network or broadcast address, a gateway outside the subnet
+    (0.0.0.0 and the address itself say: no gateway)."""
+    a, m, g = (ipaddress.IPv4Address(x) for x in (addr, mask, gateway))
+    try:
+        net = ipaddress.IPv4Network(f"{a}/{m}", strict=False)
+    except ValueError:
+        return f"netmask {m} is not contiguous"
+    if int(m) == 0:
+        return "netmask 0.0.0.0"
+    if int(a) == 0 or a.is_multicast or a.is_loopback or a.is_reserved or \
+            a == ipaddress.IPv4Address("255.255.255.255"):
+        return f"address {a} cannot be a device's"
+    if net.prefixlen <= 30 and a in (net.network_address, net.broadcast_address):
+        return f"address {a} is the network or broadcast address of {net}"
+    if int(g) != 0 and g != a and g not in net:
+        return f"gateway {g} is outside the subnet {net}"
+    return None
 
 
 # ------------------------------------------------------------------ the controller's side
@@ -107,10 +132,16 @@ def set_result(eth: fr.Ethernet, xid: int) -> int | None:
 
 @dataclass
 class DcpResponder:
-    """The device's DCP side over its :class:`Identity` (a Set of NameOfStation changes it)."""
+    """The device's DCP side over its :class:`Identity` (a Set of NameOfStation changes it).
+    A Set IP is refused while ``accept_ip`` is false; otherwise ``set_ip`` (the transport's:
+    address, mask, gateway, permanent) makes it take effect and says what went wrong, if
+    anything; without it the identity alone changes (the sans-I/O tests)."""
 
     identity: Identity
+    accept_ip: bool = True
+    set_ip: Callable[[tuple[bytes, bytes, bytes], bool], str | None] | None = None
     requests: int = 0
+    _ip_refusal_said: bool = False
 
     def _dcp_blocks(self) -> dict[tuple[int, int], bytes]:
         ident = self.identity
@@ -191,9 +222,39 @@ class DcpResponder:
         if b.key in (fr.Opt.CONTROL_START, fr.Opt.CONTROL_STOP):
             return fr.BLOCK_OK
         if b.key == fr.Opt.IP_PARAMETER:
-            # the host's network configuration owns the address; an equal one is accepted
-            return fr.BLOCK_OK if value[:12] == b"".join(self.identity.ip) \
-                else fr.BLOCK_SET_NOT_POSSIBLE
+            return self._set_ip(b.data, ar_open, out)
         if b.key[0] in (1, 2, 5):
             return fr.BLOCK_SUBOPTION_UNSUPPORTED
         return fr.BLOCK_OPTION_UNSUPPORTED
+
+    def _set_ip(self, data: bytes, ar_open: bool, out: Out) -> int:
+        """Set IP (BlockQualifier bit 0: permanent, else temporary; then address, netmask,
+        gateway): its BlockError."""
+        if len(data) != 14:
+            return fr.BLOCK_SUBOPTION_NOT_SET
+        permanent = bool(data[1] & 1)
+        suite = (data[2:6], data[6:10], data[10:14])
+        if not self.accept_ip:
+            if not self._ip_refusal_said:
+                self._ip_refusal_said = True
+                out.events.append(Event("ip_refused", "DCP Set IP refused: the station's "
+                                        "accept_ip_from_controller is false (said once)"))
+            return fr.BLOCK_SET_NOT_POSSIBLE
+        why = ip_suite_error(*suite)
+        if why is not None:
+            out.events.append(Event("ip_refused", f"DCP Set IP refused: {why}"))
+            return fr.BLOCK_SUBOPTION_NOT_SET
+        if suite == self.identity.ip and self.set_ip is None:
+            return fr.BLOCK_OK
+        if ar_open and suite[0] != self.identity.ip[0]:
+            return fr.BLOCK_IN_OPERATION  # the AR's RPC endpoint is the address
+        if self.set_ip is not None:
+            failed = self.set_ip(suite, permanent)
+            if failed is not None:
+                out.events.append(Event("ip_refused", f"DCP Set IP failed: {failed}"))
+                return fr.BLOCK_RESOURCE_ERROR
+        self.identity.ip = suite
+        addr, mask, gw = (str(ipaddress.IPv4Address(x)) for x in suite)
+        out.events.append(Event("ip_set", f"IP set to {addr} mask {mask} gateway {gw} by DCP ("
+                                + ("permanent" if permanent else "temporary") + ")"))
+        return fr.BLOCK_OK

@@ -13,11 +13,13 @@ from __future__ import annotations
 import logging
 import struct
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
 from .. import layout
 from . import frames as fr
+from . import im as imr
 from . import modules as mod
 from . import rpc
 from .alarms import AlarmCr, Rta
@@ -88,16 +90,25 @@ class Out:
     events: list[Event] = field(default_factory=list)
     output: bytes | None = None
     cyclic: bool = False  # ``frames`` holds this cycle's input frame
+    im_changed: bool = False  # an I&M record was written: store ``Device.im``
 
 
 class Device:
     """The IO-device's protocol state. ``input_image`` is the layout's INPUT block (big-endian)
-    the station publishes; ``output_image`` the OUTPUT block the controller last sent."""
+    the station publishes; ``output_image`` the OUTPUT block the controller last sent.
+    ``im`` holds the I&M1..4 records' data by index (what the state file kept); ``accept_ip``
+    and ``set_ip`` are DCP Set IP's (:class:`~.dcp.DcpResponder`)."""
 
     def __init__(self, identity: Identity, min_cycle_ms: float = 1.0,
-                 input_phase_ms: float | None = None) -> None:
+                 input_phase_ms: float | None = None, *, accept_ip: bool = True,
+                 set_ip: Callable[[tuple[bytes, bytes, bytes], bool], str | None] | None = None,
+                 im: dict[int, bytes] | None = None) -> None:
         self.identity = identity
-        self.dcp = DcpResponder(identity)
+        self.dcp = DcpResponder(identity, accept_ip, set_ip)
+        self.im = {i: imr.default(r) for i, r in imr.RECORDS.items()}
+        for index, data in (im or {}).items():
+            if index in self.im and len(data) == len(self.im[index]):
+                self.im[index] = data
         self.min_cycle_us = min_cycle_ms * 1000
         # None: half the cycle (what a loaded host's station needs to answer within it)
         self.input_phase_s = None if input_phase_ms is None else input_phase_ms / 1000
@@ -316,6 +327,8 @@ class Device:
     def _record(self, req: rpc.RecordRequest) -> bytes | None:
         if req.index == 0xAFF0 and req.slot == 0:
             return self._im0()
+        if req.index in imr.RECORDS and req.slot == 0:
+            return imr.block(imr.RECORDS[req.index], self.im[req.index])
         if req.index == 0xF000:
             return self._real_identification()
         return self.records.get((req.slot, req.subslot, req.index))
@@ -330,7 +343,26 @@ class Device:
             # IODWriteRes, PNIORW, access: invalid slot/subslot or index
             status = rpc.pnio_status(0xDF, 0x80, 0xB2 if sub is None else 0xB0, 0)
             return status, req.response(0, status)
+        if req.index in imr.RECORDS:
+            return self._write_im(req, addr, out)
         self.records[(req.slot, req.subslot, req.index)] = req.data
+        return 0, req.response(len(req.data))
+
+    def _write_im(self, req: rpc.RecordRequest, addr: tuple[str, int],
+                  out: Out) -> tuple[int, bytes]:
+        record = imr.RECORDS[req.index]
+        data, code1 = imr.written(record, req.data) if req.slot == 0 else (None, 0xB2)
+        if data is None:
+            # IODWriteRes, PNIORW, access: write length error / invalid parameter / slot
+            status = rpc.pnio_status(0xDF, 0x80, code1, 0)
+            text = (f"I&M{record.number} Write from {addr[0]} refused: {len(req.data)} "
+                    f"bytes, ErrorCode1 0x{code1:02X}")
+            self.stats.last_errors = [*self.stats.last_errors[-9:], text]
+            log.info("profinet: %s", text)
+            return status, req.response(0, status)
+        self.im[req.index] = data
+        out.im_changed = True
+        out.events.append(Event("im_written", f"I&M{record.number} written by {addr[0]}"))
         return 0, req.response(len(req.data))
 
     def _im0(self) -> bytes:
@@ -340,7 +372,7 @@ class Device:
                 + ident.order_id.encode("ascii")[:20].ljust(20)
                 + ident.serial.encode("ascii")[:16].ljust(16)
                 + struct.pack(">H", 1) + b"V" + bytes([major, minor, patch])
-                + struct.pack(">HHHBBH", 0, 0, 0x0005, 1, 1, 0))
+                + struct.pack(">HHHBBH", 0, 0, 0x0005, 1, 1, imr.IM_SUPPORTED))
         return rpc.block(rpc.BLOCK_IM0, body)
 
     def _real_identification(self) -> bytes:

@@ -147,7 +147,10 @@ class Opt:
 BLOCK_OK: Final = 0x00
 BLOCK_OPTION_UNSUPPORTED: Final = 0x01
 BLOCK_SUBOPTION_UNSUPPORTED: Final = 0x02
-BLOCK_SET_NOT_POSSIBLE: Final = 0x05
+BLOCK_SUBOPTION_NOT_SET: Final = 0x03  # the value is not acceptable (e.g. a bad IP suite)
+BLOCK_RESOURCE_ERROR: Final = 0x04
+BLOCK_SET_NOT_POSSIBLE: Final = 0x05  # by local reasons (e.g. the device's own setting)
+BLOCK_IN_OPERATION: Final = 0x06  # in operation: Set not possible (an AR is open)
 
 
 @dataclass(frozen=True)

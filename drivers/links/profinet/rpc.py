@@ -498,6 +498,15 @@ class Control:
         return cls(btype, body[2:18], session, cmd, props)
 
 
+def record_data(body: bytes) -> bytes:
+    """The record data after an IODReadResHeader (0x8009) or IODWriteResHeader (0x8008)."""
+    btype, blen = struct.unpack_from(">HH", body, 0) if len(body) >= 4 else (0, 0)
+    if btype not in (BLOCK_READ_REQ | RESPONSE_BIT, BLOCK_WRITE_REQ | RESPONSE_BIT) \
+            or 4 + blen > len(body):
+        raise FrameError(f"record response without its header (block 0x{btype:04x})")
+    return body[4 + blen:]
+
+
 @dataclass(frozen=True)
 class RecordRequest:
     """IODReadReqHeader (0x0009) or IODWriteReqHeader (0x0008), and a Write's record data."""
@@ -523,6 +532,13 @@ class RecordRequest:
         api, slot, subslot, _pad, index, length = struct.unpack_from(">IHHHHI", raw, 24)
         data = raw[4 + blen:4 + blen + length] if btype == BLOCK_WRITE_REQ else b""
         return cls(btype, seq, raw[8:24], api, slot, subslot, index, length, data)
+
+    def pack(self) -> bytes:
+        """The controller's request: the header (RWPadding for TargetARUUID and the rest),
+        then a Write's record data."""
+        return block(self.block_type, struct.pack(">H", self.seq) + self.ar_uuid
+                     + struct.pack(">IHHHHI", self.api, self.slot, self.subslot, 0, self.index,
+                                   self.length) + bytes(24)) + self.data
 
     def response(self, length: int, status: int = 0) -> bytes:
         head = (struct.pack(">H", self.seq) + self.ar_uuid

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ..handshake import HandshakeConfig
@@ -23,7 +25,14 @@ class ProfinetLinkConfig(BaseModel):
     interface: str = Field("eth0", min_length=1, max_length=15,
                            description="network interface the device answers on")
     station_name: str = Field("mvpose-station", description="NameOfStation (DCP)")
-    rpc_host: str = Field("0.0.0.0", description="address of the RPC socket (UDP 34964)")
+    rpc_host: str = Field("0.0.0.0", description="address of the RPC socket (UDP 34964) until "
+                          "the controller sets one by DCP")
+    accept_ip_from_controller: bool = Field(
+        True, description="a DCP Set IP sets the interface's address (permanent ones kept "
+        "across restarts); false: refused (SET not possible by local reasons)")
+    state_dir: str | None = Field(
+        None, description="the device's permanent IP and I&M1..4 records; default "
+        "<data_dir>/profinet (MVPOSE_DATA_DIR, else var)")
     rpc_port: int = Field(34964, ge=1, le=65535)
     vendor_id: int = Field(UNASSIGNED_VENDOR, ge=0, le=0xFFFF)
     device_id: int = Field(0x0001, ge=0, le=0xFFFF)
@@ -69,6 +78,9 @@ class ProfinetLinkConfig(BaseModel):
 
     def child(self) -> dict[str, object]:
         """What the device's process needs (JSON)."""
-        return {k: getattr(self, k) for k in (
+        state_dir = self.state_dir or os.path.join(os.environ.get("MVPOSE_DATA_DIR", "var"),
+                                                   "profinet")
+        return {**{k: getattr(self, k) for k in (
             "interface", "station_name", "rpc_host", "rpc_port", "vendor_id", "device_id",
-            "order_id", "serial", "min_cycle_ms", "realtime_priority", "input_phase_ms")}
+            "order_id", "serial", "min_cycle_ms", "realtime_priority", "input_phase_ms",
+            "accept_ip_from_controller")}, "state_dir": os.path.abspath(state_dir)}

@@ -24,6 +24,7 @@ from collections import deque
 from typing import Any
 
 from . import frames as fr
+from . import hostip
 from .device import Device, Identity, Out
 
 ETH_P_ALL = 0x0003
@@ -64,6 +65,46 @@ def open_sockets(iface: str, rpc_host: str, rpc_port: int, who: str = "the PROFI
     return raw, udp, mac, ip
 
 
+def _udp(host: str, port: int) -> socket.socket:
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        udp.bind((host, port))
+    except OSError:
+        udp.close()
+        raise
+    return udp
+
+
+def _restore_ip(iface: str, state: dict[str, Any], store: hostip.DeviceStore
+                ) -> tuple[hostip.Suite | None, str]:
+    """At the device's start: the permanent IP suite a controller set (applied again if the
+    interface lost it), or, after a temporary one, the interface's own address back. The
+    suite in effect (None: the interface's own) and a note for the start-up line."""
+    if "ip" in state:
+        suite = hostip.suite_from(state["ip"])
+        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        with probe:
+            current = (_ifaddr(probe, iface, SIOCGIFADDR), _ifaddr(probe, iface,
+                                                                   SIOCGIFNETMASK))
+        if current != (suite[0], suite[1]):
+            hostip.apply(iface, suite)
+        return suite, f", IP {state['ip'][0]} (set permanently by DCP)"
+    if "host_ip" in state:
+        addr, mask = state.pop("host_ip")
+        hostip.apply(iface, hostip.suite_from([addr, mask, "0.0.0.0"]))
+        store.save(state)
+        return None, f", the temporary DCP address dropped: {addr} again"
+    return None, ""
+
+
+def _stored_im(state: dict[str, Any]) -> dict[int, bytes]:
+    try:
+        return {int(k, 16): bytes.fromhex(v) for k, v in state.get("im", {}).items()}
+    except (AttributeError, TypeError, ValueError):
+        return {}
+
+
 def realtime(priority: int) -> str:
     """Put this process under SCHED_FIFO at ``priority`` (0: leave it), so that a loaded host's
     other work does not delay a cycle; what it got, said for the log and the status."""
@@ -80,17 +121,49 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
     def event(kind: str, text: str, **more: Any) -> None:
         pair.send(b"E" + json.dumps({"kind": kind, "text": text, **more}).encode())
 
+    iface, port = cfg["interface"], cfg["rpc_port"]
+    store = hostip.DeviceStore(cfg["state_dir"])
+    state = store.load()
     try:
-        raw, udp, mac, ip = open_sockets(cfg["interface"], cfg["rpc_host"], cfg["rpc_port"])
+        kept, ip_note = _restore_ip(iface, state, store)
+        host = cfg["rpc_host"] if kept is None else hostip.dotted(kept[0])
+        raw, udp, mac, ip = open_sockets(iface, host, port)
     except OSError as err:
         event("error", str(err))
         return
+    if kept is not None:
+        ip = kept
+
+    def set_ip(suite: hostip.Suite, permanent: bool) -> str | None:
+        """DCP Set IP taking effect: the interface's address, the RPC socket, the state."""
+        nonlocal udp
+        current = (_ifaddr(udp, iface, SIOCGIFADDR), _ifaddr(udp, iface, SIOCGIFNETMASK))
+        try:
+            if (suite[0], suite[1]) != current or suite[2] != dev.identity.ip[2]:
+                state.setdefault("host_ip", [hostip.dotted(x) for x in current])
+                hostip.apply(iface, suite)
+            if suite[0] != current[0] or udp.getsockname()[0] != hostip.dotted(suite[0]):
+                udp.close()
+                udp = _udp(hostip.dotted(suite[0]), port)
+            if permanent:
+                state["ip"] = [hostip.dotted(x) for x in suite]
+            else:  # a temporary address is dropped on restart, and so is the stored one
+                state.pop("ip", None)
+            store.save(state)
+        except OSError as err:
+            if udp.fileno() < 0:
+                udp = _udp(hostip.dotted(current[0]), port)
+            return str(err)
+        return None
+
     dev = Device(Identity(mac, cfg["station_name"], ip, cfg["vendor_id"], cfg["device_id"],
                           order_id=cfg["order_id"], serial=cfg["serial"]),
-                 min_cycle_ms=cfg["min_cycle_ms"], input_phase_ms=cfg.get("input_phase_ms"))
+                 min_cycle_ms=cfg["min_cycle_ms"], input_phase_ms=cfg.get("input_phase_ms"),
+                 accept_ip=cfg.get("accept_ip_from_controller", True), set_ip=set_ip,
+                 im=_stored_im(state))
     scheduling = realtime(cfg.get("realtime_priority", 0))
-    event("started", f"PROFINET device {cfg['station_name']!r} on {cfg['interface']} "
-          f"({fr.mac_text(mac)}), {scheduling}", mac=fr.mac_text(mac))
+    event("started", f"PROFINET device {cfg['station_name']!r} on {iface} "
+          f"({fr.mac_text(mac)}), {scheduling}{ip_note}", mac=fr.mac_text(mac))
     next_lldp = next_stats = time.monotonic()
     intervals: deque[float] = deque(maxlen=2000)  # between input frames sent, for the jitter
     last_cyclic = [0.0]
@@ -118,6 +191,12 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
             event(ev.kind, ev.text)
         if out.output is not None:
             pair.send(b"O" + out.output)
+        if out.im_changed:
+            state["im"] = {f"0x{k:04X}": v.hex() for k, v in dev.im.items()}
+            try:
+                store.save(state)
+            except OSError as err:
+                event("error", f"I&M records not stored in {store.path}: {err}")
 
     while True:
         now = time.monotonic()
