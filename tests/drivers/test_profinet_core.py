@@ -311,6 +311,8 @@ def test_the_shipped_gsdml_is_the_generated_one() -> None:
     assert idents == {s.module_ident for s in mod.SUBMODULES if s.slot > 0}
     outputs = root.iterfind(".//g:ModuleItem[@ID='IDM_1']//g:Output/g:DataItem", ns)
     assert len(list(outputs)) == len(mod.output_fields(mod.HANDSHAKE))
+    dap = root.find(".//g:DeviceAccessPointItem//g:VirtualSubmoduleItem[@ID='IDS_DAP']", ns)
+    assert dap is not None and dap.get("Writeable_IM_Records") == "1 2 3 4"
 
 
 def test_diagnosis_alarms_one_in_flight_acked_and_retried() -> None:

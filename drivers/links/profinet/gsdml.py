@@ -12,6 +12,7 @@ from typing import Final
 from xml.sax.saxutils import quoteattr
 
 from .. import layout
+from . import im
 from . import modules as mod
 from .settings import UNASSIGNED_VENDOR
 
@@ -102,7 +103,8 @@ ResetToFactoryModes="2">
 <IOConfigData MaxInputLength="{n_in}" MaxOutputLength="{n_out}"/>
 <UseableModules>{refs}</UseableModules>
 <VirtualSubmoduleList><VirtualSubmoduleItem ID="IDS_DAP" \
-SubmoduleIdentNumber="0x{mod.DAP.submodule_ident:08X}" MayIssueProcessAlarm="false">\
+SubmoduleIdentNumber="0x{mod.DAP.submodule_ident:08X}" MayIssueProcessAlarm="false" \
+Writeable_IM_Records="{' '.join(str(r.number) for r in im.RECORDS.values())}">\
 <IOData/><ModuleInfo><Name TextId="IDT_DAP"/></ModuleInfo></VirtualSubmoduleItem>\
 </VirtualSubmoduleList>
 <SystemDefinedSubmoduleList>
