@@ -3,13 +3,15 @@ dependency only; never imported by product code) driven by JSON lines on stdin, 
 line on stdout. Run inside the controller's network namespace (`ip netns exec`).
 
 Commands: {"do": "identify", "name"?} | {"do": "set_name", "mac", "name"} |
+{"do": "set_ip", "mac", "ip", "netmask", "gateway", "permanent"} |
 {"do": "connect", "name", "slots": [[slot, subslot, in_len, out_len, mod_id, sub_id]...],
  "reduction_ratio", "data_hold_factor"} | {"do": "connect_supervisor", "name"} |
 {"do": "prm_end"} | {"do": "app_ready"} |
 {"do": "cyclic"} | {"do": "output", "slots": [[slot, subslot, hex]...]} |
 {"do": "input", "slot", "subslot"} | {"do": "listen_alarms"} | {"do": "alarms"} |
 {"do": "stop_cyclic"} | {"do": "release"} | {"do": "read", "slot", "subslot",
- "index"} | {"do": "raw", "hex"} (send a raw frame) | {"do": "udp", "hex", "ip"}.
+ "index"} | {"do": "write", "slot", "subslot", "index", "hex"} |
+{"do": "raw", "hex"} (send a raw frame) | {"do": "udp", "hex", "ip"}.
 """
 
 from __future__ import annotations
@@ -56,6 +58,9 @@ def run(cmd: dict, sock, mac: bytes, state: dict) -> dict:
                              "role": getattr(d, "device_role", None)} for d in found]}
     if do == "set_name":
         return {"set": dcp.set_param(sock, mac, cmd["mac"], "name", cmd["name"], timeout_sec=2)}
+    if do == "set_ip":
+        return {"set": dcp.set_ip(sock, mac, cmd["mac"], cmd["ip"], cmd["netmask"],
+                                  cmd["gateway"], permanent=cmd["permanent"], timeout_sec=2)}
     if do == "connect":
         info = rpc.get_station_info(sock, mac, cmd["name"], timeout_sec=2)
         slots = [rpc.IOSlot(slot=s[0], subslot=s[1], input_length=s[2], output_length=s[3],
@@ -121,6 +126,10 @@ def run(cmd: dict, sock, mac: bytes, state: dict) -> dict:
     if do == "read":
         res = con.read(api=0, slot=cmd["slot"], subslot=cmd["subslot"], idx=cmd["index"])
         return {"hex": bytes(res.payload).hex()}
+    if do == "write":
+        con.write(api=0, slot=cmd["slot"], subslot=cmd["subslot"], idx=cmd["index"],
+                  data=bytes.fromhex(cmd["hex"]))
+        return {}
     if do == "raw":
         sock.send(bytes.fromhex(cmd["hex"]))
         return {"mac": util.mac2s(mac)}

@@ -10,6 +10,7 @@ import os
 import signal
 from collections.abc import AsyncIterator, Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,7 +18,7 @@ import pytest
 from drivers.links import layout
 from drivers.links.base import AlarmNotice
 from drivers.links.layout import Status
-from drivers.links.profinet import ProfinetLink
+from drivers.links.profinet import ProfinetLink, im
 from drivers.links.profinet import modules as mod
 from drivers.links.profinet.settings import ProfinetLinkConfig
 from tests.drivers import profinet_peer as peer
@@ -45,11 +46,12 @@ async def controller(net: peer.Net) -> AsyncIterator[peer.Controller]:
 
 
 @pytest.fixture
-async def device(net: peer.Net) -> AsyncIterator[tuple[ProfinetLink, ArithmeticHandler]]:
+async def device(net: peer.Net, tmp_path: Path
+                 ) -> AsyncIterator[tuple[ProfinetLink, ArithmeticHandler]]:
     handler = ArithmeticHandler()
     handler.recipe = 1  # the link selects the station's recipe at its start
     cfg = ProfinetLinkConfig(interface=net.device_if, station_name=NAME, rpc_host=net.device_ip,
-                             watchdog_s=1.0)
+                             watchdog_s=1.0, state_dir=str(tmp_path))
     link = ProfinetLink(cfg, handler)
     await link.start()
     try:
@@ -223,3 +225,78 @@ async def test_a_device_process_that_dies_is_started_again(
     assert any("ended" in e for e in link.runner.stats.last_errors)
     found = (await controller.ok("identify", name=NAME))["devices"]
     assert [d["name"] for d in found] == [NAME]
+
+
+async def _restarted(link: ProfinetLink, n: int) -> None:
+    assert link._proc is not None
+    os.kill(link._proc.pid, signal.SIGKILL)
+    await until(lambda: link.status().get("restarts") == n and link.ready(),
+                "the device's process started again")
+
+
+async def test_dcp_set_ip_moves_the_device_and_a_permanent_one_survives_a_restart(
+        device: Any, controller: Controller, net: peer.Net, tmp_path: Path) -> None:
+    link, handler = device
+    mac = (await controller.ok("identify", name=NAME))["devices"][0]["mac"]
+    new = net.device_ip.rsplit(".", 1)[0] + ".5"
+
+    async def set_ip(ip: str, permanent: bool, gateway: str = "0.0.0.0") -> dict[str, Any]:
+        return await controller("set_ip", mac=mac, ip=ip, netmask="255.255.255.0",
+                                gateway=gateway, permanent=permanent)
+
+    try:
+        refused = await set_ip(new, True, gateway="10.9.9.9")  # outside the subnet
+        assert not refused["ok"] and "Suboption not set" in refused["error"], refused
+        assert (await set_ip(new, True))["set"] is True
+        assert (await controller.ok("identify", name=NAME))["devices"][0]["ip"] == new
+        # the controller connects at the new address and runs cyclic data
+        await _run_ar(controller)
+        i_m1 = im.block(im.RECORDS[0xAFF1], im.text(im.RECORDS[0xAFF1], {
+            "IM_Tag_Function": "vision body shop", "IM_Tag_Location": "cell 7"}))
+        async with _plc(controller) as twin:
+            await twin.enable()
+            answer = await twin.cycle(93001, timeout=5.0)
+            assert answer.trigger_id == 93001 and answer.result_id == handler.seq
+        await controller.ok("write", slot=0, subslot=1, index=0xAFF1, hex=i_m1.hex())
+        bad = await controller("write", slot=0, subslot=1, index=0xAFF2, hex="00" * 24)
+        assert not bad["ok"] and "0xb1" in bad["error"].lower(), bad  # write length error
+        await controller.ok("stop_cyclic")
+        await controller.ok("release")
+        # a restart keeps the permanent address and the I&M record
+        await _restarted(link, 1)
+        assert (await controller.ok("identify", name=NAME))["devices"][0]["ip"] == new
+        await _run_ar(controller)
+        got = await controller.ok("read", slot=0, subslot=1, index=0xAFF1)
+        assert bytes.fromhex(got["hex"]) == i_m1
+        await controller.ok("stop_cyclic")
+        await controller.ok("release")
+        # a temporary address is dropped on restart: the interface's own comes back
+        await until(lambda: link.child_stats.get("ar") is None, "the AR released")
+        assert (await set_ip(new.rsplit(".", 1)[0] + ".6", False))["set"] is True
+        await _restarted(link, 2)
+        assert (await controller.ok("identify", name=NAME))["devices"][0]["ip"] == \
+            net.device_ip
+    finally:
+        peer.ip("addr", "flush", "dev", net.device_if)
+        peer.ip("addr", "add", f"{net.device_ip}/24", "dev", net.device_if)
+
+
+async def test_a_set_ip_is_refused_when_the_station_says_so(
+        controller: Controller, net: peer.Net, tmp_path: Path) -> None:
+    cfg = ProfinetLinkConfig(interface=net.device_if, station_name=NAME, rpc_host=net.device_ip,
+                             state_dir=str(tmp_path), accept_ip_from_controller=False)
+    link = ProfinetLink(cfg, ArithmeticHandler())
+    await link.start()
+    try:
+        mac = (await controller.ok("identify", name=NAME))["devices"][0]["mac"]
+        for _ in range(2):
+            refused = await controller("set_ip", mac=mac, ip=net.device_ip.rsplit(".", 1)[0] + ".7",
+                                       netmask="255.255.255.0", gateway="0.0.0.0",
+                                       permanent=True)
+            assert not refused["ok"] and "SET not possible" in refused["error"], refused
+        await until(lambda: [e["kind"] for e in link.events] == ["ip_refused"],
+                    "the refusal said once")
+        assert (await controller.ok("identify", name=NAME))["devices"][0]["ip"] == \
+            net.device_ip
+    finally:
+        await link.stop()
