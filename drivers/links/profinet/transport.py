@@ -80,7 +80,12 @@ def _restore_ip(iface: str, state: dict[str, Any], store: hostip.DeviceStore
                 ) -> tuple[hostip.Suite | None, str]:
     """At the device's start: the permanent IP suite a controller set (applied again if the
     interface lost it), or, after a temporary one, the interface's own address back. The
-    suite in effect (None: the interface's own) and a note for the start-up line."""
+    suite in effect (None: the interface's own) and a note for the start-up line. What was
+    set on another interface (the station file changed) is forgotten."""
+    if state.get("interface", iface) != iface:
+        for key in ("interface", "ip", "host_ip"):
+            state.pop(key, None)
+        store.save(state)
     if "ip" in state:
         suite = hostip.suite_from(state["ip"])
         probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -140,6 +145,7 @@ def serve(cfg: dict[str, Any], pair: socket.socket) -> None:
         current = (_ifaddr(udp, iface, SIOCGIFADDR), _ifaddr(udp, iface, SIOCGIFNETMASK))
         try:
             if (suite[0], suite[1]) != current or suite[2] != dev.identity.ip[2]:
+                state["interface"] = iface
                 state.setdefault("host_ip", [hostip.dotted(x) for x in current])
                 hostip.apply(iface, suite)
             if suite[0] != current[0] or udp.getsockname()[0] != hostip.dotted(suite[0]):
