@@ -326,11 +326,11 @@ class Device:
 
     def _record(self, req: rpc.RecordRequest) -> bytes | None:
         if req.index == 0xAFF0 and req.slot == 0:
-            return self._im0()
+            return imr.im0(self.identity)
         if req.index in imr.RECORDS and req.slot == 0:
             return imr.block(imr.RECORDS[req.index], self.im[req.index])
         if req.index == 0xF000:
-            return self._real_identification()
+            return imr.real_identification()
         return self.records.get((req.slot, req.subslot, req.index))
 
     def _write(self, body: bytes, addr: tuple[str, int], now: float,
@@ -364,27 +364,6 @@ class Device:
         out.im_changed = True
         out.events.append(Event("im_written", f"I&M{record.number} written by {addr[0]}"))
         return 0, req.response(len(req.data))
-
-    def _im0(self) -> bytes:
-        ident = self.identity
-        major, minor, patch = ident.software
-        body = (struct.pack(">H", ident.vendor_id)
-                + ident.order_id.encode("ascii")[:20].ljust(20)
-                + ident.serial.encode("ascii")[:16].ljust(16)
-                + struct.pack(">H", 1) + b"V" + bytes([major, minor, patch])
-                + struct.pack(">HHHBBH", 0, 0, 0x0005, 1, 1, imr.IM_SUPPORTED))
-        return rpc.block(rpc.BLOCK_IM0, body)
-
-    def _real_identification(self) -> bytes:
-        slots: dict[int, list[mod.Submodule]] = {}
-        for s in mod.SUBMODULES:
-            slots.setdefault(s.slot, []).append(s)
-        body = struct.pack(">H", len(slots))
-        for slot, subs in slots.items():
-            body += struct.pack(">HIH", slot, subs[0].module_ident, len(subs))
-            for s in subs:
-                body += struct.pack(">HI", s.subslot, s.submodule_ident)
-        return rpc.block(rpc.BLOCK_REAL_IDENTIFICATION, body)
 
     # ------------------------------------------------------------------ ApplicationReady
 

@@ -1,4 +1,5 @@
-"""The I&M1..I&M4 records (Identification & Maintenance, IEC 61158-6-10 "I&M1".."I&M4"; index
+"""The identification records: I&M0 and RealIdentificationData as a Read answers them, and the
+I&M1..I&M4 records (Identification & Maintenance, IEC 61158-6-10 "I&M1".."I&M4"; index
 0xAFF1..0xAFF4 on the device access point), sans-I/O: what a Read answers and what a Write
 may carry. Each record is its BlockHeader (BlockType 0x0021..0x0024, version 1.0) followed by
 fixed-size fields, strings padded with blanks, I&M4's signature with zeros.
@@ -8,7 +9,13 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Final
+from typing import TYPE_CHECKING, Final
+
+from . import modules as mod
+from . import rpc
+
+if TYPE_CHECKING:
+    from .dcp import Identity
 
 
 @dataclass(frozen=True)
@@ -76,3 +83,28 @@ def text(record: ImRecord, values: dict[str, str | bytes]) -> bytes:
             raise ValueError(f"I&M{record.number} {name} is {len(raw)} bytes, at most {n}")
         out += raw.ljust(n, record.pad)
     return out
+
+
+def im0(ident: Identity) -> bytes:
+    """I&M0 (index 0xAFF0 on the device access point): who made the device, which it is, and
+    which I&M records it has."""
+    major, minor, patch = ident.software
+    body = (struct.pack(">H", ident.vendor_id)
+            + ident.order_id.encode("ascii")[:20].ljust(20)
+            + ident.serial.encode("ascii")[:16].ljust(16)
+            + struct.pack(">H", 1) + b"V" + bytes([major, minor, patch])
+            + struct.pack(">HHHBBH", 0, 0, 0x0005, 1, 1, IM_SUPPORTED))
+    return rpc.block(rpc.BLOCK_IM0, body)
+
+
+def real_identification() -> bytes:
+    """RealIdentificationData (index 0xF000): the slots and submodules the device has."""
+    slots: dict[int, list[mod.Submodule]] = {}
+    for s in mod.SUBMODULES:
+        slots.setdefault(s.slot, []).append(s)
+    body = struct.pack(">H", len(slots))
+    for slot, subs in slots.items():
+        body += struct.pack(">HIH", slot, subs[0].module_ident, len(subs))
+        for s in subs:
+            body += struct.pack(">HI", s.subslot, s.submodule_ident)
+    return rpc.block(rpc.BLOCK_REAL_IDENTIFICATION, body)
