@@ -7,7 +7,9 @@ out the cached frame of its camera at the scene's current view, after ``driver.l
 view is the one each trigger names: the capture tells the cameras (``Camera.at_view``), so view
 k's grab shows view k in every mode, not only in the demo.
 Frames are shared read-only arrays, so a grab costs no copy (benchmarks use ``set_frames``
-with pre-rendered images). Image noise is drawn once per pose, not per grab.
+with pre-rendered images). Image noise is drawn once per pose, not per grab. With ``keep_poses``
+the scene keeps the renderings of that many recent poses: a part moved back to one of them
+(a served station's benchmark cycling its part over the tolerance) is there at once.
 
 Faults come from ``driver.fault`` (every n-th grab): ``timeout`` (no frame before the deadline),
 ``disconnect`` (:class:`DeviceLostError`; the camera cannot be opened for ``fault.down_ms``) and
@@ -48,8 +50,14 @@ class SimScene:
         recipe: RecipeConfig | str | None,
         rng: np.random.Generator,
         options: RenderOptions | None = None,
+        keep_poses: int = 0,
     ) -> None:
+        if keep_poses < 0:
+            raise ValueError(f"keep_poses must be >= 0, got {keep_poses}")
         self.station = station
+        self.keep_poses = keep_poses
+        # renderings of recent poses, oldest first: (pose, flange poses) bytes -> frames
+        self._kept: dict[bytes, dict[tuple[int, str], RenderedImage]] = {}
         self.recipe = recipe if isinstance(recipe, RecipeConfig) else station.recipe(recipe)
         self.rng = rng
         self.options = options or RenderOptions()
@@ -72,14 +80,23 @@ class SimScene:
         return self._T_rf_from_pf
 
     def set_part_pose(self, T_rf_from_pf: Array) -> None:
-        """Put the part at ``T_rf_from_pf`` and render every camera of every view now."""
+        """Put the part at ``T_rf_from_pf`` and render every camera of every view now (or take
+        the kept rendering of that pose, see ``keep_poses``)."""
         T = np.asarray(T_rf_from_pf, dtype=float)
         if T.shape != (4, 4):
             raise ValueError(f"T_rf_from_pf must be [4, 4], got {list(T.shape)}")
-        rendered = self._render(T, view_cameras(self.station, self._flange))
+        key = T.tobytes() + b"".join(
+            v.to_bytes(4, "little") + f.tobytes() for v, f in sorted(self._flange.items()))
+        rendered = self._kept.pop(key, None)
+        if rendered is None:
+            rendered = self._render(T, view_cameras(self.station, self._flange))
+        if self.keep_poses:
+            self._kept[key] = rendered  # the newest last
+            while len(self._kept) > self.keep_poses:
+                del self._kept[next(iter(self._kept))]
         with self._lock:
             self._T_rf_from_pf = T
-            self._truth = rendered
+            self._truth = dict(rendered)  # set_view re-renders views in this one, not the kept
             self._frames = {k: _frozen(r.image) for k, r in rendered.items()}
 
     def set_view(self, view_id: int, T_rf_from_gf: Array | None = None) -> None:

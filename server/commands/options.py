@@ -57,6 +57,10 @@ def add_station_options(parser: argparse.ArgumentParser) -> None:
                         "path, 1-99, 0 = the normal scheduler (default: "
                         "$MVPOSE_TRIGGER_PRIORITY, else 10; needs CAP_SYS_NICE, else the "
                         "station runs at normal priority and says so in its status)")
+    parser.add_argument("--sim-keep-poses", type=int, default=None,
+                        help="simulated cameras: keep the renderings of this many recent part "
+                        "poses, so that a rehearsal moving the part back to one of them takes "
+                        "no rendering (default: $MVPOSE_SIM_KEEP_POSES, else 0)")
 
 
 def add_api_options(parser: argparse.ArgumentParser) -> None:

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     common = ["--station", str(settings.station), "--data-dir", str(settings.data_dir),
               "--log-level", args.log_level]
     station_argv = common + options.forward(args, [*options.LINK_OPTIONS, "detect_processes",
-                                                     "trigger_priority"])
+                                                     "trigger_priority", "sim_keep_poses"])
     api_argv = common + ["--host", host, "--port", str(port)]
     client = StationClient(settings.resolved_control_socket, timeout_s=1.0)
 

@@ -35,10 +35,15 @@ def run(args: argparse.Namespace) -> int:
                               scheduling.DEFAULT_PRIORITY, int, "an integer 0-99")
     if not 0 <= priority <= 99:
         raise CliError(f"--trigger-priority must be 0-99 (0: normal scheduler), got {priority}")
+    keep = options.number(args.sim_keep_poses, "MVPOSE_SIM_KEEP_POSES", 0, int,
+                          "an integer >= 0")
+    if keep < 0:
+        raise CliError(f"--sim-keep-poses must be >= 0, got {keep}")
     # before anything starts: every thread and worker process inherits the policy
     cpu = scheduling.enter(priority)
     try:
         return run_station(settings, station, StationOptions(
-            sim_part_at_reference=True, pipeline=PipelineOptions(detect_processes=procs)), cpu)
+            sim_part_at_reference=True, sim_keep_poses=keep,
+            pipeline=PipelineOptions(detect_processes=procs)), cpu)
     except DriverInitError as err:  # a link that cannot listen (taken since the check above)
         raise CliError(str(err)) from None

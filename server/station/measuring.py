@@ -81,7 +81,8 @@ class Measuring:
 
             assert self.active is not None
             scene = SimScene(self.station, self.active.config,
-                             np.random.default_rng(self.options.sim_seed), self.options.sim_render)
+                             np.random.default_rng(self.options.sim_seed), self.options.sim_render,
+                             keep_poses=self.options.sim_keep_poses)
             if self.options.sim_part_at_reference:
                 scene.set_part_pose(self.active.config.T_rf_from_pf0.matrix)
         self.scene = scene

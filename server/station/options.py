@@ -21,6 +21,10 @@ class StationOptions:
     # Simulated cameras: render the part at the recipe's reference pose at start-up, so that a
     # served simulated station has something to measure (tests and the demo move it themselves).
     sim_part_at_reference: bool = False
+    # Simulated cameras: keep the renderings of this many recent part poses, so a rehearsal
+    # that moves the part back to one of them swaps frames instead of rendering (the station
+    # benchmark cycles its part over a few poses within the tolerance, one per trigger).
+    sim_keep_poses: int = 0
     # The watchdog's margin past the deadline: a trigger not recorded by then is answered with
     # a recorded TIMEOUT (the link's own backstop comes a second later).
     answer_margin_s: float = 1.0
