@@ -5,11 +5,17 @@ durable writer (SQLite, synchronous=FULL, its own data directory) as the station
 from one thread with nothing else running: no links, no control channel, no other process
 talking to it. Each stage's time here, next to the same stage in the station process's records,
 says how much the server itself costs (its threads, the Modbus polls, the API next door).
+:class:`AloneOnThread` runs it on a thread of its own under the station's trigger priority
+(SCHED_FIFO, ``MVPOSE_TRIGGER_PRIORITY``), as the station process runs its trigger path: on a
+shared machine a reference at the normal priority would wait for other tasks the station does
+not wait for.
 """
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -22,6 +28,7 @@ from server.pipeline import Pipeline, PipelineOptions
 from server.recipes import RecipeBook
 from server.settings import Settings
 from server.state import open_services
+from server.station import scheduling
 from server.station.core import WriterSink
 from server.station.records import Provenance, result_record
 from server.station.sequence import ViewSequence
@@ -32,7 +39,7 @@ STAGES = ("capture", "detect", "measure", "correct", "append", "total")
 class AloneStation:
     """The trigger thread's work (capture → record appended) without the station around it."""
 
-    def __init__(self, station_file: Path, data_dir: Path) -> None:
+    def __init__(self, station_file: Path, data_dir: Path, keep_poses: int = 0) -> None:
         self.services = open_services(Settings(station=station_file, data_dir=data_dir),
                                       bootstrap=False)
         station = load_station(station_file)
@@ -41,8 +48,9 @@ class AloneStation:
         recipe = self.book.selected
         assert recipe is not None
         # as the station process builds it (StationOptions(): seed 0, default rendering, the
-        # part at the reference pose)
-        self.scene = SimScene(station, recipe.config, np.random.default_rng(0), None)
+        # part at the reference pose; the renderings of ``keep_poses`` recent poses kept)
+        self.scene = SimScene(station, recipe.config, np.random.default_rng(0), None,
+                              keep_poses=keep_poses)
         self.scene.set_part_pose(recipe.config.T_rf_from_pf0.matrix)
         self.capture = CaptureGroup([make_camera(c, self.scene) for c in station.cameras])
         self.capture.wait_ready(30)
@@ -79,3 +87,25 @@ class AloneStation:
         self.pipeline.close()
         self.capture.close()
         self.services.close()
+
+
+class AloneOnThread:
+    """An :class:`AloneStation` built and driven on a thread of its own that runs under the
+    station's trigger priority (its camera and writer threads inherit it)."""
+
+    def __init__(self, station_file: Path, data_dir: Path, keep_poses: int = 0) -> None:
+        priority = int(os.environ.get("MVPOSE_TRIGGER_PRIORITY", scheduling.DEFAULT_PRIORITY))
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="alone",
+                                        initializer=scheduling.enter, initargs=(priority,))
+        self.alone = self._pool.submit(AloneStation, station_file, data_dir, keep_poses).result()
+        self.scene = self.alone.scene
+        self.book = self.alone.book
+
+    def trigger(self) -> dict[str, float]:
+        return self._pool.submit(self.alone.trigger).result()
+
+    def close(self) -> None:
+        try:
+            self._pool.submit(self.alone.close).result()
+        finally:
+            self._pool.shutdown()
