@@ -344,15 +344,44 @@ async def test_pipelined_requests_in_one_segment_are_answered_in_order(plc: Serv
 
 async def test_a_burst_of_pipelined_reads_is_answered_in_order(plc: ServerFactory) -> None:
     """200 requests in one write: far more than one receive buffer of pymodbus (264 bytes) and
-    than the pending limit, so back-pressure is crossed both ways."""
+    than the pending limit, so back-pressure is crossed both ways (a write first: the reads
+    behind it wait in the queue instead of being answered at once)."""
     server, _ = await plc(connect=False)
     conn = await Raw.open(server.port)
     n = 200
+    write = struct.pack(">BHH", 6, r.HR_PART_ID, 0x4142)
     try:
-        await conn.send(b"".join(adu(t, read(4, r.IR_TEST_INT, 2)) for t in range(1, n + 1)))
-        want = b"".join(answer(t, b"\x04" + registers(0x075B, 0xCD15)) for t in range(1, n + 1))
+        await conn.send(adu(1, write) + b"".join(adu(t, read(4, r.IR_TEST_INT, 2))
+                                                 for t in range(2, n + 1)))
+        want = answer(1, write) + b"".join(answer(t, b"\x04" + registers(0x075B, 0xCD15))
+                                           for t in range(2, n + 1))
         got = await conn.recv(len(want), timeout=10.0)
         assert got == want
+    finally:
+        await conn.close()
+
+
+async def test_reads_answered_at_once_are_the_data_stores_answers(plc: ServerFactory) -> None:
+    """A register read with nothing waiting before it is answered in the pass that received it
+    (the input block and its holding-register mirror, from the handshake's image): the same
+    bytes the queued path answers, and a range past the block still gets exception 02."""
+    server, _ = await plc(connect=False)
+    test_words = registers(0x42F6, 0xE666, 0x075B, 0xCD15)
+    conn = await Raw.open(server.port)
+    try:
+        for tid, (fc, address) in enumerate(((4, r.IR_TEST_FLOAT),
+                                             (3, HR_MIRROR + r.IR_TEST_FLOAT)), 1):
+            want = answer(tid, bytes([fc]) + test_words)
+            assert await conn.ask(adu(tid, read(fc, address, 4)), want) == want
+        for tid, (fc, address) in enumerate(((4, r.IR_COUNT - 1), (3, HR_MIRROR + r.IR_COUNT - 1)),
+                                            3):
+            want = exception(tid, fc, 0x02)
+            assert await conn.ask(adu(tid, read(fc, address, 2)), want) == want
+        # the same read queued behind a write: the same answer
+        write = struct.pack(">BHH", 6, r.HR_PART_ID, 0x4142)
+        want = answer(5, write) + answer(6, b"\x04" + test_words)
+        await conn.send(adu(5, write) + adu(6, read(4, r.IR_TEST_FLOAT, 4)))
+        assert await conn.recv(len(want)) == want
     finally:
         await conn.close()
 

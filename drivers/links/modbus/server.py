@@ -77,6 +77,19 @@ class _Connection(ModbusTcpConnection):
             log.warning("PLC link: connection from %s refused (not in the allowlist)", host)
             self.close()
 
+    def read_now(self, function_code: int, address: int, count: int) -> list[int] | None:
+        # The input block (fc 4) and its holding-register mirror (fc 3) are the handshake's
+        # image, which the data store's action would copy in: read it straight from there.
+        owner: PlcServer = self.server.owner
+        if not owner.runner.started:
+            return None
+        image = owner.machine.image
+        if function_code == 3:
+            address -= HR_MIRROR
+        if address < 0 or address + count > r.IR_COUNT:
+            return None
+        return list(image[address : address + count])
+
     def rejected(self, function_code: int, code: ExcCodes) -> None:
         self.server.owner._reject(code)
 
