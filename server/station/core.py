@@ -21,8 +21,10 @@ inside drivers.cameras.CaptureGroup.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
+import threading
 from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
@@ -132,9 +134,24 @@ class Station:
 
     async def _watch_versions(self, period_s: float = 1.0) -> None:
         """Pick up recipe versions activated through the API, between triggers. The store is
-        asked on a thread of its own: a trigger never queues behind a frozen database."""
+        asked on a thread of its own: a trigger never queues behind a frozen database. While
+        the line triggers, the question is asked just after a result was answered (in the gap
+        before the next trigger, not sharing the GIL with a running one)."""
+        heard = asyncio.Event()
+        loop, here = asyncio.get_running_loop(), threading.get_ident()
+
+        def answered(_event: ResultEvent) -> None:  # on this loop, unless it had none to use
+            if threading.get_ident() == here:
+                heard.set()
+            else:
+                loop.call_soon_threadsafe(heard.set)
+
+        self.add_listener(answered)
         while True:
             await asyncio.sleep(period_s)
+            heard.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(heard.wait(), period_s)
             try:
                 if not await asyncio.to_thread(self.measuring.versions_changed):
                     continue
