@@ -104,6 +104,13 @@ def test_start_up_errors_are_one_line_and_a_failure(
                     "views: Field required")
     _one_line_error(in_process("serve", "--station", str(tmp_path / "none.yaml"), *data),
                     "none.yaml: cannot read station file")
+    _one_line_error(in_process("station", *station, *data, "--plc-port", "0",
+                               "--sim-keep-poses", "-1"),
+                    "mvpose station: error:", "--sim-keep-poses must be >= 0, got -1")
+    monkeypatch.setenv("MVPOSE_SIM_KEEP_POSES", "many")
+    _one_line_error(in_process("station", *station, *data, "--plc-port", "0"),
+                    "environment variable MVPOSE_SIM_KEEP_POSES: expected an integer >= 0, "
+                    "got 'many'")
 
 
 def test_a_busy_link_port_or_a_bad_links_block_is_one_line_and_a_failure(tmp_path: Path) -> None:
