@@ -44,16 +44,18 @@ class Packed:
     #: (K [3, 3], distortion) when every row has that one lens (the usual station): the
     #: projection and its derivative then come from one ``cv2.projectPoints`` call
     lens: tuple[Array, Array] | None = None
-    #: −[p]× per row ``[N, 3, 3]`` (d p / d ω), derived from ``p_pf``
-    neg_px: Array = field(init=False, repr=False, compare=False)
+    #: d p / d δ = [−[p]× | I] per row ``[N, 3, 6]``, derived from ``p_pf``: the pose Jacobian
+    #: is one product with it (the identity block copies d uv / d v exactly)
+    dp_ddelta: Array = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         p = self.p_pf
-        m = np.zeros((p.shape[0], 3, 3))
+        m = np.zeros((p.shape[0], 3, 6))
         m[:, 0, 1], m[:, 0, 2] = p[:, 2], -p[:, 1]
         m[:, 1, 0], m[:, 1, 2] = -p[:, 2], p[:, 0]
         m[:, 2, 0], m[:, 2, 1] = p[:, 1], -p[:, 0]
-        object.__setattr__(self, "neg_px", m)
+        m[:, 0, 3] = m[:, 1, 4] = m[:, 2, 5] = 1.0
+        object.__setattr__(self, "dp_ddelta", m)
 
     @property
     def n(self) -> int:
@@ -175,15 +177,8 @@ def residuals_and_jacobian(pk: Packed, R: Array, t: Array) -> tuple[Array, Array
     D[:, 1, 1] = radial + yy * drad2 + 6.0 * p1 * y + 2.0 * p2 * x
     D *= (pk.f * iz[:, None])[:, :, None]
     # d(x, y)/d p_cf = [I2 | -xy] / Z, so d uv / d p_cf = [D | -D·xy]; times A: d uv / d v
-    return res, _pose_jacobian(D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :]), pk), Z
-
-
-def _pose_jacobian(B: Array, pk: Packed) -> Array:
-    """``[N, 2, 6]`` from ``B`` = d uv / d v ``[N, 2, 3]``: d p_cf / dω = −A [p]×."""
-    J = np.empty((pk.n, 2, 6))
-    J[:, :, :3] = B @ pk.neg_px
-    J[:, :, 3:] = B
-    return J
+    # ``[N, 2, 6]`` from B = d uv / d v ``[N, 2, 3]``: d p_cf / dω = −A [p]×.
+    return res, (D @ (A[:, :2, :] - xy[:, :, None] * A[:, 2:3, :])) @ pk.dp_ddelta, Z
 
 
 _NO_MOTION = np.zeros(3)
@@ -201,7 +196,7 @@ def _residuals_and_jacobian_cv(pk: Packed, A: Array, p_cf: Array) -> tuple[Array
     uv, jac = cv2.projectPoints(p_cf, _NO_MOTION, _NO_MOTION, K, dist)
     res = pk.uv - uv.reshape(-1, 2)
     B = jac[:, 3:6].reshape(-1, 2, 3) @ A  # d uv / d v = d uv/d p_cf · A
-    return res, _pose_jacobian(B, pk), p_cf[:, 2]
+    return res, B @ pk.dp_ddelta, p_cf[:, 2]  # d p_cf / dω = −A [p]×
 
 
 @dataclass(frozen=True)
@@ -218,6 +213,9 @@ class LMResult:
     #: [N] depth of each mark in its camera (mm) at the last evaluated pose: (R, t) itself, or
     #: the iterate one converged step (< step_tol σ) before it
     depth: Array
+    #: JᵀWJ (6x6) at ``jacobian`` with the observations' weights, the pose's information
+    #: for the covariance; None for a robust loss (its H carries the IRLS weights)
+    information: Array | None = None
 
 
 def robust_weights(norm_px: Array, loss: str, huber_px: float) -> Array:
@@ -262,25 +260,30 @@ def levenberg_marquardt(
     w2 = w * w
     robust = loss != "linear"
     # Equal weights (the usual case) factor out of H and g: skip the per-row products.
-    w0 = float(w[0]) if bool(np.all(w == w[0])) and not robust else None
+    w0 = float(w[0]) if not robust and bool((w == w[0]).all()) else None
 
     def evaluate(R_: Array, t_: Array) -> tuple[float, Array, Array, Array, Array, Array]:
+        """Cost, H, g (whitened), residuals, Jacobian and depths at (R_, t_)."""
         res, J, Z = residuals_and_jacobian(pk, R_, t_)
         if w0 is not None:
-            r = res.reshape(-1)
-            return 0.5 * w0 * w0 * float(r @ r), r, J.reshape(-1, 6), res, J, Z
+            # [J | r] once: its Gram matrix holds H = JᵀJ, g = Jᵀr and rᵀr in one product.
+            Jr = np.concatenate((J, res[:, :, None]), axis=2).reshape(-1, 7)
+            M = Jr.T @ Jr
+            return 0.5 * w0 * w0 * float(M[6, 6]), M[:6, :6], M[:6, 6], res, J, Z
         s = np.sqrt(np.einsum("ni,ni->n", res, res))
         cost = float(w2 @ robust_rho(s, loss, huber_px))
         # cost Σ w² ρ(|r|): its IRLS form weights each row by w·√(ψ(s)/s)
         iw = w * np.sqrt(robust_weights(s, loss, huber_px))
         Jw = (J * iw[:, None, None]).reshape(-1, 6)
-        return cost, (res * iw[:, None]).reshape(-1), Jw, res, J, Z
+        return cost, Jw.T @ Jw, Jw.T @ (res * iw[:, None]).reshape(-1), res, J, Z
 
     def cost_of(res: Array) -> float:
+        if w0 is not None:
+            return 0.5 * w0 * w0 * float(np.einsum("ni,ni->", res, res))
         s = np.sqrt(np.einsum("ni,ni->n", res, res))
         return float(w2 @ robust_rho(s, loss, huber_px))
 
-    cost, r, Jw, res, J, Z = evaluate(R, t)
+    cost, H, g, res, J, Z = evaluate(R, t)
     initial = cost
     lam = 1e-6
     termination = "max_iterations"
@@ -288,9 +291,7 @@ def levenberg_marquardt(
     it = 0
     while it < max_iterations:
         it += 1
-        # residual = observed − predicted and J is of predicted, so −∇cost = Jᵀr.
-        H = Jw.T @ Jw
-        g = Jw.T @ r
+        # residual = observed − predicted and J is of predicted, so −∇cost = Jᵀr (= g).
         dH = H.flat[::7].copy()  # the diagonal
         accepted = False
         while lam < 1e10:
@@ -326,9 +327,12 @@ def levenberg_marquardt(
             break
         decrease = cost - new[0]
         R, t = R_new, t_new
-        cost, r, Jw, res, J, Z = new
+        cost, H, g, res, J, Z = new
         lam = max(lam * 0.1, 1e-9)
         if decrease <= cost_tol * max(cost, 1e-300):
             termination, converged = "cost", True
             break
-    return LMResult(R, t, it, initial, cost, termination, converged, res, J, Z)
+    # H is at ``J``'s pose (the step's linear move keeps it); with equal weights and no
+    # robust loss it is the information JᵀWJ up to the factored-out w0².
+    info = H * (w0 * w0) if w0 is not None else (H if not robust else None)
+    return LMResult(R, t, it, initial, cost, termination, converged, res, J, Z, info)
