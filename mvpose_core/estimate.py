@@ -11,7 +11,8 @@
 3. refine: Levenberg–Marquardt on the reprojection error of every observation in every camera
    (the paper's eq. 15 over both cameras of each rig), or the paper's left-camera-only objective;
    optional Huber loss and outlier rejection (rule in :class:`EstimateOptions`);
-4. covariance from the final Jacobian (parametrisation in :mod:`mvpose_core.uncertainty`).
+4. covariance from the final Jacobian (the refinement's own JᵀWJ when it saw every observation;
+   parametrisation in :mod:`mvpose_core.uncertainty`).
 """
 
 from __future__ import annotations
@@ -210,11 +211,12 @@ def estimate_pose(
             f"(depth {depth[behind[0]]:.1f} mm): wrong camera, mark or camera pose",
             Reason.MARK_BEHIND_CAMERA,
         )
-    Jw = (J if all_used else J[active]) * (pk_all.weight if all_used else pk_all.weight[active])[
-        :, None, None
-    ]
     try:
-        cov = invert_information(information_from_jacobian(Jw))
+        if all_used and lm.information is not None:  # the refinement's own, at J's pose
+            cov = invert_information(lm.information)
+        else:
+            Jw = J[active] * pk_all.weight[active][:, None, None]
+            cov = invert_information(information_from_jacobian(Jw))
     except ValueError as err:
         raise PoseInputError(str(err), Reason.POSE_NOT_DETERMINED) from None
     r_act = res if all_used else res[active]

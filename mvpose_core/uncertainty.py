@@ -21,6 +21,7 @@ The two parts of a measurement's uncertainty (docs/engine.md, "Uncertainty model
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -92,15 +93,17 @@ def cramer_rao_covariance(
 def invert_information(info: Array) -> Array:
     """Covariance from an information matrix; ``ValueError`` if a direction is unobservable."""
     # Scale rotation against translation before judging conditioning (rad vs mm differ by ~1e3).
-    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
-    normed = info / np.outer(d, d)
+    s = 1.0 / np.sqrt(np.maximum(np.diagonal(info), 1e-300))
+    S = s[:, None] * s
+    normed = info * S
     # One decomposition gives the conditioning and the inverse (LAPACK directly: numpy's
-    # wrapper costs as much as the 6x6 decomposition itself).
+    # wrapper costs as much as the 6x6 decomposition itself). The sum is finite only if every
+    # entry is (normed entries are within ±1 for an information matrix, so it cannot overflow).
     condition = "inf"
-    if np.isfinite(normed).all():
+    if math.isfinite(float(np.add.reduce(normed, axis=None))):
         ev, V, code = dsyevd(normed)
         if code == 0 and ev[0] >= 1e-10 * ev[-1]:
-            return ((V / ev) @ V.T) / np.outer(d, d)
+            return ((V / ev) @ V.T) * S
         if code == 0:
             condition = f"{ev[-1] / max(ev[0], 1e-300):.1e}"
     raise ValueError(

@@ -227,3 +227,22 @@ def test_one_lens_projection_matches_the_general_path(name: str, rational: bool)
         assert np.allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(a)))
     assert not np.allclose(residuals_and_jacobian(pk, R, t)[0], 0.0)
     assert with_lens.subset(np.arange(3)).lens is with_lens.lens
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_refinement_information_is_jtwj_at_its_jacobian(name: str) -> None:
+    """The covariance reuses the refinement's own JᵀWJ: it must be the one at ``jacobian``."""
+    pk, T = packed_with_uv(name)
+    rng = np.random.default_rng(5)
+    noisy = pk.with_measurements(pk.uv + rng.normal(0, 0.5, pk.uv.shape), np.full(pk.n, 2.0))
+    start = perturbed(T, np.array([0.01, -0.02, 0.01, 3.0, -2.0, 4.0]))
+    uneven = noisy.with_measurements(noisy.uv, rng.uniform(0.5, 3.0, pk.n))
+    for p in (noisy, uneven):
+        lm = levenberg_marquardt(p, *start)
+        assert lm.information is not None
+        Jw = lm.jacobian.reshape(-1, 6) * np.repeat(p.weight, 2)[:, None]
+        expected = Jw.T @ Jw
+        scale = np.abs(expected).max()
+        assert np.allclose(lm.information, expected, rtol=1e-12, atol=1e-12 * scale)
+    # a robust loss's H carries the IRLS weights: no information then
+    assert levenberg_marquardt(noisy, *start, loss="huber", huber_px=0.3).information is None
