@@ -22,7 +22,7 @@ from functools import partial
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_core.detect.follow import held_predictions, pose_from_blobs
+from mvpose_core.detect.follow import AGREE_PX, held_predictions, pose_from_blobs
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
@@ -128,9 +128,62 @@ def _follow(
                         recipe, T_prior, start)
     if T is None:
         return [k for k in keys if _unfound(searches[k])]
+    # An image whose first windows already held every facing mark whole, each near its
+    # projection at the pose, keeps those blobs (judged by the windows at the pose); the
+    # others are searched again around it.
+    again = []
+    for k in keys:
+        kept = _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach)
+        if kept is None:
+            again.append(k)
+        else:
+            searches[k] = kept
     search = partial(_search_followed, checked, recipe, T_prior, T, options, reach)
-    searches.update(zip(keys, map_fn(search, keys), strict=True))
+    searches.update(zip(again, map_fn(search, again), strict=True))
     return [k for k in keys if _unfound(searches[k])]
+
+
+def _kept_at(
+    s: _Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
+    T: Array, options: DetectOptions, reach: float,
+) -> _Search | None:
+    """The first search's blobs as the small windows around ``T`` would give them, or None.
+
+    Only when every mark that faces the camera at ``T`` has a blob within :data:`AGREE_PX` of
+    its projection there, and no blob touches its first window's edge (a clipped blob's
+    coarse centre is off and its measurement may fail): the blobs kept are those inside both
+    the first and the followed windows and the whole tolerance's at the prior, judged by the
+    predictions at ``T`` held to the whole tolerance's ranges, as :func:`_search_followed`'s."""
+    image, cam = frame
+    H, W = image.shape
+    at_T = held_predictions(cam, recipe, T_prior, T, options, reach)
+    facing = [p for p in at_T if p.facing]
+    if [p.mark.mark_id for p in facing] != [p.mark.mark_id for p in s.live]:
+        return None
+    boxes = [_box(p, options, W, H) for p in facing]
+    if any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes):
+        return None
+    whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
+    near = [False] * len(facing)
+    cands, scales = [], []
+    for (k, c), sc in zip(s.cands, s.scales, strict=True):
+        b = _box(s.live[k], options, W, H)
+        (u, v), r = c.ellipse.centre, c.ellipse.a + 2.0 * sc + 2.0
+        if not (b[0] < u - r and u + r < b[2] - 1 and b[1] < v - r and v + r < b[3] - 1):
+            return None
+        if math.hypot(u - facing[k].uv[0], v - facing[k].uv[1]) <= AGREE_PX:
+            near[k] = True
+        if _holds(boxes[k], u, v) and _holds(whole[facing[k].mark.mark_id], u, v):
+            cands.append((k, c))
+            scales.append(sc)
+    if not all(near):
+        return None
+    results = {p.mark.mark_id: MarkDetection.missing(
+        p.mark.mark_id, "nothing mark-like in window" if p.facing else FACES_AWAY)
+        for p in at_T}
+    preds = predict_marks_cached(cam, recipe, T, options.size_tolerance,
+                                 options.shape_slack_deg, reach)
+    return _Search(list(preds), results, facing, cands, scales)
 
 
 def _search_followed(
