@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from mvpose_core.detect import DetectOptions, detect_marks_many, recorrect
 from mvpose_core.detect.follow import next_near, pose_from_blobs
-from mvpose_core.detect.window import _search, _unfound
+from mvpose_core.detect.window import _box, _kept_at, _search, _unfound
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.scene import view_cameras
 from mvpose_core.station import load_station
@@ -158,3 +159,35 @@ def test_too_few_marks_for_a_pose_fall_back_to_the_whole_tolerance(  # type: ign
     assert [d.found for d in one[0]] == [d.found for d in whole[0]] == [True, True]
     for a, b in zip(one[0], whole[0], strict=True):
         assert np.abs(a.uv - b.uv).max() < 1e-9  # the very search the whole tolerance makes
+
+
+# A first part there: an image whose first windows already held every facing mark whole, near
+# its projection at the blobs' pose, keeps those blobs (and the pose's predictions); an image
+# that missed a mark, or whose blob touches its first window's edge, is searched again.
+def test_images_whose_first_windows_held_their_marks_keep_them(  # type: ignore[no-untyped-def]
+    station1,
+) -> None:
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    opts = DetectOptions()
+    frames = _frames(cams, recipe, _displaced(recipe, 0.5), clutter=False)
+    first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
+    T = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
+                                                                     strict=True)], recipe, T0)
+    assert T is not None
+    kept = [_kept_at(s, f, recipe, T0, T, opts, 0.25) for s, f in zip(first, frames,
+                                                                      strict=True)]
+    assert [k is None for k in kept] == [_unfound(s) for s in first] == [True, False, False,
+                                                                         False]
+    for k, s in zip(kept[1:], first[1:], strict=True):
+        assert k is not None and [c for _, c in k.cands] == [c for _, c in s.cands]
+        assert all(np.hypot(*(c.ellipse.centre - k.live[j].uv)) < 12.0 for j, c in k.cands)
+    # The same blob, as large as to reach its first window's edge (clipped there): searched
+    # again, though its centre is where it was.
+    s = first[1]
+    j, c = s.cands[0]
+    u0 = _box(s.live[j], opts, *frames[1][0].shape[::-1])[0]
+    edge = replace(c, ellipse=replace(c.ellipse, a=float(c.ellipse.centre[0]) - u0))
+    clipped = replace(s, cands=[(j, edge)] + s.cands[1:])
+    assert _kept_at(clipped, frames[1], recipe, T0, T, opts, 0.25) is None
+    assert _kept_at(s, frames[1], recipe, T0, T, opts, 0.25) is not None
