@@ -69,7 +69,8 @@ def detect_marks_many(
     tolerance, and that result is the image's. Before that, when a facing mark has no blob at
     all in its small window, the pose of the blobs that the small windows held (three marks or
     more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
-    there (an image whose blobs already agree with it keeps them, :func:`_kept_at`); only an image still missing a blob then gets the whole tolerance's windows.
+    there (an image whose blobs already agree with it keeps them, :func:`_kept_at`); only an
+    image still missing a blob then gets the whole tolerance's windows.
     ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
     puts the first search's small windows there instead of at the prior, held to what the
     whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
