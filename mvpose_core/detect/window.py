@@ -85,7 +85,7 @@ def detect_marks_many(
     for n, reach in enumerate(reaches):
         if n == 0 and start is not T_rf_from_pf_prior:
             search = partial(_search_followed, checked, recipe, T_rf_from_pf_prior, start,
-                             options, reach)
+                             options, reach, None)
         else:
             search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
         searches = dict(zip(todo, map_fn(search, todo), strict=True))
@@ -130,74 +130,95 @@ def _follow(
                         recipe, T_prior, start)
     if T is None:
         return [k for k in keys if _unfound(searches[k])]
-    # An image whose first windows already held every facing mark whole, each near its
-    # projection at the pose, keeps those blobs (judged by the windows at the pose); the
-    # others are searched again around it.
-    again = []
+    # A mark whose first window already held it whole, near its projection at the pose, keeps
+    # those blobs; only the other marks' windows around the pose are searched (an image whose
+    # marks are laid out otherwise there: all of them).
+    kept: dict[int, tuple[_Search, frozenset[str]] | None] = {
+        k: _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach) for k in keys}
+    only = {k: None if v is None else v[1] for k, v in kept.items()}
+    again = [k for k in keys if only[k] is None or only[k]]
+    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach, only)
+    found = dict(zip(again, map_fn(search, again), strict=True))
     for k in keys:
-        kept = _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach)
-        if kept is None:
-            again.append(k)
-        else:
-            searches[k] = kept
-    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach)
-    searches.update(zip(again, map_fn(search, again), strict=True))
+        v = kept[k]
+        searches[k] = found[k] if v is None else _joined(v[0], found.get(k))
     return [k for k in keys if _unfound(searches[k])]
 
 
 def _kept_at(
     s: _Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
-) -> _Search | None:
-    """The first search's blobs as the small windows around ``T`` would give them, or None.
+) -> tuple[_Search, frozenset[str]] | None:
+    """The first search's blobs as the small windows around ``T`` would judge them, and the
+    marks whose windows there are still to be searched; None: search every window.
 
-    Only when every mark that faces the camera at ``T`` has a blob within :data:`AGREE_PX` of
-    its projection there, and no blob touches its first window's edge (a clipped blob's
-    coarse centre is off and its measurement may fail): the blobs kept are those inside both
-    the first and the followed windows and the whole tolerance's at the prior, judged by the
-    predictions at ``T`` held to the whole tolerance's ranges, as :func:`_search_followed`'s."""
+    A mark keeps its blobs when one is within :data:`AGREE_PX` of its projection at ``T`` and
+    none touches its first window's edge (a clipped blob's coarse centre is off and its
+    measurement may fail); only those inside both its followed window and the whole
+    tolerance's at the prior are kept, judged by the predictions at ``T`` held to the whole
+    tolerance's ranges, as :func:`_search_followed`'s. None when the marks with a window in
+    the image differ between the first windows and those at ``T``."""
     image, cam = frame
     H, W = image.shape
     at_T = held_predictions(cam, recipe, T_prior, T, options, reach)
-    facing = [p for p in at_T if p.facing]
-    if [p.mark.mark_id for p in facing] != [p.mark.mark_id for p in s.live]:
-        return None
-    boxes = [_box(p, options, W, H) for p in facing]
-    if any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes):
+    live = [p for p in at_T if p.facing]
+    boxes = [_box(p, options, W, H) for p in live]
+    if (any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes)
+            or [p.mark.mark_id for p in live] != [p.mark.mark_id for p in s.live]):
         return None
     whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
-    near = [False] * len(facing)
+    near = [False] * len(live)
+    clipped = [False] * len(live)
+    for k, c in s.cands:
+        b = _box(s.live[k], options, W, H)
+        (u, v), r = c.ellipse.centre, c.ellipse.a + 2.0 * max(s.scales) + 2.0
+        if not (b[0] < u - r and u + r < b[2] - 1 and b[1] < v - r and v + r < b[3] - 1):
+            clipped[k] = True
+        if math.hypot(u - live[k].uv[0], v - live[k].uv[1]) <= AGREE_PX:
+            near[k] = True
+    keep = [n and not c for n, c in zip(near, clipped, strict=True)]
     cands, scales = [], []
     for (k, c), sc in zip(s.cands, s.scales, strict=True):
-        b = _box(s.live[k], options, W, H)
-        (u, v), r = c.ellipse.centre, c.ellipse.a + 2.0 * sc + 2.0
-        if not (b[0] < u - r and u + r < b[2] - 1 and b[1] < v - r and v + r < b[3] - 1):
-            return None
-        if math.hypot(u - facing[k].uv[0], v - facing[k].uv[1]) <= AGREE_PX:
-            near[k] = True
-        if _holds(boxes[k], u, v) and _holds(whole[facing[k].mark.mark_id], u, v):
+        u, v = c.ellipse.centre
+        if keep[k] and _holds(boxes[k], u, v) and _holds(whole[live[k].mark.mark_id], u, v):
             cands.append((k, c))
             scales.append(sc)
-    if not all(near):
-        return None
     results = {p.mark.mark_id: MarkDetection.missing(
         p.mark.mark_id, "nothing mark-like in window" if p.facing else FACES_AWAY)
         for p in at_T}
     preds = predict_marks_cached(cam, recipe, T, options.size_tolerance,
                                  options.shape_slack_deg, reach)
-    return _Search(list(preds), results, facing, cands, scales)
+    rest = frozenset(p.mark.mark_id for p, k in zip(live, keep, strict=True) if not k)
+    return _Search(list(preds), results, live, cands, scales), rest
+
+
+def _joined(kept: _Search, found: _Search | None) -> _Search:
+    """The kept blobs with those found in the other marks' windows (None: no other), less a
+    blob found again (within half its radius of a kept one)."""
+    if found is None:
+        return kept
+    assert [p.mark.mark_id for p in found.live] == [p.mark.mark_id for p in kept.live]
+    cands, scales = list(kept.cands), list(kept.scales)
+    for (k, c), sc in zip(found.cands, found.scales, strict=True):
+        if all(np.hypot(*(c.ellipse.centre - d.ellipse.centre)) > 0.5 * c.ellipse.radius
+               for _, d in kept.cands):
+            cands.append((k, c))
+            scales.append(sc)
+    return replace(found, cands=cands, scales=scales)
 
 
 def _search_followed(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
-    T: Array, options: DetectOptions, reach: float, k: int,
+    T: Array, options: DetectOptions, reach: float,
+    only: dict[int, frozenset[str] | None] | None, k: int,
 ) -> _Search:
-    """The small windows around the pose ``T``, held to what the whole tolerance's search at
-    the prior accepts: only blobs inside the mark's whole window, sizes and shapes within its
-    ranges. The perspective correction is the one at ``T``, nearer the part than the prior's
-    (the server then seldom measures the pose a second time, docs/detection.md)."""
+    """The small windows around the pose ``T`` (those of the marks ``only[k]``; None: all),
+    held to what the whole tolerance's search at the prior accepts: only blobs inside the
+    mark's whole window, sizes and shapes within its ranges. The perspective correction is the
+    one at ``T``, nearer the part than the prior's (the server then seldom measures the pose a
+    second time, docs/detection.md)."""
     image, cam = checked[k]
-    s = _search(image, cam, recipe, T, options, reach)
+    s = _search(image, cam, recipe, T, options, reach, None if only is None else only[k])
     H, W = image.shape
     whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
     held = {p.mark.mark_id: p for p in held_predictions(cam, recipe, T_prior, T, options,
@@ -285,7 +306,9 @@ def _search(
     T_rf_from_pf_prior: Array,
     options: DetectOptions,
     reach: float = 1.0,
+    only: frozenset[str] | None = None,
 ) -> _Search:
+    """One image's windows (those of the marks ``only``; None: all) and their blobs."""
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
     )
@@ -307,7 +330,9 @@ def _search(
         boxes.append(box)
     cands: list[tuple[int, Candidate]] = []
     scales: list[int] = []
-    for members, region in _merge_windows(boxes, [p.dark for p in live]):
+    idx = [k for k, p in enumerate(live) if only is None or p.mark.mark_id in only]
+    for group, region in _merge_windows([boxes[k] for k in idx], [live[k].dark for k in idx]):
+        members = [idx[m] for m in group]
         # Large tolerances make the windows of one camera's marks overlap almost entirely:
         # search their union once instead of the same pixels once per mark.
         dark = live[members[0]].dark
