@@ -6,8 +6,8 @@ geometry of this camera. The search first uses small windows, quickly searched: 
 the prior pose, or near where the last good part was (``near``), within
 ``DetectOptions.first_reach_mm`` / ``first_reach_deg`` when the tolerances are wider. When a
 mark had no blob there, the blobs the small windows did hold give the part's pose (follow.py)
-and every image is searched in the small windows around that pose (but an image whose first
-windows held every mark near it, unclipped, keeps those blobs); an image where a mark is
+and every image is searched in the small windows around that pose (but a mark whose first
+window held it near there, unclipped, keeps those blobs); an image where a mark is
 still not found is searched over the whole tolerance. Accepted
 candidates from all windows are assigned to marks jointly (least total distance to the
 predictions), so two marks never take the same blob.
@@ -69,7 +69,7 @@ def detect_marks_many(
     tolerance, and that result is the image's. Before that, when a facing mark has no blob at
     all in its small window, the pose of the blobs that the small windows held (three marks or
     more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
-    there (an image whose blobs already agree with it keeps them, :func:`_kept_at`); only an
+    there (a mark whose blobs already agree with it keeps them, :func:`_kept_at`); only an
     image still missing a blob then gets the whole tolerance's windows.
     ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
     puts the first search's small windows there instead of at the prior, held to what the
