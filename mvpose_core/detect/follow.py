@@ -3,10 +3,11 @@
 When a part lies beyond the first reach (docs/detection.md, "Two reaches"), some of its marks
 still leave blobs in their small windows (a mark near the rotation's centre moves little; a mark
 at a window's edge is clipped but found). Their coarse centres (before measurement, within a few
-pixels of the marks) give a pose with the estimator the measurement uses
-(:func:`mvpose_core.estimate.estimate_pose`, started at the first windows' pose); the windows of
-the first reach around that pose then hold the marks, and are searched instead of the whole
-tolerance's.
+pixels of the marks) give a pose by the refinement the measurement uses
+(:func:`mvpose_core.refine.levenberg_marquardt`, started at the first windows' pose, with the
+estimator's outlier rule; without its other starts and its covariance, which these windows do
+not need: the same pose at ~40 % of the cost); the windows of the first reach around that pose
+then hold the marks, and are searched instead of the whole tolerance's.
 
 A pose is given only when it is trustworthy: three or more distinct marks, every kept blob within
 :data:`AGREE_PX` of its projection at the pose, and the pose within the recipe's tolerance of the
@@ -28,8 +29,8 @@ from mvpose_core.cache import IdentityCache
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate
 from mvpose_core.detect.types import DetectOptions
-from mvpose_core.estimate import EstimateOptions, estimate_pose
-from mvpose_core.problem import Observation, PoseInputError
+from mvpose_core.problem import Observation, PoseInputError, build_problem
+from mvpose_core.refine import LMResult, Packed, levenberg_marquardt, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
@@ -37,7 +38,7 @@ from mvpose_core.transforms import Array
 #: a blob farther than this from its mark's projection at the estimated pose (px) is dropped by
 #: the estimator's outlier rule; a pose whose kept blobs are not all within it is not used
 AGREE_PX = 12.0
-_OPTIONS = EstimateOptions(outlier_px=AGREE_PX, max_iterations=10, max_rejections=2)
+_REJECTIONS = 2  # the most blobs dropped by the outlier rule
 #: the last part's pose is remembered anew for the next trigger's windows only when it moved by
 #: more than this share of the first reach (5 mm / 0.5° for 25 mm / 2.5°): the windows around
 #: it are predicted once, and a part that close is far inside them
@@ -52,9 +53,9 @@ def pose_from_blobs(
 ) -> Array | None:
     """``T_rf_from_pf`` from each camera's blobs (index in its predictions, blob), or None.
 
-    Each mark's blob nearest its prediction stands for it in that camera. The estimator starts
-    at ``start`` (default: the prior) when the layout gives no start of its own; the pose must
-    be within the recipe's tolerance of the prior ``T_prior``.
+    Each mark's blob nearest its prediction stands for it in that camera. The refinement
+    starts at ``start`` (default: the prior); every mark in front of its camera, and the pose
+    within the recipe's tolerance of the prior ``T_prior``.
     """
     obs: list[Observation] = []
     for cam, preds, cands in blobs:
@@ -68,21 +69,40 @@ def pose_from_blobs(
     if len({o.mark_id for o in obs}) < 3:
         return None
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
+    T_start = T_prior if start is None else start
     try:
-        res = estimate_pose(obs, [c for c, _, _ in blobs], marks_pf, _OPTIONS,
-                            initial_T_rf_from_pf=T_prior if start is None else start)
+        pk = build_problem(obs, [c for c, _, _ in blobs], marks_pf, 1.0).pk
+        lm = _refine(pk, T_start[:3, :3], T_start[:3, 3])
+        # The estimator's outlier rule: the blob farthest from its projection beyond AGREE_PX
+        # is dropped and the pose refined again, never below three marks.
+        active = np.ones(len(obs), dtype=bool)
+        for _ in range(_REJECTIONS):
+            r = residuals_and_jacobian(pk, lm.R, lm.t)[0]
+            length = np.where(active, np.hypot(r[:, 0], r[:, 1]), -1.0)
+            worst = int(np.argmax(length))
+            if length[worst] <= AGREE_PX:
+                break
+            active[worst] = False
+            if len({obs[i].mark_id for i in np.flatnonzero(active).tolist()}) < 3:
+                return None
+            lm = _refine(pk.subset(active), lm.R, lm.t)
+        r, _, depth = residuals_and_jacobian(pk, lm.R, lm.t)
     except (PoseInputError, np.linalg.LinAlgError):
         return None
-    used = res.used if len(res.used) else np.ones(len(obs), dtype=bool)
-    if len({obs[i].mark_id for i in np.flatnonzero(used).tolist()}) < 3:
+    kept = r[active]
+    if (not bool((depth[active] > 0).all())
+            or float(np.max(np.hypot(kept[:, 0], kept[:, 1]))) > AGREE_PX):
         return None
-    kept = res.residuals_px[used]
-    if float(np.max(np.hypot(kept[:, 0], kept[:, 1]))) > AGREE_PX:
-        return None
-    T = res.T_rf_from_pf
+    T = np.eye(4)
+    T[:3, :3] = lm.R
+    T[:3, 3] = lm.t
     if not _within_tolerance(T, T_prior, recipe):
         return None
     return T
+
+
+def _refine(pk: Packed, R: Array, t: Array) -> LMResult:
+    return levenberg_marquardt(pk, R, t, max_iterations=10, step_tol=3e-2)
 
 
 def _predictions(cam: ViewCamera, recipe: RecipeConfig, T: Array, options: DetectOptions,

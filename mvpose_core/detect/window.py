@@ -6,7 +6,8 @@ geometry of this camera. The search first uses small windows, quickly searched: 
 the prior pose, or near where the last good part was (``near``), within
 ``DetectOptions.first_reach_mm`` / ``first_reach_deg`` when the tolerances are wider. When a
 mark had no blob there, the blobs the small windows did hold give the part's pose (follow.py)
-and every image is searched in the small windows around that pose; an image where a mark is
+and every image is searched in the small windows around that pose (but a mark whose first
+window held it near there, unclipped, keeps those blobs); an image where a mark is
 still not found is searched over the whole tolerance. Accepted
 candidates from all windows are assigned to marks jointly (least total distance to the
 predictions), so two marks never take the same blob.
@@ -22,7 +23,7 @@ from functools import partial
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_core.detect.follow import held_predictions, pose_from_blobs
+from mvpose_core.detect.follow import AGREE_PX, held_predictions, pose_from_blobs
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
@@ -68,7 +69,8 @@ def detect_marks_many(
     tolerance, and that result is the image's. Before that, when a facing mark has no blob at
     all in its small window, the pose of the blobs that the small windows held (three marks or
     more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
-    there; only an image still missing a blob then gets the whole tolerance's windows.
+    there (a mark whose blobs already agree with it keeps them, :func:`_kept_at`); only an
+    image still missing a blob then gets the whole tolerance's windows.
     ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
     puts the first search's small windows there instead of at the prior, held to what the
     whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
@@ -83,7 +85,7 @@ def detect_marks_many(
     for n, reach in enumerate(reaches):
         if n == 0 and start is not T_rf_from_pf_prior:
             search = partial(_search_followed, checked, recipe, T_rf_from_pf_prior, start,
-                             options, reach)
+                             options, reach, None)
         else:
             search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
         searches = dict(zip(todo, map_fn(search, todo), strict=True))
@@ -128,21 +130,95 @@ def _follow(
                         recipe, T_prior, start)
     if T is None:
         return [k for k in keys if _unfound(searches[k])]
-    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach)
-    searches.update(zip(keys, map_fn(search, keys), strict=True))
+    # A mark whose first window already held it whole, near its projection at the pose, keeps
+    # those blobs; only the other marks' windows around the pose are searched (an image whose
+    # marks are laid out otherwise there: all of them).
+    kept: dict[int, tuple[_Search, frozenset[str]] | None] = {
+        k: _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach) for k in keys}
+    only = {k: None if v is None else v[1] for k, v in kept.items()}
+    again = [k for k in keys if only[k] is None or only[k]]
+    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach, only)
+    found = dict(zip(again, map_fn(search, again), strict=True))
+    for k in keys:
+        v = kept[k]
+        searches[k] = found[k] if v is None else _joined(v[0], found.get(k))
     return [k for k in keys if _unfound(searches[k])]
+
+
+def _kept_at(
+    s: _Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
+    T: Array, options: DetectOptions, reach: float,
+) -> tuple[_Search, frozenset[str]] | None:
+    """The first search's blobs as the small windows around ``T`` would judge them, and the
+    marks whose windows there are still to be searched; None: search every window.
+
+    A mark keeps its blobs when one is within :data:`AGREE_PX` of its projection at ``T`` and
+    none touches its first window's edge (a clipped blob's coarse centre is off and its
+    measurement may fail); only those inside both its followed window and the whole
+    tolerance's at the prior are kept, judged by the predictions at ``T`` held to the whole
+    tolerance's ranges, as :func:`_search_followed`'s. None when the marks with a window in
+    the image differ between the first windows and those at ``T``."""
+    image, cam = frame
+    H, W = image.shape
+    at_T = held_predictions(cam, recipe, T_prior, T, options, reach)
+    live = [p for p in at_T if p.facing]
+    boxes = [_box(p, options, W, H) for p in live]
+    if (any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes)
+            or [p.mark.mark_id for p in live] != [p.mark.mark_id for p in s.live]):
+        return None
+    whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
+    near = [False] * len(live)
+    clipped = [False] * len(live)
+    for k, c in s.cands:
+        b = _box(s.live[k], options, W, H)
+        (u, v), r = c.ellipse.centre, c.ellipse.a + 2.0 * max(s.scales) + 2.0
+        if not (b[0] < u - r and u + r < b[2] - 1 and b[1] < v - r and v + r < b[3] - 1):
+            clipped[k] = True
+        if math.hypot(u - live[k].uv[0], v - live[k].uv[1]) <= AGREE_PX:
+            near[k] = True
+    keep = [n and not c for n, c in zip(near, clipped, strict=True)]
+    cands, scales = [], []
+    for (k, c), sc in zip(s.cands, s.scales, strict=True):
+        u, v = c.ellipse.centre
+        if keep[k] and _holds(boxes[k], u, v) and _holds(whole[live[k].mark.mark_id], u, v):
+            cands.append((k, c))
+            scales.append(sc)
+    results = {p.mark.mark_id: MarkDetection.missing(
+        p.mark.mark_id, "nothing mark-like in window" if p.facing else FACES_AWAY)
+        for p in at_T}
+    preds = predict_marks_cached(cam, recipe, T, options.size_tolerance,
+                                 options.shape_slack_deg, reach)
+    rest = frozenset(p.mark.mark_id for p, k in zip(live, keep, strict=True) if not k)
+    return _Search(list(preds), results, live, cands, scales), rest
+
+
+def _joined(kept: _Search, found: _Search | None) -> _Search:
+    """The kept blobs with those found in the other marks' windows (None: no other), less a
+    blob found again (within half its radius of a kept one)."""
+    if found is None:
+        return kept
+    assert [p.mark.mark_id for p in found.live] == [p.mark.mark_id for p in kept.live]
+    cands, scales = list(kept.cands), list(kept.scales)
+    for (k, c), sc in zip(found.cands, found.scales, strict=True):
+        if all(np.hypot(*(c.ellipse.centre - d.ellipse.centre)) > 0.5 * c.ellipse.radius
+               for _, d in kept.cands):
+            cands.append((k, c))
+            scales.append(sc)
+    return replace(found, cands=cands, scales=scales)
 
 
 def _search_followed(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
-    T: Array, options: DetectOptions, reach: float, k: int,
+    T: Array, options: DetectOptions, reach: float,
+    only: dict[int, frozenset[str] | None] | None, k: int,
 ) -> _Search:
-    """The small windows around the pose ``T``, held to what the whole tolerance's search at
-    the prior accepts: only blobs inside the mark's whole window, sizes and shapes within its
-    ranges. The perspective correction is the one at ``T``, nearer the part than the prior's
-    (the server then seldom measures the pose a second time, docs/detection.md)."""
+    """The small windows around the pose ``T`` (those of the marks ``only[k]``; None: all),
+    held to what the whole tolerance's search at the prior accepts: only blobs inside the
+    mark's whole window, sizes and shapes within its ranges. The perspective correction is the
+    one at ``T``, nearer the part than the prior's (the server then seldom measures the pose a
+    second time, docs/detection.md)."""
     image, cam = checked[k]
-    s = _search(image, cam, recipe, T, options, reach)
+    s = _search(image, cam, recipe, T, options, reach, None if only is None else only[k])
     H, W = image.shape
     whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
     held = {p.mark.mark_id: p for p in held_predictions(cam, recipe, T_prior, T, options,
@@ -230,7 +306,9 @@ def _search(
     T_rf_from_pf_prior: Array,
     options: DetectOptions,
     reach: float = 1.0,
+    only: frozenset[str] | None = None,
 ) -> _Search:
+    """One image's windows (those of the marks ``only``; None: all) and their blobs."""
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
     )
@@ -252,7 +330,9 @@ def _search(
         boxes.append(box)
     cands: list[tuple[int, Candidate]] = []
     scales: list[int] = []
-    for members, region in _merge_windows(boxes, [p.dark for p in live]):
+    idx = [k for k, p in enumerate(live) if only is None or p.mark.mark_id in only]
+    for group, region in _merge_windows([boxes[k] for k in idx], [live[k].dark for k in idx]):
+        members = [idx[m] for m in group]
         # Large tolerances make the windows of one camera's marks overlap almost entirely:
         # search their union once instead of the same pixels once per mark.
         dark = live[members[0]].dark

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from mvpose_core.detect import DetectOptions, detect_marks_many, recorrect
 from mvpose_core.detect.follow import next_near, pose_from_blobs
-from mvpose_core.detect.window import _search, _unfound
+from mvpose_core.detect.window import _box, _kept_at, _search, _unfound
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.scene import view_cameras
 from mvpose_core.station import load_station
@@ -158,3 +159,40 @@ def test_too_few_marks_for_a_pose_fall_back_to_the_whole_tolerance(  # type: ign
     assert [d.found for d in one[0]] == [d.found for d in whole[0]] == [True, True]
     for a, b in zip(one[0], whole[0], strict=True):
         assert np.abs(a.uv - b.uv).max() < 1e-9  # the very search the whole tolerance makes
+
+
+# A first part there: a mark whose first window already held it whole, near its projection at
+# the blobs' pose, keeps its blobs (judged by the pose's predictions); only the other marks'
+# windows are searched again, and a blob that touches its first window's edge is searched again.
+def test_marks_whose_first_windows_held_them_keep_their_blobs(  # type: ignore[no-untyped-def]
+    station1,
+) -> None:
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    opts = DetectOptions()
+    frames = _frames(cams, recipe, _displaced(recipe, 0.5), clutter=False)
+    first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
+    T = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
+                                                                     strict=True)], recipe, T0)
+    assert T is not None
+    kept = [_kept_at(s, f, recipe, T0, T, opts, 0.25) for s, f in zip(first, frames,
+                                                                      strict=True)]
+    assert all(k is not None for k in kept)
+    # the first camera's first windows missed T1 and clipped T2 at their edge; the others held
+    # their marks whole
+    assert [k[1] for k in kept if k is not None] == [{"T1", "T2"}] + [frozenset()] * 3
+    assert kept[0] is not None and kept[0][0].cands == []
+    for k, s in zip(kept[1:], first[1:], strict=True):
+        assert k is not None and [c for _, c in k[0].cands] == [c for _, c in s.cands]
+        assert all(np.hypot(*(c.ellipse.centre - k[0].live[j].uv)) < 12.0
+                   for j, c in k[0].cands)
+    # The same blob, as large as to reach its first window's edge (clipped there): its mark is
+    # searched again, though its centre is where it was.
+    s = first[1]
+    j, c = s.cands[0]
+    u0 = _box(s.live[j], opts, *frames[1][0].shape[::-1])[0]
+    edge = replace(c, ellipse=replace(c.ellipse, a=float(c.ellipse.centre[0]) - u0))
+    clipped = _kept_at(replace(s, cands=[(j, edge)] + s.cands[1:]), frames[1], recipe, T0, T,
+                       opts, 0.25)
+    assert clipped is not None and clipped[1] == {s.live[j].mark.mark_id}
+    assert [c for _, c in clipped[0].cands] == [c for _, c in s.cands[1:]]
