@@ -147,9 +147,9 @@ class Pipeline:
         self._procs = DetectPool(options.detect_processes) if options.detect_processes else None
         self._taught = {(vc.view, vc.camera_id): vc for vc in view_cameras(station)}
         self._store_ms: deque[float] = deque(maxlen=50)
-        # Where the last good part was (its recipe, its pose): the next trigger's first windows
-        # are searched there (mvpose_core.detect.follow.next_near). Trigger thread only.
-        self._near: tuple[RecipeConfig, Array] | None = None
+        # The last good part's recipe, where the next trigger's first windows are searched (None:
+        # the prior; mvpose_core.detect.follow.next_near) and the part's pose. Trigger thread only.
+        self._near: tuple[RecipeConfig, Array | None, Array] | None = None
 
     def warm_up(self, recipe: RecipeConfig, passes: int = 8) -> None:
         """Run a trigger's computations on made-up input before the station is ready (nothing
@@ -336,10 +336,11 @@ class Pipeline:
         if code == 0 and meas is not None and not _finite_measurement(meas):
             code, message = int(Reason.INTERNAL_ERROR), "the estimate is not finite"
         if code == 0 and meas is not None:
-            last = self._near[1] if self._near is not None and self._near[0] is rc else None
-            near = next_near(last, meas.T_rf_from_pf, rc.T_rf_from_pf0.matrix, rc,
-                             self.options.detect)
-            self._near = None if near is None else (rc, near)
+            near, last = ((self._near[1], self._near[2])
+                          if self._near is not None and self._near[0] is rc else (None, None))
+            T = meas.T_rf_from_pf
+            near = next_near(near, last, T, rc.T_rf_from_pf0.matrix, rc, self.options.detect)
+            self._near = (rc, near, np.array(T, dtype=float))
 
         # Keep the usual slow append in reserve: the p90 of the last 50 without the slowest one.
         # Never the maximum: one fsync stall would otherwise fail the next triggers (with a few

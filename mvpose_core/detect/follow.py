@@ -138,12 +138,18 @@ def held_predictions(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, T: A
 
 
 def next_near(
-    near: Array | None, T: Array, T_prior: Array, recipe: RecipeConfig, options: DetectOptions,
+    near: Array | None, last: Array | None, T: Array, T_prior: Array, recipe: RecipeConfig,
+    options: DetectOptions,
 ) -> Array | None:
-    """Where the next trigger's first windows go, after a part measured at ``T``.
+    """Where the next trigger's first windows go, after a part measured at ``T`` (the part
+    before it was measured at ``last``; None: none, or not measured).
 
-    A line's parts vary around the last one: the first search of the next trigger is made in
-    the first reach's windows around where the last part was (``near``; None: the prior).
+    A line whose parts sit off the reference at one place (a skid or fixture off its taught
+    position) is searched there: once two parts in a row lay within the first reach of each
+    other, the next trigger's first search is made in the first reach's windows around ``T``
+    (``near``; None: the prior). A part that jumped from the last one says nothing about the
+    next, so the search goes back to the prior, whose windows are remembered: a line whose parts
+    scatter over the tolerance pays no window prediction at a pose it will not see again.
     ``near`` moves to ``T`` only when ``T`` is more than :data:`NEAR_SHARE` of the first reach
     away from it (so the windows around it are predicted once, not at every trigger), and goes
     back to None when ``T`` is that close to the prior. None when the recipe has one reach."""
@@ -151,11 +157,14 @@ def next_near(
     if options.first_reach(tol.max_offset_mm, tol.max_offset_deg) is None:
         return None
     assert options.first_reach_mm is not None  # first_reach is None without it
-    step = (NEAR_SHARE * options.first_reach_mm, NEAR_SHARE * options.first_reach_deg)
+    reach = (options.first_reach_mm, options.first_reach_deg)
+    step = (NEAR_SHARE * reach[0], NEAR_SHARE * reach[1])
     if near is not None and _within(T, near, recipe, *step):
         return near
     if _within(T, T_prior, recipe, *step):
         return None
+    if last is None or not _within(T, last, recipe, *reach):
+        return None  # a part that jumped: the next search starts at the prior
     return np.array(T, dtype=float)
 
 

@@ -104,20 +104,28 @@ def test_windows_near_the_last_part_give_the_whole_tolerance_result(  # type: ig
         assert not any(_unfound(s) for s in first)
 
 
-# The last part's pose is remembered anew only when it moved by more than a fifth of the first
-# reach (5 mm / 0.5°) from the remembered one, and forgotten near the reference.
-def test_the_next_windows_follow_the_last_part_in_steps(station1) -> None:  # type: ignore[no-untyped-def]
+# The next trigger's first windows go where the last part was once two parts in a row lay within
+# the first reach (25 mm / 2.5°) of each other; that place is remembered anew only when a part
+# moved by more than a fifth of the first reach (5 mm / 0.5°) from it, and forgotten near the
+# reference. A part that jumped sends the next search back to the reference.
+def test_the_next_windows_follow_a_part_that_stays_in_steps(station1) -> None:  # type: ignore[no-untyped-def]
     _, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
     opts = DetectOptions()
-    a = next_near(None, _displaced(recipe, 0.5), T0, recipe, opts)
-    assert a is not None and np.allclose(a, _displaced(recipe, 0.5))
-    assert next_near(a, _displaced(recipe, 0.52), T0, recipe, opts) is a  # 2 mm / 0.2°
-    b = next_near(a, _displaced(recipe, 0.6), T0, recipe, opts)  # 10 mm / 1°
-    assert b is not a and b is not None and np.allclose(b, _displaced(recipe, 0.6))
-    assert next_near(b, _displaced(recipe, 0.03), T0, recipe, opts) is None
-    assert next_near(None, _displaced(recipe, 0.03), T0, recipe, opts) is None
-    assert next_near(a, _displaced(recipe, 0.5), T0, recipe,
+
+    def d(share: float) -> np.ndarray:
+        return _displaced(recipe, share)
+
+    assert next_near(None, None, d(0.5), T0, recipe, opts) is None  # the first part there
+    a = next_near(None, d(0.5), d(0.52), T0, recipe, opts)  # the second, 2 mm / 0.2° from it
+    assert a is not None and np.allclose(a, d(0.52))
+    assert next_near(a, d(0.52), d(0.5), T0, recipe, opts) is a
+    b = next_near(a, d(0.5), d(0.6), T0, recipe, opts)  # 10 mm / 1° from the remembered place
+    assert b is not a and b is not None and np.allclose(b, d(0.6))
+    assert next_near(b, d(0.6), d(0.03), T0, recipe, opts) is None  # back at the reference
+    assert next_near(None, None, d(0.03), T0, recipe, opts) is None
+    assert next_near(a, d(0.52), d(-0.5), T0, recipe, opts) is None  # a jump: 100 mm / 10°
+    assert next_near(a, d(0.52), d(0.5), T0, recipe,
                      DetectOptions(first_reach_mm=None)) is None  # one reach: no windows to move
 
 
