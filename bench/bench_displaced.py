@@ -6,7 +6,7 @@ displacements of a quarter, a half and nine tenths of the recipe's tolerance (±
 translation and the rotation about the marks' centroid each that share of their bound). The
 conditions come in alternating blocks (each block renders its pose first, untimed), so a host
 that gets busier over the run counts the same for each. Each displacement is measured twice:
-"after a part there" (the station remembers where the last good part was and searches its first
+"after a part there" (the station remembers where the last good parts sat and searches its first
 windows there, as on a line whose parts vary around the last one) and "first part there" (that
 memory forgotten before every trigger: the part is found by the pose of the blobs its first
 windows at the reference held, or by the whole tolerance's windows). Target (issue 28): the
