@@ -368,8 +368,8 @@ def _moved(recipe: Any, share: float) -> np.ndarray:
     return np.asarray(recipe.T_rf_from_pf0.matrix @ D)
 
 
-# A line's parts vary around the last one, so the station searches its first windows where the
-# last good part was (mvpose_core.detect.follow.next_near). That memory never keeps a part from
+# After two parts in a row at one place the station searches its first windows where the last
+# good part was (mvpose_core.detect.follow.next_near). That memory never keeps a part from
 # being found: a part far from the reference, one a little beside it, one back at the
 # reference, one at the opposite side of the tolerance and one there again are each measured OK
 # at their own pose, on the trigger thread and on detection processes.
