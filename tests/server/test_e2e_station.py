@@ -260,9 +260,15 @@ async def test_a_rehearsal_moves_only_a_simulated_part(tmp_path: Path) -> None:
     from server.errors import ConflictError
     from server.station.client import StationClient
 
+    # a folder with an image, so the cameras come up at once (the start waits up to 10 s for
+    # cameras that are down); nothing is grabbed from it
+    folder = tmp_path / "images"
+    folder.mkdir()
+    (folder / "0001.pgm").write_bytes(b"P5 1 1 255\n\x00")
+
     def files_cameras(data: dict[str, Any]) -> None:
         for cam in data["cameras"]:
-            cam["driver"] = {"kind": "files", "folder": str(tmp_path / "no-images")}
+            cam["driver"] = {"kind": "files", "folder": str(folder)}
 
     path = station_file(tmp_path, "lab", relaxed_deadline, files_cameras)
     settings = settings_for(path, tmp_path / "var")
