@@ -43,7 +43,7 @@ demo: $(STAMP) $(MO)
 	$(BIN)/mvpose demo --triggers 10
 
 test: $(STAMP) $(MO)
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q tests --durations=25
 
 bench: $(STAMP) $(MO)
 	$(BIN)/python -m bench

@@ -16,9 +16,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import threading
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import anyio.to_thread
 from fastapi import APIRouter, Depends, Request
@@ -30,6 +31,10 @@ from server.web.context import need, page_user, runtime_of
 from server.web.i18n import N_, _
 from server.web.live import KEEPALIVE_S, QUEUE, STREAM_S, sse
 from server.web.pages import Html, to_login
+
+if TYPE_CHECKING:  # server.app imports this package
+    from server.app import StationHandle
+    from server.station.messages import CameraViewAnswer
 
 router = APIRouter(include_in_schema=False, dependencies=[Depends(i18n.page_language)])
 #: the frames' width in the page, px (the station downscales to it)
@@ -46,7 +51,12 @@ class CameraFeed:
     _queues: set[asyncio.Queue[str]] = field(default_factory=set)
     _task: asyncio.Task[None] | None = None
     last: str = ""  # the newest "frames" (or "down") event, for a browser that joins
-    asks: int = 0  # requests to the station so far (the tests count them)
+    # requests sent to the station so far, and those it has answered (or that failed): the tests
+    # count them. An ask the feed drops when it stops before its worker thread sent it is
+    # neither; one already sent is answered after the feed stopped.
+    asks: int = 0
+    answered: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
     def listeners(self) -> int:
@@ -95,9 +105,8 @@ class CameraFeed:
             if station is None:
                 self._publish(sse("down", "this server has no station process"))
                 return
-            self.asks += 1
             try:
-                answer = await anyio.to_thread.run_sync(station.camera_view, WIDTH)
+                answer = await self._ask(station)
             except Exception as err:  # noqa: BLE001 - a station that cannot answer is down
                 seq = None
                 self._publish(sse("down", f"the station does not answer: {err}"))
@@ -108,6 +117,30 @@ class CameraFeed:
                 self._publish(sse("frames", json.dumps(_payload(answer.model_dump(mode="json")),
                                                        separators=(",", ":"))))
             await asyncio.sleep(answer.period_s)
+
+    async def _ask(self, station: StationHandle) -> CameraViewAnswer:
+        """The station's answer to one ``camera_view`` request, sent from a worker thread. A
+        feed cancelled before the thread sent it drops it (counted in neither ``asks`` nor
+        ``answered``); one already sent goes on in its thread and is counted when it returns."""
+        dropped = False
+
+        def send() -> CameraViewAnswer:
+            with self._lock:
+                if dropped:
+                    raise RuntimeError("the camera feed stopped before this ask was sent")
+                self.asks += 1
+            try:
+                return station.camera_view(WIDTH)
+            finally:
+                with self._lock:
+                    self.answered += 1
+
+        try:
+            return await anyio.to_thread.run_sync(send)
+        except BaseException:
+            with self._lock:
+                dropped = True
+            raise
 
 
 def _payload(answer: dict[str, Any]) -> dict[str, Any]:

@@ -113,10 +113,13 @@ def test_start_up_errors_are_one_line_and_a_failure(
                     "got 'many'")
 
 
-def test_a_busy_link_port_or_a_bad_links_block_is_one_line_and_a_failure(tmp_path: Path) -> None:
+def test_a_busy_link_port_or_a_bad_links_block_is_one_line_and_a_failure(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The Modbus port already taken: `mvpose serve` and `mvpose station` end with one line
     naming host:port (as the REST port does), not a traceback; a typo inside links.modbus and an
-    unknown backend stop start-up naming the file and the field."""
+    unknown backend stop start-up naming the file and the field (checked in this process: the
+    station file is refused before anything starts)."""
     data = ["--data-dir", str(tmp_path / "var")]
     station = ["--station", str(STATION1)]
     with socket.socket() as busy:
@@ -138,4 +141,6 @@ def test_a_busy_link_port_or_a_bad_links_block_is_one_line_and_a_failure(tmp_pat
                                                        "modbus, opcua"))):
         bad = tmp_path / "links.yaml"
         bad.write_text(text.rstrip() + "\n" + links)
-        _one_line_error(_mvpose("station", "--station", str(bad), *data), str(bad), *words)
+        code = main(["station", "--station", str(bad), *data])
+        out, err = capsys.readouterr()
+        _one_line_error(subprocess.CompletedProcess([], code, out, err), str(bad), *words)
