@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from mvpose_core.reasons import Reason
 from mvpose_core.synth import random_displacement
 from mvpose_core.transforms import rotvec_to_matrix
 from server.loopback import move_part, running_station, trigger
-from server.pipeline import _usual_slow
+from server.pipeline import PipelineOptions, _usual_slow
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -35,7 +36,10 @@ async def test_past_the_deadline_the_plc_gets_an_error_code_never_an_offset(tmp_
         d["deadline_ms"] = 2.0  # less than any capture + detection of four 4 MP frames
 
     settings = settings_for(station_file(tmp_path, "station1", tight), tmp_path / "var")
-    async with running_station(settings, runtime_options(), http_port=None) as lb:
+    # the capture may take 500 × the 2 ms deadline: the cameras always answer, even on a busy
+    # machine, and the result is late by its processing (a grab cut short would be CAMERA_FAILED)
+    opts = replace(runtime_options(), pipeline=PipelineOptions(capture_share=500.0))
+    async with running_station(settings, opts, http_port=None) as lb:
         recipe = lb.runtime.active.config
         T = _at(recipe, np.random.default_rng(1))
         await move_part(lb.runtime, lb.twin, T)
@@ -212,7 +216,6 @@ async def test_detection_in_workers_matches_detection_in_process(
     from multiprocessing import shared_memory
 
     from mvpose_core.detect import detect_marks
-    from server.pipeline import PipelineOptions
     from server.station.core import StationOptions
 
     opts = (PipelineOptions(detect_processes=2) if where == "processes"
@@ -377,7 +380,6 @@ def _moved(recipe: Any, share: float) -> np.ndarray:
 async def test_each_part_is_measured_wherever_the_last_one_was(
     tmp_path: Path, processes: int
 ) -> None:
-    from server.pipeline import PipelineOptions
     from server.station.core import StationOptions
 
     settings = settings_for(station_file(tmp_path, "station1", relaxed_deadline), tmp_path / "var")
