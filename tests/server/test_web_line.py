@@ -123,6 +123,14 @@ def _newest(page: Any, rec_id: int) -> None:
         f"document.querySelector('#line-view').dataset.newest === '{rec_id}'", timeout=20000)
 
 
+def _colour(page: Any, rgb: str) -> None:
+    """The verdict tile's colour, once htmx has settled the swap: it sets the new class only
+    then (its attributesToSettle), so the colour is waited for, not read at the swap."""
+    page.wait_for_function(
+        f"getComputedStyle(document.querySelector('#verdict')).backgroundColor === '{rgb}'",
+        timeout=5000)
+
+
 def _shot(page: Any, name: str) -> None:
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / f"{name}.png"))
@@ -147,7 +155,7 @@ def test_the_line_view_follows_the_line(line: Line) -> None:
     _newest(page, noks[-1]["measurement_id"])
     assert tile.get_attribute("data-verdict") == "NOK"
     assert page.locator("#verdict .verdict-word").inner_text() == "NOK"
-    assert tile.evaluate("(t) => getComputedStyle(t).backgroundColor") == "rgb(153, 27, 27)"
+    _colour(page, "rgb(153, 27, 27)")
     streak = page.locator(".streak")
     assert streak.get_attribute("data-streak") == "3"
     code = line.reader.store.measurements.get(noks[-1]["measurement_id"]).record.reason_code
@@ -171,7 +179,7 @@ def test_the_line_view_follows_the_line(line: Line) -> None:
     assert ok["result_code"] == 0, ok
     _newest(page, ok["measurement_id"])
     assert page.locator("#verdict .verdict-word").inner_text() == "OK"
-    assert tile.evaluate("(t) => getComputedStyle(t).backgroundColor") == "rgb(22, 101, 52)"
+    _colour(page, "rgb(22, 101, 52)")
     assert page.locator(".streak").count() == 0
 
     # the shift's counts and cycle times are the store's
@@ -248,13 +256,9 @@ def test_a_station_that_goes_down_turns_the_tile_grey(line: Line) -> None:
     page = line.page()
     assert page.locator("#verdict").get_attribute("data-verdict") in ("OK", "NOK")
     line.stop_station()
-    # htmx sets the new data-verdict at the swap and the new class only when the swap settles
-    # (its attributesToSettle), so the colour is waited for after the verdict, not read at once
     page.wait_for_function(
         "document.querySelector('#verdict').dataset.verdict === 'DOWN'", timeout=20000)
-    page.wait_for_function(
-        "getComputedStyle(document.querySelector('#verdict')).backgroundColor"
-        " === 'rgb(75, 85, 99)'", timeout=5000)
+    _colour(page, "rgb(75, 85, 99)")
     assert page.locator("#verdict .verdict-word").inner_text() == "STATION DOWN"
     assert page.locator("#station-state").inner_text() == "station down"
     assert_accessible(page, "/line, station down")
