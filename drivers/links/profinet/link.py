@@ -14,10 +14,8 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 import socket
 import subprocess
-import sys
 import time
 from typing import Any
 
@@ -25,6 +23,7 @@ from .. import layout as r
 from ..base import AlarmNotice, StationHandler
 from ..handshake import HandshakeLink, HandshakeRunner
 from ..layout import ByteOrder
+from . import child
 from .alarms import ERROR_CAMERA_DOWN, ERROR_STATION_DOWN
 from .settings import ProfinetLinkConfig
 
@@ -73,17 +72,7 @@ class ProfinetLink(HandshakeLink):
 
     async def _spawn(self) -> None:
         """Start the device's process and wait for its start (ProfinetError names why not)."""
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        try:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "drivers.links.profinet.transport",
-                 json.dumps(self.config.child()), str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
-                    os.path.abspath(__file__))))))
-        finally:
-            theirs.close()
-        ours.setblocking(False)
+        self._proc, ours = child.spawn("drivers.links.profinet.transport", self.config.child())
         self._pair, self._sent = ours, b""
         loop = asyncio.get_running_loop()
         self._started = loop.create_future()
@@ -146,24 +135,8 @@ class ProfinetLink(HandshakeLink):
 
     def _read(self) -> None:
         assert self._pair is not None
-        while True:
-            try:
-                msg = self._pair.recv(65536)
-            except BlockingIOError:
-                return
-            except OSError:
-                msg = b""
-            if not msg:
-                asyncio.get_running_loop().remove_reader(self._pair.fileno())
-                if self._started is not None and not self._started.done():
-                    self._started.set_result({"kind": "error",
-                                              "text": "the PROFINET device process ended"})
-                elif self.runner is not None and self._restart is None:
-                    self.runner.note("the PROFINET device process ended; starting it again")
-                    self._restart = asyncio.create_task(self._respawn_then_clear(),
-                                                        name="profinet-restart")
-                return
-            kind, body = msg[:1], msg[1:]
+        messages, ended = child.received(self._pair)
+        for kind, body in messages:
             if kind == b"O" and self.runner is not None:
                 self.runner.write_output(body, ByteOrder.BIG)
                 self._push()
@@ -180,6 +153,15 @@ class ProfinetLink(HandshakeLink):
             elif kind == b"S":
                 self.child_stats = json.loads(body)
                 self.stats_at = time.monotonic()
+        if ended:
+            asyncio.get_running_loop().remove_reader(self._pair.fileno())
+            if self._started is not None and not self._started.done():
+                self._started.set_result({"kind": "error",
+                                          "text": "the PROFINET device process ended"})
+            elif self.runner is not None and self._restart is None:
+                self.runner.note("the PROFINET device process ended; starting it again")
+                self._restart = asyncio.create_task(self._respawn_then_clear(),
+                                                    name="profinet-restart")
 
     def _push(self) -> None:
         if self.runner is None or self._pair is None:

@@ -18,13 +18,12 @@ import os
 import select
 import socket
 import struct
-import sys
 import time
 from collections import deque
 from typing import Any
 
+from . import child, hostip
 from . import frames as fr
-from . import hostip
 from .device import Device, Identity, Out
 
 ETH_P_ALL = 0x0003
@@ -263,16 +262,5 @@ def _jitter(intervals: deque[float]) -> dict[str, float]:
     return {"cycle_p50_ms": round(p50 * 1000, 3), "cycle_jitter_ms": round((p99 - p50) * 1000, 3)}
 
 
-def main() -> None:
-    cfg = json.loads(sys.argv[1])
-    pair = socket.socket(fileno=int(sys.argv[2]))
-    try:
-        serve(cfg, pair)
-    except (BrokenPipeError, ConnectionResetError):
-        pass
-    finally:
-        os._exit(0)
-
-
 if __name__ == "__main__":
-    main()
+    child.main(serve)

@@ -17,11 +17,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import select
 import socket
 import subprocess
-import sys
 import time
 from collections import deque
 from typing import Any
@@ -29,8 +27,8 @@ from typing import Any
 from ...errors import DriverInitError
 from .. import layout
 from ..layout import ByteOrder
+from . import child, rpc
 from . import frames as fr
-from . import rpc
 from .controller import Controller
 from .device import Out
 from .transport import _jitter, open_sockets, realtime
@@ -161,22 +159,11 @@ class ProfinetPort:
         self._running: asyncio.Future[None] | None = None
 
     async def connect(self) -> None:
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         prefix = ["ip", "netns", "exec", self.netns] if self.netns else []
-        root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
-            os.path.abspath(__file__)))))
-        try:
-            self._proc = subprocess.Popen(
-                [*prefix, sys.executable, "-m", "drivers.links.profinet.twin",
-                 json.dumps(self.cfg), str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), cwd=root)
-        finally:
-            theirs.close()
-        ours.setblocking(False)
-        self._pair = ours
+        self._proc, self._pair = child.spawn("drivers.links.profinet.twin", self.cfg, prefix)
         loop = asyncio.get_running_loop()
         self._running = loop.create_future()
-        loop.add_reader(ours.fileno(), self._read)
+        loop.add_reader(self._pair.fileno(), self._read)
         try:
             await asyncio.wait_for(asyncio.shield(self._running), START_S)
         except TimeoutError:
@@ -191,20 +178,8 @@ class ProfinetPort:
 
     def _read(self) -> None:
         assert self._pair is not None
-        while True:
-            try:
-                msg = self._pair.recv(65536)
-            except BlockingIOError:
-                return
-            except OSError:
-                msg = b""
-            if not msg:
-                self._drop_reader()
-                if self._running is not None and not self._running.done():
-                    self._running.set_exception(DriverInitError(
-                        "the PROFINET PLC twin's process ended"))
-                return
-            kind, body = msg[:1], msg[1:]
+        messages, ended = child.received(self._pair)
+        for kind, body in messages:
             if kind == b"I":
                 self.inputs = body
                 self._fresh.set()
@@ -221,6 +196,11 @@ class ProfinetPort:
             elif kind == b"S":
                 self.stats = json.loads(body)
                 self.stats_at = time.monotonic()
+        if ended:
+            self._drop_reader()
+            if self._running is not None and not self._running.done():
+                self._running.set_exception(DriverInitError(
+                    "the PROFINET PLC twin's process ended"))
 
     async def read_inputs(self) -> bytes:
         if not self._fresh.is_set():
@@ -268,16 +248,5 @@ class ProfinetPort:
                 proc.wait()
 
 
-def main() -> None:
-    cfg = json.loads(sys.argv[1])
-    pair = socket.socket(fileno=int(sys.argv[2]))
-    try:
-        serve(cfg, pair)
-    except (BrokenPipeError, ConnectionResetError):
-        pass
-    finally:
-        os._exit(0)
-
-
 if __name__ == "__main__":
-    main()
+    child.main(serve)
