@@ -14,7 +14,6 @@ event (JSON: the JPEGs as data URLs and the figures).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import threading
 from collections.abc import AsyncIterator
@@ -28,8 +27,8 @@ from fastapi.responses import HTMLResponse, StreamingResponse
 from server.auth import Role
 from server.web import html, i18n
 from server.web.context import need, page_user, runtime_of
+from server.web.fanout import Fanout, sse
 from server.web.i18n import N_, _
-from server.web.live import KEEPALIVE_S, QUEUE, STREAM_S, sse
 from server.web.pages import Html, to_login
 
 if TYPE_CHECKING:  # server.app imports this package
@@ -48,8 +47,7 @@ class CameraFeed:
     """Fan-out of the station's newest frame set to every open camera view of this process."""
 
     app: Any
-    _queues: set[asyncio.Queue[str]] = field(default_factory=set)
-    _task: asyncio.Task[None] | None = None
+    fan: Fanout = field(default_factory=lambda: Fanout("web-camera-feed"))
     last: str = ""  # the newest "frames" (or "down") event, for a browser that joins
     # requests sent to the station so far, and those it has answered (or that failed): the tests
     # count them. An ask the feed drops when it stops before its worker thread sent it is
@@ -60,43 +58,19 @@ class CameraFeed:
 
     @property
     def listeners(self) -> int:
-        return len(self._queues)
+        return self.fan.listeners
 
     @property
     def running(self) -> bool:
-        return self._task is not None and not self._task.done()
+        return self.fan.running
 
-    async def stream(self) -> AsyncIterator[str]:
-        queue: asyncio.Queue[str] = asyncio.Queue(QUEUE)
-        self._queues.add(queue)
-        if not self.running:
-            self._task = asyncio.create_task(self._watch(), name="web-camera-feed")
-        try:
-            yield "retry: 2000\n\n"
-            if self.last:
-                yield self.last
-            loop = asyncio.get_running_loop()
-            end = loop.time() + STREAM_S
-            while (left := end - loop.time()) > 0:
-                try:
-                    yield await asyncio.wait_for(queue.get(), min(KEEPALIVE_S, left))
-                except TimeoutError:
-                    yield ": keep-alive\n\n"
-        finally:
-            self._queues.discard(queue)
-            if not self._queues and self._task is not None:
-                self._task.cancel()  # nobody looks: the station is asked no more
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await self._task
-                self._task = None
+    def stream(self) -> AsyncIterator[str]:
+        """Every event for one camera view: the newest frame set first, then each new one."""
+        return self.fan.stream(self._watch, lambda: [self.last] if self.last else [])
 
     def _publish(self, message: str) -> None:
         self.last = message
-        for q in list(self._queues):
-            if q.full():
-                with contextlib.suppress(asyncio.QueueEmpty):
-                    q.get_nowait()
-            q.put_nowait(message)
+        self.fan.publish(message)
 
     async def _watch(self) -> None:
         seq: int | None = None

@@ -4,38 +4,28 @@ browser that reads the page in that language.
 The watcher asks the store for its newest record (one cheap query every
 :data:`POLL_S`) and the station for its status; when either changes it renders the HTML once and
 puts it in every subscriber's queue. Browsers never poll: each holds one EventSource. The
-watcher runs only while someone listens. A stream ends after :data:`STREAM_S` and the browser
-reconnects on its own: uvicorn's shutdown waits for open responses (unless its
-``timeout_graceful_shutdown`` is set), so an open Live page delays a shutdown by at most that.
+watcher runs only while someone listens (:mod:`server.web.fanout`). A stream ends after
+:data:`~server.web.fanout.STREAM_S` and the browser reconnects on its own: uvicorn's shutdown
+waits for open responses (unless its ``timeout_graceful_shutdown`` is set), so an open Live page
+delays a shutdown by at most that.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import anyio.to_thread
 
+from server.web.fanout import Fanout, sse
 from server.web.reader import Reader
 
 POLL_S = 0.25
 #: how long the newest record's frames are waited for (the archive writes them after the record)
 FRAMES_WAIT_S = 15.0
 STATUS_EVERY_S = 1.0
-KEEPALIVE_S = 15.0
-STREAM_S = 30.0
-#: a browser that cannot keep up loses the oldest message, never the watcher's time
-QUEUE = 8
-
-
-def sse(event: str, data: str) -> str:
-    lines = "".join(f"data: {line}\n" for line in data.splitlines() or [""])
-    return f"event: {event}\n{lines}\n"
-
-
 @dataclass
 class Snapshot:
     newest_id: int | None = None
@@ -54,8 +44,7 @@ class LiveFeed:
                             tuple[str, str, int | None, bool]]
     render_status: Callable[[], str]
     snapshot: Snapshot = field(default_factory=Snapshot)
-    _queues: set[asyncio.Queue[str]] = field(default_factory=set)
-    _task: asyncio.Task[None] | None = None
+    fan: Fanout = field(default_factory=lambda: Fanout("web-live-watcher"))
     _frames_id: int | None = None
     _awaited: int | None = None  # newest record, while its frames may still be being written
     _until: float = 0.0
@@ -63,43 +52,25 @@ class LiveFeed:
 
     @property
     def listeners(self) -> int:
-        return len(self._queues)
+        return self.fan.listeners
 
-    async def stream(self) -> AsyncIterator[str]:
+    @property
+    def running(self) -> bool:
+        return self.fan.running
+
+    def stream(self) -> AsyncIterator[str]:
         """Every event for one browser: the current state first, then each change."""
-        queue: asyncio.Queue[str] = asyncio.Queue(QUEUE)
-        self._queues.add(queue)
-        if self._task is None or self._task.done():
-            self._task = asyncio.create_task(self._watch(), name="web-live-watcher")
-        try:
-            yield "retry: 2000\n\n"
-            snap = self.snapshot
-            if snap.status_html:
-                yield sse("status", snap.status_html)
-            if snap.result_html:
-                yield sse("result", snap.result_html)
-                yield sse("frames", snap.frames_html)
-            loop = asyncio.get_running_loop()
-            end = loop.time() + STREAM_S
-            while (left := end - loop.time()) > 0:
-                try:
-                    yield await asyncio.wait_for(queue.get(), min(KEEPALIVE_S, left))
-                except TimeoutError:
-                    yield ": keep-alive\n\n"
-        finally:
-            self._queues.discard(queue)
-            if not self._queues and self._task is not None:
-                self._task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await self._task
-                self._task = None
+        return self.fan.stream(self._watch, self._current)
+
+    def _current(self) -> list[str]:
+        snap = self.snapshot
+        out = [sse("status", snap.status_html)] if snap.status_html else []
+        if snap.result_html:
+            out += [sse("result", snap.result_html), sse("frames", snap.frames_html)]
+        return out
 
     def _publish(self, message: str) -> None:
-        for q in list(self._queues):
-            if q.full():
-                with contextlib.suppress(asyncio.QueueEmpty):
-                    q.get_nowait()
-            q.put_nowait(message)
+        self.fan.publish(message)
 
     async def _watch(self) -> None:
         loop = asyncio.get_running_loop()

@@ -195,7 +195,7 @@ def test_live_overlays_sit_on_the_marks_and_results_arrive_without_reload(site: 
                             timeout=15000)
     assert page.evaluate("window.__same_page") == 42
     until_sync(lambda: feed.listeners == 2, "both pages still listen", 15)
-    assert feed._task is not None and list(feeds.feeds) == ["en"]  # one watcher for both
+    assert feed.running and list(feeds.feeds) == ["en"]  # one watcher for both
     other.context.close()
     framed = _in_thread(lambda: site.line.store(*site.line.record(missing="B2", frames=True)))
     page.wait_for_function(f"document.querySelector('#frames').dataset.id === '{framed.id}'",
