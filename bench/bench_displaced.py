@@ -26,29 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from bench.bench_station import station_file
-from mvpose_core.transforms import Array, rotvec_to_matrix
+from mvpose_core.synth import displaced
 
 SHARES = (0.25, 0.5, 0.9)
 ROUNDS = int(os.environ.get("MVPOSE_BENCH_DISPLACED_ROUNDS", "4"))
 BLOCK = 12
 TARGET = 1.2
 # The directions of the displacement (normalised): translation, and the rotation's axis.
-T_DIR = np.array([0.7, -0.6, 0.4])
-R_DIR = np.array([0.5, -0.4, 0.75])
-
-
-def displaced(T0: Array, centroid: Array, share: float, mm: float, deg: float) -> Array:
-    """The reference pose moved by ``share`` of the tolerance: a rotation of ``share·deg`` about
-    the marks' centroid, then a translation of ``share·mm`` (in the part frame)."""
-    rv = np.deg2rad(share * deg) * R_DIR / np.linalg.norm(R_DIR)
-    R = rotvec_to_matrix(rv)
-    t = share * mm * T_DIR / np.linalg.norm(T_DIR) + centroid - R @ centroid
-    D = np.eye(4)
-    D[:3, :3] = R
-    D[:3, 3] = t
-    return T0 @ D
-
-
 def main() -> int:
     from bench.stage_reference import AloneStation
 
@@ -60,11 +44,10 @@ def main() -> int:
         try:
             rec = alone.book.selected.config  # type: ignore[union-attr]
             T0 = rec.T_rf_from_pf0.matrix
-            tol = rec.tolerances
             poses = {"reference": T0}
             fresh = {"reference": False}
             for s in SHARES:
-                T = displaced(T0, rec.mark_centroid(), s, tol.max_offset_mm, tol.max_offset_deg)
+                T = displaced(rec, s)
                 poses[f"{s:.2f}, after a part there"] = T
                 fresh[f"{s:.2f}, after a part there"] = False
                 poses[f"{s:.2f}, first part there"] = T

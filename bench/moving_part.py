@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mvpose_core.station import RecipeConfig
-from mvpose_core.transforms import Array, rotvec_to_matrix
+from mvpose_core.synth import displaced
+from mvpose_core.transforms import Array
 from server.loopback import true_offset
 
 #: poses in the cycle, the largest share of the tolerance, and the cycle's seed
@@ -34,19 +35,6 @@ class PartPose:
     offset: list[float]  # from the reference, in the recipe's robot convention
 
 
-def displaced(T0: Array, centroid: Array, share: float, mm: float, deg: float,
-              t_dir: Array, r_dir: Array) -> Array:
-    """The reference pose moved by ``share`` of the tolerance: a rotation of ``share·deg`` about
-    the marks' centroid (axis ``r_dir``), then a translation of ``share·mm`` along ``t_dir``
-    (in the part frame)."""
-    rv = np.deg2rad(share * deg) * r_dir / np.linalg.norm(r_dir)
-    R = rotvec_to_matrix(rv)
-    D = np.eye(4)
-    D[:3, :3] = R
-    D[:3, 3] = share * mm * t_dir / np.linalg.norm(t_dir) + centroid - R @ centroid
-    return T0 @ D
-
-
 def line_poses(recipe: RecipeConfig, n: int = N_POSES, max_share: float = MAX_SHARE,
                seed: int = SEED) -> list[PartPose]:
     """``n`` poses within ``max_share`` of the recipe's tolerance, the same for every run."""
@@ -57,8 +45,7 @@ def line_poses(recipe: RecipeConfig, n: int = N_POSES, max_share: float = MAX_SH
     out: list[PartPose] = []
     while len(out) < n:
         share = float(rng.uniform(0.0, max_share))
-        T = displaced(T0, recipe.mark_centroid(), share, tol.max_offset_mm, tol.max_offset_deg,
-                      rng.normal(size=3), rng.normal(size=3))
+        T = displaced(recipe, share, rng.normal(size=3), rng.normal(size=3))
         if np.linalg.norm((T @ G)[:3, 3] - (T0 @ G)[:3, 3]) > max_share * tol.max_offset_mm:
             continue
         out.append(PartPose(share, T, [float(v) for v in true_offset(recipe, T)]))

@@ -10,7 +10,7 @@ from mvpose_core.camera import check_in_front
 from mvpose_core.estimate import Observation
 from mvpose_core.scene import project_recipe_marks, view_cameras
 from mvpose_core.station import RecipeConfig, StationConfig
-from mvpose_core.transforms import Array, check_transform, xyzwpr_to_matrix
+from mvpose_core.transforms import Array, check_transform, rotvec_to_matrix, xyzwpr_to_matrix
 
 
 def random_displacement(rng: np.random.Generator, max_mm: float, max_deg: float) -> Array:
@@ -25,6 +25,26 @@ def random_displacement(rng: np.random.Generator, max_mm: float, max_deg: float)
     xyz = rng.uniform(-max_mm, max_mm, 3)
     wpr = rng.uniform(-max_deg, max_deg, 3)
     return xyzwpr_to_matrix([*xyz, *wpr])
+
+
+#: the directions a displaced part moves in for the benchmarks and tests (translation, axis)
+T_DIR: Array = np.array([0.7, -0.6, 0.4])
+R_DIR: Array = np.array([0.5, -0.4, 0.75])
+
+
+def displaced(recipe: RecipeConfig, share: float, t_dir: Array = T_DIR,
+              r_dir: Array = R_DIR) -> Array:
+    """The recipe's reference pose moved by ``share`` of its tolerance: a rotation of
+    ``share·max_offset_deg`` about the marks' centroid (axis ``r_dir``), then a translation of
+    ``share·max_offset_mm`` along ``t_dir``, in the part frame (a negative share: the other
+    way)."""
+    tol = recipe.tolerances
+    c = np.asarray(recipe.mark_centroid(), dtype=float)
+    R = rotvec_to_matrix(np.deg2rad(share * tol.max_offset_deg) * r_dir / np.linalg.norm(r_dir))
+    D = np.eye(4)
+    D[:3, :3] = R
+    D[:3, 3] = share * tol.max_offset_mm * t_dir / np.linalg.norm(t_dir) + c - R @ c
+    return np.asarray(recipe.T_rf_from_pf0.matrix @ D)
 
 
 def synthetic_observations(

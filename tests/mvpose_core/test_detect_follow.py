@@ -14,7 +14,7 @@ from mvpose_core.detect.window import _box, _kept_at, _search, _unfound
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.scene import view_cameras
 from mvpose_core.station import load_station
-from mvpose_core.transforms import rotvec_to_matrix
+from mvpose_core.synth import displaced
 
 STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "station1.yaml"
 
@@ -23,20 +23,6 @@ STATION1 = Path(__file__).resolve().parents[2] / "deploy" / "stations" / "statio
 def station1():  # type: ignore[no-untyped-def]
     station = load_station(STATION1)
     return view_cameras(station), station.recipe()
-
-
-def _displaced(recipe, share: float):  # type: ignore[no-untyped-def]
-    """The reference pose rotated by ``share`` of the tolerance about the marks' centroid and
-    moved by ``share`` of it (the directions of bench/bench_displaced.py)."""
-    tol = recipe.tolerances
-    axis = np.array([0.5, -0.4, 0.75])
-    R = rotvec_to_matrix(np.deg2rad(share * tol.max_offset_deg) * axis / np.linalg.norm(axis))
-    c = np.asarray(recipe.mark_centroid(), dtype=float)
-    move = np.array([0.7, -0.6, 0.4])
-    D = np.eye(4)
-    D[:3, :3] = R
-    D[:3, 3] = share * tol.max_offset_mm * move / np.linalg.norm(move) + c - R @ c
-    return recipe.T_rf_from_pf0.matrix @ D
 
 
 def _frames(cams, recipe, T, clutter: bool):  # type: ignore[no-untyped-def]
@@ -75,7 +61,7 @@ def test_a_followed_part_gives_the_whole_tolerance_result(  # type: ignore[no-un
 ) -> None:
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
-    T = _displaced(recipe, share)
+    T = displaced(recipe, share)
     frames = _frames(cams, recipe, T, clutter)
     followed = detect_marks_many(frames, recipe, T0, DetectOptions())
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
@@ -93,9 +79,9 @@ def test_windows_near_the_last_part_give_the_whole_tolerance_result(  # type: ig
 ) -> None:
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
-    T = _displaced(recipe, share)
+    T = displaced(recipe, share)
     frames = _frames(cams, recipe, T, clutter)
-    near = _displaced(recipe, last)
+    near = displaced(recipe, last)
     followed = detect_marks_many(frames, recipe, T0, DetectOptions(), near=near)
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
     _same_as_whole(cams, recipe, T, followed, whole, once=abs(share - last) < 0.1)
@@ -114,7 +100,7 @@ def test_the_next_windows_follow_a_part_that_stays_in_steps(station1) -> None:  
     opts = DetectOptions()
 
     def d(share: float) -> np.ndarray:
-        return _displaced(recipe, share)
+        return displaced(recipe, share)
 
     assert next_near(None, None, d(0.5), T0, recipe, opts) is None  # the first part there
     a = next_near(None, d(0.5), d(0.52), T0, recipe, opts)  # the second, 2 mm / 0.2° from it
@@ -138,7 +124,7 @@ def test_the_blobs_of_the_small_windows_give_the_pose(  # type: ignore[no-untype
 ) -> None:
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
-    T = _displaced(recipe, share)
+    T = displaced(recipe, share)
     frames = _frames(cams, recipe, T, clutter=False)
     first = [_search(img, cam, recipe, T0, DetectOptions(), 0.25) for img, cam in frames]
     assert any(_unfound(s) for s in first)  # the part is beyond the first reach
@@ -158,7 +144,7 @@ def test_too_few_marks_for_a_pose_fall_back_to_the_whole_tolerance(  # type: ign
 ) -> None:
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
-    frames = _frames(cams[:1], recipe, _displaced(recipe, 0.5), clutter=False)
+    frames = _frames(cams[:1], recipe, displaced(recipe, 0.5), clutter=False)
     first = _search(frames[0][0], cams[0], recipe, T0, DetectOptions(), 0.25)
     assert _unfound(first)
     assert pose_from_blobs([(cams[0], first.live, first.cands)], recipe, T0) is None
@@ -178,7 +164,7 @@ def test_marks_whose_first_windows_held_them_keep_their_blobs(  # type: ignore[n
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
     opts = DetectOptions()
-    frames = _frames(cams, recipe, _displaced(recipe, 0.5), clutter=False)
+    frames = _frames(cams, recipe, displaced(recipe, 0.5), clutter=False)
     first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
     T = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
                                                                      strict=True)], recipe, T0)

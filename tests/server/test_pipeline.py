@@ -19,8 +19,7 @@ from stations import ENGINEER, relaxed_deadline, runtime_options, settings_for, 
 
 from drivers.links.layout import Command, Status
 from mvpose_core.reasons import Reason
-from mvpose_core.synth import random_displacement
-from mvpose_core.transforms import rotvec_to_matrix
+from mvpose_core.synth import displaced, random_displacement
 from server.loopback import move_part, running_station, trigger
 from server.pipeline import PipelineOptions, _usual_slow
 
@@ -357,20 +356,6 @@ async def test_a_calibration_activated_over_rest_is_measured_with_and_recorded(
         assert rec.reason_code == status.result_code
 
 
-def _moved(recipe: Any, share: float) -> np.ndarray:
-    """The reference pose rotated by ``share`` of the tolerance about the marks' centroid and
-    moved by ``share`` of it (negative: the opposite way)."""
-    tol = recipe.tolerances
-    axis = np.array([0.5, -0.4, 0.75])
-    R = rotvec_to_matrix(np.deg2rad(share * tol.max_offset_deg) * axis / np.linalg.norm(axis))
-    c = np.asarray(recipe.mark_centroid(), dtype=float)
-    move = np.array([0.7, -0.6, 0.4])
-    D = np.eye(4)
-    D[:3, :3] = R
-    D[:3, 3] = share * tol.max_offset_mm * move / np.linalg.norm(move) + c - R @ c
-    return np.asarray(recipe.T_rf_from_pf0.matrix @ D)
-
-
 # After two parts in a row at one place the station searches its first windows where the last
 # good part was (mvpose_core.detect.follow.next_near). That memory never keeps a part from
 # being found: a part far from the reference, one a little beside it, one back at the
@@ -388,7 +373,7 @@ async def test_each_part_is_measured_wherever_the_last_one_was(
     async with running_station(settings, opts, http_port=None) as lb:
         recipe = lb.runtime.active.config
         for n, share in enumerate((0.6, 0.63, 0.0, -0.8, -0.8)):
-            T = _moved(recipe, share)
+            T = displaced(recipe, share)
             await move_part(lb.runtime, lb.twin, T)
             status, row = await trigger(lb.twin, recipe, 60 + n, T)
             assert row is not None and status.has(Status.RESULT_OK), (share, status.result_code)
