@@ -4,6 +4,7 @@ The process is ``python -m <module> <config JSON> <descriptor of its end of the 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -48,6 +49,26 @@ def received(pair: socket.socket) -> tuple[list[tuple[bytes, bytes]], bool]:
         if not msg:
             return out, True
         out.append((msg[:1], msg[1:]))
+
+
+def stop(proc: subprocess.Popen[bytes] | None, pair: socket.socket | None,
+         release: bool = True) -> None:
+    """End the child (blocking, at most a few seconds). With ``release`` it is asked to quit
+    (its controller releases the AR first) and killed only if it has not within 3 s; without,
+    it is killed at once, like a device switched off."""
+    if proc is not None and not release:
+        proc.kill()
+    if pair is not None:
+        if release:
+            with contextlib.suppress(OSError):
+                pair.send(b"Q")
+        pair.close()
+    if proc is not None:
+        try:
+            proc.wait(3.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def main(serve: Callable[[dict[str, Any], socket.socket], None]) -> None:

@@ -85,17 +85,9 @@ class ProfinetLink(HandshakeLink):
     async def _close_child(self) -> None:
         if self._pair is not None:
             asyncio.get_running_loop().remove_reader(self._pair.fileno())
-            with contextlib.suppress(OSError):
-                self._pair.send(b"Q")
-            self._pair.close()
-            self._pair = None
-        if self._proc is not None:
-            proc, self._proc = self._proc, None
-            try:
-                await asyncio.to_thread(proc.wait, 3.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                await asyncio.to_thread(proc.wait)
+        proc, pair, self._proc, self._pair = self._proc, self._pair, None, None
+        if proc is not None or pair is not None:
+            await asyncio.to_thread(child.stop, proc, pair)
 
     async def _respawn(self) -> None:
         """The device's process ended: start it again, waiting 1 s, then up to 30 s."""

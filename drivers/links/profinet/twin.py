@@ -230,22 +230,9 @@ class ProfinetPort:
         self._stop(release=False)
 
     def _stop(self, release: bool) -> None:
-        if self._pair is not None:
-            self._drop_reader()
-            if release:
-                with contextlib.suppress(OSError):
-                    self._pair.send(b"Q")
-            self._pair.close()
-            self._pair = None
-        if self._proc is not None:
-            proc, self._proc = self._proc, None
-            if not release:
-                proc.kill()
-            try:
-                proc.wait(3.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        self._drop_reader()
+        proc, pair, self._proc, self._pair = self._proc, self._pair, None, None
+        child.stop(proc, pair, release)
 
 
 if __name__ == "__main__":
