@@ -18,22 +18,21 @@ One ``VisionSystem`` object (``VisionSystemType`` of the OPC Foundation's Machin
 - ``SystemState``: the SEMI E10 state (production while a job runs, stand-by, scheduled downtime
   while halted).
 
-Security (:mod:`.access`): Basic256Sha256 Sign / SignAndEncrypt by default with a server
-certificate made at the first start in ``pki_dir``; client certificates must be in
-``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in with a name
-and password checked against the station file's pbkdf2 hashes and get the read, operator (may
-call methods) or engineer role (also ActivateConfiguration, writes); no session on a channel
-whose security the station file does not list (None among them). In a station the server runs
-in a process of its own (:mod:`drivers.links.process`): building and encoding each result event
-is pure Python that would otherwise hold the station process's GIL beside the trigger path.
+Security (:mod:`.access`, :mod:`.certificates`): Basic256Sha256 Sign / SignAndEncrypt by
+default with a server certificate made at the first start in ``pki_dir``; client certificates
+must be in ``<pki_dir>/trusted`` (refused ones land in ``<pki_dir>/rejected``); users log in
+with a name and password checked against the station file's pbkdf2 hashes and get the read,
+operator (may call methods) or engineer role (also ActivateConfiguration, writes); no session on
+a channel whose security the station file does not list (None among them). In a station the
+server runs in a process of its own (:mod:`drivers.links.process`): building and encoding each
+result event is pure Python that would otherwise hold the station process's GIL beside the
+trigger path.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import logging
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -42,13 +41,6 @@ from pathlib import Path
 from typing import Any
 
 from asyncua import Node, Server, ua
-from asyncua.common.utils import ServiceError
-from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.truststore import TrustStore
-from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
-from cryptography import x509
-from cryptography.hazmat.primitives.serialization import Encoding
-from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from mvpose_core.reasons import Reason, reason_name
 
@@ -63,8 +55,9 @@ from ..base import (
 )
 from ..result import ResultEvent
 from . import values as v
-from .access import Roles, Users, default_pki_dir, keep_unlisted_to_discovery
+from .access import Roles, Users, keep_unlisted_to_discovery
 from .arguments import check_arguments
+from .certificates import make_certificate, validate_clients
 from .conditions import AlarmConditions
 from .events import standard_event_filters
 from .handeye import HandEyeMethods
@@ -131,7 +124,7 @@ class OpcUaLink(Link):
         self._t0 = time.monotonic()
         self._order = import_order()
         if any(p != "None" for p in self.config.security):
-            await self._make_certificate()
+            self._pki = await make_certificate(self.config)
         self._boot_task = self._spawn(self._boot())
 
     async def wait_ready(self, timeout_s: float) -> None:
@@ -156,7 +149,8 @@ class OpcUaLink(Link):
                 tokens.append(ua.AnonymousIdentityToken)
             server.set_identity_tokens(tokens)
             if self._pki is not None:
-                await self._secure(server, self._pki)
+                await validate_clients(server, self._pki,
+                                       self.config.trust_all_client_certificates, self._error)
             keep_unlisted_to_discovery(server, [POLICIES[p] for p in cfg.security],
                                        list(POLICIES.values()))
             t = time.monotonic()
@@ -232,52 +226,6 @@ class OpcUaLink(Link):
             self._spawn(self._show_recipe())
             # a calibration activated elsewhere (REST) comes with the same call
             self._spawn(self.management.show_configuration())
-
-    # ------------------------------------------------------------------ security
-    async def _make_certificate(self) -> None:
-        """The server's key and self-signed certificate in pki_dir, made at the first start."""
-        pki = Path(self.config.pki_dir) if self.config.pki_dir else default_pki_dir()
-        for sub in ("", "trusted", "rejected"):
-            (pki / sub).mkdir(parents=True, exist_ok=True)
-        key, cert = pki / "server_key.pem", pki / "server_cert.der"
-        await setup_self_signed_certificate(
-            key, cert, self.config.application_uri, socket.gethostname(),
-            [ExtendedKeyUsageOID.SERVER_AUTH],
-            {"commonName": "mvpose station", "organizationName": "mvpose"})
-        key.chmod(0o600)
-        self._pki = pki
-
-    async def _secure(self, server: Server, pki: Path) -> None:
-        key, cert = pki / "server_key.pem", pki / "server_cert.der"
-        await server.load_certificate(str(cert))
-        await server.load_private_key(str(key))
-        if self.config.trust_all_client_certificates:
-            options = CertificateValidatorOptions.BASIC_VALIDATION
-            store = None
-        else:
-            options = (CertificateValidatorOptions.TRUSTED_VALIDATION
-                       | CertificateValidatorOptions.PEER_CLIENT)
-            store = TrustStore([pki / "trusted"], [])
-        checker = CertificateValidator(options, store)
-        rejected = pki / "rejected"
-
-        async def validate(certificate: x509.Certificate, app: ua.ApplicationDescription) -> None:
-            if store is not None:
-                await store.load_trust()  # a certificate copied into trusted/ counts at once
-            try:
-                await checker.validate(certificate, app)
-            except ServiceError as err:
-                der = certificate.public_bytes(Encoding.DER)
-                kept = rejected / f"{hashlib.sha1(der).hexdigest()}.der"  # noqa: S324 - a name
-                kept.write_bytes(der)
-                text = (f"client certificate of {app.ApplicationUri!r} refused "
-                        f"({_UA.StatusCode(err.code).name}); kept as {kept}: move it to "
-                        f"{pki / 'trusted'} to trust it")
-                log.warning("OPC UA: %s", text)
-                self._error(text)
-                raise
-
-        server.set_certificate_validator(validate)
 
     # ------------------------------------------------------------------ the address space
     async def _build(self, server: Server) -> None:
