@@ -12,8 +12,8 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from drivers.links import layout
+from drivers.links.profinet import blocks, gsdml, rpc
 from drivers.links.profinet import frames as fr
-from drivers.links.profinet import gsdml, rpc
 from drivers.links.profinet import modules as mod
 from drivers.links.profinet.device import Device, Identity, valid_station_name
 
@@ -118,14 +118,14 @@ def iocr(itype: int, ref: int, rr: int, data: list[tuple[int, int, int]],
                        0xC000) + bytes(6) + struct.pack(">H", 1) + struct.pack(">I", 0)
     body += struct.pack(">H", len(data)) + b"".join(struct.pack(">HHH", *d) for d in data)
     body += struct.pack(">H", len(iocs)) + b"".join(struct.pack(">HHH", *d) for d in iocs)
-    return rpc.block(rpc.BLOCK_IOCR_REQ, body)
+    return blocks.block(blocks.BLOCK_IOCR_REQ, body)
 
 
 def connect_body(subs: list[mod.Submodule], rr: int = 4) -> bytes:
     name = b"plc"
-    ar = rpc.block(rpc.BLOCK_AR_REQ, struct.pack(">H", 1) + AR_UUID + struct.pack(">H", SESSION)
-                   + PLC_MAC + uuid.uuid4().bytes + struct.pack(">IHHH", 0x11, 100, 0x8892,
-                                                               len(name)) + name)
+    ar = blocks.block(blocks.BLOCK_AR_REQ, struct.pack(">H", 1) + AR_UUID
+                      + struct.pack(">H", SESSION) + PLC_MAC + uuid.uuid4().bytes
+                      + struct.pack(">IHHH", 0x11, 100, 0x8892, len(name)) + name)
     # input CR: the result's data and IOPS, then IOCS for the output submodules
     ins = [s for s in subs if s.input_length or not s.output_length]
     outs = [s for s in subs if s.output_length]
@@ -144,8 +144,8 @@ def connect_body(subs: list[mod.Submodule], rr: int = 4) -> bytes:
     for s in ins:
         out_iocs.append((s.slot, s.subslot, at))
         at += 1
-    alarm = rpc.block(rpc.BLOCK_ALARM_CR_REQ, struct.pack(">HHIHHHHHH", 1, 0x8892, 0, 1, 3, 1,
-                                                          200, 0xC000, 0xA000))
+    alarm = blocks.block(blocks.BLOCK_ALARM_CR_REQ,
+                         struct.pack(">HHIHHHHHH", 1, 0x8892, 0, 1, 3, 1, 200, 0xC000, 0xA000))
     exp = struct.pack(">H", len(subs))
     for s in subs:
         kind = (1 if s.input_length else 0) | (2 if s.output_length else 0)
@@ -157,7 +157,7 @@ def connect_body(subs: list[mod.Submodule], rr: int = 4) -> bytes:
             exp += struct.pack(">HHBB", 2, s.output_length, 1, 1)
     return (ar + iocr(1, 1, rr, in_data, in_iocs, in_len)
             + iocr(2, 2, rr, out_data, out_iocs, max(40, at)) + alarm
-            + rpc.block(rpc.BLOCK_EXPECTED_SUBMODULE, exp))
+            + blocks.block(blocks.BLOCK_EXPECTED_SUBMODULE, exp))
 
 
 def call(dev: Device, opnum: int, body: bytes, now: float = 0.0) -> tuple[int, list[tuple[int,
@@ -171,31 +171,31 @@ def call(dev: Device, opnum: int, body: bytes, now: float = 0.0) -> tuple[int, l
     reply = rpc.RpcHeader.unpack(data)
     assert reply.ptype == rpc.RESPONSE and reply.opnum == opnum
     answer = rpc.Ndr.unpack(data[rpc.HEADER_SIZE:], reply.little)
-    return answer.first, rpc.split_blocks(answer.body) if answer.body else []
+    return answer.first, blocks.split_blocks(answer.body) if answer.body else []
 
 
 def control(command: int, btype: int) -> bytes:
-    return rpc.Control(btype, AR_UUID, SESSION, command).pack()
+    return blocks.Control(btype, AR_UUID, SESSION, command).pack()
 
 
 def test_connect_prm_end_application_ready_and_cyclic_data() -> None:
     dev = make_device()
-    status, blocks = call(dev, rpc.OP_CONNECT, connect_body(list(mod.SUBMODULES)))
+    status, got = call(dev, rpc.OP_CONNECT, connect_body(list(mod.SUBMODULES)))
     assert status == 0
-    kinds = [b[0] for b in blocks]
+    kinds = [b[0] for b in got]
     assert kinds == [0x8101, 0x8102, 0x8102, 0x8103]  # no ModuleDiffBlock: all fit
-    out_fid = struct.unpack(">HHH", blocks[2][1])[2]
+    out_fid = struct.unpack(">HHH", got[2][1])[2]
     assert fr.FRAME_ID_RTC1_MIN <= out_fid <= fr.FRAME_ID_RTC1_MAX
-    status, blocks = call(dev, rpc.OP_CONTROL, control(rpc.CMD_PRM_END, rpc.BLOCK_PRM_END))
-    assert status == 0 and blocks[0][0] == 0x8110
+    status, got = call(dev, rpc.OP_CONTROL, control(blocks.CMD_PRM_END, blocks.BLOCK_PRM_END))
+    assert status == 0 and got[0][0] == 0x8110
     tick = dev.tick(0.001)
     ((app_ready, addr),) = tick.datagrams
     assert addr == (PLC[0], rpc.RPC_PORT)
     head = rpc.RpcHeader.unpack(app_ready)
     assert head.interface == rpc.IFACE_CONTROLLER and head.opnum == rpc.OP_CONTROL
     ndr = rpc.Ndr.unpack(app_ready[rpc.HEADER_SIZE:], head.little)
-    assert rpc.Control.unpack(*rpc.split_blocks(ndr.body)[0]).command == rpc.CMD_APP_READY
-    confirm = rpc.Ndr(0, control(rpc.CMD_DONE, 0x8112), 0).pack(True, response=True)
+    assert blocks.Control.unpack(*blocks.split_blocks(ndr.body)[0]).command == blocks.CMD_APP_READY
+    confirm = rpc.Ndr(0, control(blocks.CMD_DONE, 0x8112), 0).pack(True, response=True)
     done = rpc.RpcHeader(rpc.RESPONSE, head.object, head.interface, head.activity, head.seqnum,
                          head.opnum, len(confirm))
     assert [e.kind for e in dev.on_datagram(done.pack() + confirm, addr, 0.002).events] == [
@@ -232,14 +232,14 @@ def test_wrong_submodules_get_a_module_diff_block() -> None:
     dev = make_device()
     wrong = [mod.Submodule("x", 1, 1, 0x10, 0x99, output=mod.HANDSHAKE.output),
              mod.Submodule("missing", 9, 1, 0x77, 0x78, input=(0, 4)), mod.RESULT]
-    status, blocks = call(dev, rpc.OP_CONNECT, connect_body(wrong))
-    assert status == 0 and blocks[-1][0] == 0x8104
-    body = blocks[-1][1]
+    status, got = call(dev, rpc.OP_CONNECT, connect_body(wrong))
+    assert status == 0 and got[-1][0] == 0x8104
+    body = got[-1][1]
     n_apis, api, n_mods = struct.unpack_from(">HIH", body, 0)
     assert (n_apis, api, n_mods) == (1, 0, 2)
     slot, mident, mstate, n_sub, subslot, sident, sstate = struct.unpack_from(">HIHHHIH", body, 8)
-    assert (slot, mident, mstate, sident, sstate) == (1, 0x10, rpc.MODULE_PROPER, 0x11,
-                                                      rpc.SUBMODULE_WRONG)
+    assert (slot, mident, mstate, sident, sstate) == (1, 0x10, blocks.MODULE_PROPER, 0x11,
+                                                      blocks.SUBMODULE_WRONG)
     assert dev.stats.module_diffs == 1
 
 
@@ -249,23 +249,23 @@ def test_refused_connects_and_release() -> None:
         struct.pack(">HH", 32, 16), struct.pack(">HH", 1, 1)))  # 31.25 µs: below 1 ms
     assert status >> 24 == 0xDB and dev.ar is None
     assert call(dev, rpc.OP_CONNECT, connect_body(list(mod.SUBMODULES)))[0] == 0
-    status, blocks = call(dev, rpc.OP_RELEASE, control(rpc.CMD_RELEASE, rpc.BLOCK_RELEASE))
-    assert status == 0 and blocks[0][0] == 0x8114 and dev.ar is None
-    status, _ = call(dev, rpc.OP_RELEASE, control(rpc.CMD_RELEASE, rpc.BLOCK_RELEASE))
+    status, got = call(dev, rpc.OP_RELEASE, control(blocks.CMD_RELEASE, blocks.BLOCK_RELEASE))
+    assert status == 0 and got[0][0] == 0x8114 and dev.ar is None
+    status, _ = call(dev, rpc.OP_RELEASE, control(blocks.CMD_RELEASE, blocks.BLOCK_RELEASE))
     assert status >> 24 == 0xDE  # no such AR any more
 
 
 def test_read_im0_and_real_identification() -> None:
     dev = make_device()
-    req = rpc.block(rpc.BLOCK_READ_REQ, struct.pack(">H", 1) + bytes(16)
+    req = blocks.block(blocks.BLOCK_READ_REQ, struct.pack(">H", 1) + bytes(16)
                     + struct.pack(">IHHHHI", 0, 0, 1, 0, 0xAFF0, 4096) + bytes(24))
-    status, blocks = call(dev, rpc.OP_READ, req)
-    assert status == 0 and blocks[0][0] == 0x8009 and blocks[1][0] == rpc.BLOCK_IM0
-    assert struct.unpack_from(">H", blocks[1][1], 0)[0] == 0xFFFF
-    assert blocks[1][1][2:22].strip() == b"MVPOSE-PN"
+    status, got = call(dev, rpc.OP_READ, req)
+    assert status == 0 and got[0][0] == 0x8009 and got[1][0] == blocks.BLOCK_IM0
+    assert struct.unpack_from(">H", got[1][1], 0)[0] == 0xFFFF
+    assert got[1][1][2:22].strip() == b"MVPOSE-PN"
     req = req.replace(struct.pack(">HI", 0xAFF0, 4096), struct.pack(">HI", 0xF000, 4096))
-    status, blocks = call(dev, rpc.OP_READ, req)
-    (n_slots,) = struct.unpack_from(">H", blocks[1][1], 0)
+    status, got = call(dev, rpc.OP_READ, req)
+    (n_slots,) = struct.unpack_from(">H", got[1][1], 0)
     assert n_slots == len({s.slot for s in mod.SUBMODULES})
 
 
@@ -326,7 +326,7 @@ def test_diagnosis_alarms_one_in_flight_acked_and_retried() -> None:
     assert struct.unpack_from(">H", eth.payload)[0] == fr.FRAME_ID_ALARM_LOW
     rta = al.Rta.unpack(eth.payload[2:])
     assert (rta.dst_ref, rta.src_ref, rta.pdu_type, rta.send_seq) == (3, 1, al.PDU_DATA, 0xFFFF)
-    ((btype, body),) = rpc.split_blocks(rta.var)
+    ((btype, body),) = blocks.split_blocks(rta.var)
     alarm_type, _api, slot, subslot = struct.unpack_from(">HIHH", body, 0)
     assert (btype, alarm_type, slot, subslot) == (0x0002, al.ALARM_DIAGNOSIS, 3, 1)
     assert struct.unpack_from(">HHHH", body, 20) == (al.USI_CHANNEL_DIAGNOSIS,
@@ -337,7 +337,7 @@ def test_diagnosis_alarms_one_in_flight_acked_and_retried() -> None:
     (second,) = cr.on_rta(ack, 0.12)  # acked: the disappearing one goes out
     rta2 = al.Rta.unpack(fr.Ethernet.unpack(second).payload[2:])
     assert rta2.send_seq == 0
-    assert struct.unpack_from(">H", rpc.split_blocks(rta2.var)[0][1], 0)[0] == \
+    assert struct.unpack_from(">H", blocks.split_blocks(rta2.var)[0][1], 0)[0] == \
         al.ALARM_DIAGNOSIS_DISAPPEARS
     assert cr.acked == 1
     assert cr.on_rta(al.Rta(9, 3, al.PDU_ACK, 1, 0, 0), 0.13) == []  # not our endpoint

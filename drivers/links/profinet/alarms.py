@@ -14,9 +14,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Final
 
+from . import blocks
 from . import frames as fr
 from . import modules as mod
-from . import rpc
 
 PDU_DATA: Final = 0x11  # version 1, type DATA
 PDU_NACK: Final = 0x12
@@ -76,7 +76,7 @@ def notification(appears: bool, error_type: int, seq: int, high: bool,
                        mod.API, sub.slot, sub.subslot, sub.module_ident, sub.submodule_ident,
                        specifier)
     body += struct.pack(">HHHH", USI_CHANNEL_DIAGNOSIS, WHOLE_SUBMODULE, props, error_type)
-    return rpc.block(0x0001 if high else 0x0002, body)
+    return blocks.block(0x0001 if high else 0x0002, body)
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Our own PROFINET IO-controller, sans-I/O: the PLC's side of one IO AR with the station's
 device, for the PLC twin of the demo, the tests and the bench (:mod:`.twin` gives it sockets).
-It speaks through the same frame, DCP and RPC code as the device (:mod:`.frames`,
-:mod:`.dcp`, :mod:`.rpc`), with the clock passed in.
+It speaks through the same frame, DCP, RPC and block code as the device (:mod:`.frames`,
+:mod:`.dcp`, :mod:`.rpc`, :mod:`.blocks`), with the clock passed in.
 
 The AR's life as a controller leads it (IEC 61158-6-10): DCP Identify by NameOfStation →
 RPC Connect (ARBlockReq, an input and an output IOCR, AlarmCR, the expected submodules of
@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from .. import layout
+from . import blocks, rpc
 from . import frames as fr
 from . import modules as mod
-from . import rpc
 from .alarms import ADD_FLAGS_ACK, PDU_ACK, PDU_DATA, SEQ_INIT, Rta
 from .dcp import Event, Identity, found_device, identify_request, set_request, set_result
 from .device import Out
@@ -54,7 +54,7 @@ class _Pending:
 
 
 def _layout(subs: tuple[mod.Submodule, ...], rr: int, hold: int
-            ) -> tuple[rpc.IocrRequest, rpc.IocrRequest]:
+            ) -> tuple[blocks.IocrRequest, blocks.IocrRequest]:
     """Both IOCRs (RT_CLASS_1, send clock × ``rr``, data hold ``hold`` cycles) and their frame
     offsets: in the input CR the data of every submodule that is not an output (with its IOPS),
     then an IOCS per output submodule; in the output CR the reverse. The C_SDU is at least 40
@@ -63,19 +63,19 @@ def _layout(subs: tuple[mod.Submodule, ...], rr: int, hold: int
     outs = [s for s in subs if s.output_length]
 
     def iocr(kind: int, data: list[mod.Submodule], iocs: list[mod.Submodule], frame_id: int
-             ) -> rpc.IocrRequest:
+             ) -> blocks.IocrRequest:
         at, d, c = 0, [], []
         for s in data:
-            d.append(rpc.IoObject(s.slot, s.subslot, at))
-            at += (s.output_length if kind == rpc.IOCR_OUTPUT else s.input_length) + 1
+            d.append(blocks.IoObject(s.slot, s.subslot, at))
+            at += (s.output_length if kind == blocks.IOCR_OUTPUT else s.input_length) + 1
         for s in iocs:
-            c.append(rpc.IoObject(s.slot, s.subslot, at))
+            c.append(blocks.IoObject(s.slot, s.subslot, at))
             at += 1
-        return rpc.IocrRequest(kind, kind, 1, max(40, at), frame_id, SEND_CLOCK_FACTOR, rr,
+        return blocks.IocrRequest(kind, kind, 1, max(40, at), frame_id, SEND_CLOCK_FACTOR, rr,
                                hold, hold, tuple(d), tuple(c))
 
-    return (iocr(rpc.IOCR_INPUT, ins, outs, INPUT_FRAME_ID),
-            iocr(rpc.IOCR_OUTPUT, outs, ins, 0xFFFF))
+    return (iocr(blocks.IOCR_INPUT, ins, outs, INPUT_FRAME_ID),
+            iocr(blocks.IOCR_OUTPUT, outs, ins, 0xFFFF))
 
 
 class Controller:
@@ -147,18 +147,18 @@ class Controller:
 
     def read_record(self, slot: int, subslot: int, index: int, now: float) -> Out:
         """RPC Read of record ``index`` (e.g. 0xAFF0..0xAFF4, I&M0..4) within the AR."""
-        req = rpc.RecordRequest(rpc.BLOCK_READ_REQ, self._seq, self.ar_uuid, mod.API, slot,
+        req = blocks.RecordRequest(blocks.BLOCK_READ_REQ, self._seq, self.ar_uuid, mod.API, slot,
                                 subslot, index, 4096)
         return self._record_call(rpc.OP_READ, req, now)
 
     def write_record(self, slot: int, subslot: int, index: int, data: bytes,
                      now: float) -> Out:
         """RPC Write of ``data`` to record ``index`` within the AR."""
-        req = rpc.RecordRequest(rpc.BLOCK_WRITE_REQ, self._seq, self.ar_uuid, mod.API, slot,
+        req = blocks.RecordRequest(blocks.BLOCK_WRITE_REQ, self._seq, self.ar_uuid, mod.API, slot,
                                 subslot, index, len(data), data)
         return self._record_call(rpc.OP_WRITE, req, now)
 
-    def _record_call(self, opnum: int, req: rpc.RecordRequest, now: float) -> Out:
+    def _record_call(self, opnum: int, req: blocks.RecordRequest, now: float) -> Out:
         if self.phase not in ("app_ready", "data") or self._pending is not None:
             raise RuntimeError(f"a record call needs an AR without a request in flight "
                                f"(phase {self.phase})")
@@ -171,8 +171,8 @@ class Controller:
         """End the AR (RPC Release); the cyclic frames stop at once."""
         out = Out()
         if self.phase in ("prm_end", "app_ready", "data"):
-            body = rpc.Control(rpc.BLOCK_RELEASE, self.ar_uuid, self.session_key,
-                               rpc.CMD_RELEASE).pack()
+            body = blocks.Control(blocks.BLOCK_RELEASE, self.ar_uuid, self.session_key,
+                               blocks.CMD_RELEASE).pack()
             self._rpc(out, rpc.OP_RELEASE, body, now)
         self.phase = "released"
         return out
@@ -220,14 +220,14 @@ class Controller:
                                 f"{self.device_addr[0]}"))
         self.phase, self._since = "connect", now
         self._pending = None
-        ar = rpc.ArRequest(0x0001, self.ar_uuid, self.session_key, self.mac,
+        ar = blocks.ArRequest(0x0001, self.ar_uuid, self.session_key, self.mac,
                            self.object.bytes, 0x00000011, 100, self.own_name)
-        alarm = rpc.AlarmCrRequest(1, 0x8892, 0, 1, 3, self.alarm_ref, 200)
-        expected = [rpc.ExpectedSubmodule(mod.API, s.slot, s.module_ident, s.subslot,
+        alarm = blocks.AlarmCrRequest(1, 0x8892, 0, 1, 3, self.alarm_ref, 200)
+        expected = [blocks.ExpectedSubmodule(mod.API, s.slot, s.module_ident, s.subslot,
                                           s.submodule_ident, s.input_length, s.output_length)
                     for s in self.submodules]
         body = (ar.pack() + self.input_cr.pack() + self.output_cr.pack() + alarm.pack()
-                + rpc.expected_submodules_block(expected))
+                + blocks.expected_submodules_block(expected))
         self._rpc(out, rpc.OP_CONNECT, body, now)
 
     # ------------------------------------------------------------------ RPC
@@ -249,7 +249,7 @@ class Controller:
 
     def _answer(self, opnum: int, status: int, body: bytes, now: float, out: Out) -> None:
         if opnum in (rpc.OP_READ, rpc.OP_WRITE):
-            self.record = (status, rpc.record_data(body) if status == 0 else b"")
+            self.record = (status, blocks.record_data(body) if status == 0 else b"")
             what = "Read" if opnum == rpc.OP_READ else "Write"
             out.events.append(Event("record", f"{what} " + (
                 "done" if status == 0 else f"refused: PNIOStatus 0x{status:08x}")))
@@ -261,7 +261,7 @@ class Controller:
                        f"0x{status:08x}")
             return
         if opnum == rpc.OP_CONNECT and self.phase == "connect":
-            res = rpc.ConnectResponse.unpack(body)
+            res = blocks.ConnectResponse.unpack(body)
             self.input_frame_id = res.frame_ids.get(self.input_cr.reference, INPUT_FRAME_ID)
             self.output_frame_id = res.frame_ids.get(self.output_cr.reference, 0)
             self.device_alarm_ref = res.alarm_reference
@@ -271,8 +271,8 @@ class Controller:
                                         f", {len(res.diff)} submodules differ (ModuleDiff)"
                                         if res.diff else "")))
             self.phase, self._next_send = "prm_end", now
-            ctl = rpc.Control(rpc.BLOCK_PRM_END, self.ar_uuid, self.session_key,
-                              rpc.CMD_PRM_END).pack()
+            ctl = blocks.Control(blocks.BLOCK_PRM_END, self.ar_uuid, self.session_key,
+                              blocks.CMD_PRM_END).pack()
             self._rpc(out, rpc.OP_CONTROL, ctl, now)
         elif opnum == rpc.OP_CONTROL and self.phase == "prm_end":
             self.phase, self._since = "app_ready", now
@@ -282,13 +282,13 @@ class Controller:
     def _app_ready(self, head: rpc.RpcHeader, body: bytes, addr: tuple[str, int], now: float,
                    out: Out) -> None:
         ndr = rpc.Ndr.unpack(body, head.little)
-        btype, b = rpc.split_blocks(ndr.body)[0]
-        ctl = rpc.Control.unpack(btype, b)
+        btype, b = blocks.split_blocks(ndr.body)[0]
+        ctl = blocks.Control.unpack(btype, b)
         ours = ctl.ar_uuid == self.ar_uuid and ctl.session_key == self.session_key
-        status = 0 if ours and ctl.command == rpc.CMD_APP_READY else \
+        status = 0 if ours and ctl.command == blocks.CMD_APP_READY else \
             rpc.pnio_status(0xDD, 0x81, 0x3F, 0x05)  # unknown AR
-        reply = rpc.Control(btype | rpc.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
-                            rpc.CMD_DONE).pack()
+        reply = blocks.Control(btype | blocks.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
+                            blocks.CMD_DONE).pack()
         out.datagrams.append((rpc.response(head, status, reply), addr))
         if status == 0 and self.phase in ("prm_end", "app_ready"):
             self.phase, self._since = "data", now

@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from .. import layout
+from . import blocks, rpc
 from . import frames as fr
 from . import im as imr
 from . import modules as mod
-from . import rpc
 from .alarms import AlarmCr, Rta
 from .dcp import DcpResponder, Event, Identity, valid_station_name
 
@@ -51,11 +51,11 @@ class Stats:
 class Ar:
     """The one application relationship (IO AR) and its two IOCRs."""
 
-    request: rpc.ArRequest
+    request: blocks.ArRequest
     controller_mac: bytes
     controller_addr: tuple[str, int]
-    input_cr: rpc.IocrRequest
-    output_cr: rpc.IocrRequest
+    input_cr: blocks.IocrRequest
+    output_cr: blocks.IocrRequest
     input_frame_id: int
     output_frame_id: int
     alarm: AlarmCr
@@ -192,24 +192,24 @@ class Device:
 
     def _connect(self, body: bytes, addr: tuple[str, int], now: float,
                  out: Out) -> tuple[int, bytes]:
-        blocks = rpc.split_blocks(body)
+        parts = blocks.split_blocks(body)
         ar_req = None
-        iocrs: list[rpc.IocrRequest] = []
+        iocrs: list[blocks.IocrRequest] = []
         alarm = None
-        expected: list[rpc.ExpectedSubmodule] = []
-        for btype, b in blocks:
-            if btype == rpc.BLOCK_AR_REQ:
-                ar_req = rpc.ArRequest.unpack(b)
-            elif btype == rpc.BLOCK_IOCR_REQ:
-                iocrs.append(rpc.IocrRequest.unpack(b))
-            elif btype == rpc.BLOCK_ALARM_CR_REQ:
-                alarm = rpc.AlarmCrRequest.unpack(b)
-            elif btype == rpc.BLOCK_EXPECTED_SUBMODULE:
-                expected += rpc.expected_submodules(b)
+        expected: list[blocks.ExpectedSubmodule] = []
+        for btype, b in parts:
+            if btype == blocks.BLOCK_AR_REQ:
+                ar_req = blocks.ArRequest.unpack(b)
+            elif btype == blocks.BLOCK_IOCR_REQ:
+                iocrs.append(blocks.IocrRequest.unpack(b))
+            elif btype == blocks.BLOCK_ALARM_CR_REQ:
+                alarm = blocks.AlarmCrRequest.unpack(b)
+            elif btype == blocks.BLOCK_EXPECTED_SUBMODULE:
+                expected += blocks.expected_submodules(b)
         if ar_req is None:
             return self._refuse(addr, "Connect without an ARBlockReq", 1, 0), b""
-        inputs = [c for c in iocrs if c.iocr_type == rpc.IOCR_INPUT]
-        outputs = [c for c in iocrs if c.iocr_type == rpc.IOCR_OUTPUT]
+        inputs = [c for c in iocrs if c.iocr_type == blocks.IOCR_INPUT]
+        outputs = [c for c in iocrs if c.iocr_type == blocks.IOCR_OUTPUT]
         if ar_req.ar_type != 0x0001 or len(inputs) != 1 or len(outputs) != 1 or alarm is None:
             return self._refuse(addr, "only an IOCARSingle with one input IOCR, one output "
                                 "IOCR and an AlarmCR is served", 1, 4), b""
@@ -248,24 +248,24 @@ class Device:
         body_out = (ar_req.response(self.identity.mac) + inputs[0].response(in_id)
                     + outputs[0].response(out_id) + alarm.response(self._device_alarm_ref))
         if diff:
-            body_out += rpc.module_diff(diff)
+            body_out += blocks.module_diff(diff)
         return 0, body_out
 
-    def _diff(self, expected: list[rpc.ExpectedSubmodule]
+    def _diff(self, expected: list[blocks.ExpectedSubmodule]
               ) -> list[tuple[int, int, int, int, int, int, int]]:
         rows = []
         for e in expected:
             real = mod.find(e.slot, e.subslot) if e.api == mod.API else None
             if real is None:
-                rows.append((e.api, e.slot, 0, rpc.MODULE_NO, e.subslot, 0, rpc.SUBMODULE_NO))
+                rows.append((e.api, e.slot, 0, blocks.MODULE_NO, e.subslot, 0, blocks.SUBMODULE_NO))
             elif real.module_ident != e.module_ident:
-                rows.append((e.api, e.slot, real.module_ident, rpc.MODULE_WRONG, e.subslot,
-                             real.submodule_ident, rpc.SUBMODULE_WRONG))
+                rows.append((e.api, e.slot, real.module_ident, blocks.MODULE_WRONG, e.subslot,
+                             real.submodule_ident, blocks.SUBMODULE_WRONG))
             elif (real.submodule_ident != e.submodule_ident
                   or real.input_length != e.input_length
                   or real.output_length != e.output_length):
-                rows.append((e.api, e.slot, real.module_ident, rpc.MODULE_PROPER, e.subslot,
-                             real.submodule_ident, rpc.SUBMODULE_WRONG))
+                rows.append((e.api, e.slot, real.module_ident, blocks.MODULE_PROPER, e.subslot,
+                             real.submodule_ident, blocks.SUBMODULE_WRONG))
         return rows
 
     def _refuse(self, addr: tuple[str, int], text: str, code1: int, code2: int) -> int:
@@ -279,36 +279,36 @@ class Device:
 
     def _control(self, body: bytes, addr: tuple[str, int], now: float,
                  out: Out) -> tuple[int, bytes]:
-        btype, b = rpc.split_blocks(body)[0]
-        ctl = rpc.Control.unpack(btype, b)
+        btype, b = blocks.split_blocks(body)[0]
+        ctl = blocks.Control.unpack(btype, b)
         if not self._own(ctl.ar_uuid, ctl.session_key):
             self._bad(f"Control from {addr[0]} for an unknown AR")
             return rpc.pnio_status(0xDD, 0x81, 0x3F, 0x05), b""  # IODControlRes, unknown AR
         assert self.ar is not None
-        if btype == rpc.BLOCK_PRM_END and ctl.command == rpc.CMD_PRM_END:
+        if btype == blocks.BLOCK_PRM_END and ctl.command == blocks.CMD_PRM_END:
             self.ar.phase = "ready"
             self.ar.app_ready_at = now  # ApplicationReady goes out on the next tick
-        elif btype == rpc.BLOCK_PRM_BEGIN and ctl.command == rpc.CMD_PRM_BEGIN:
+        elif btype == blocks.BLOCK_PRM_BEGIN and ctl.command == blocks.CMD_PRM_BEGIN:
             self.ar.phase = "parameter"
-        elif btype == rpc.BLOCK_RELEASE:
+        elif btype == blocks.BLOCK_RELEASE:
             return self._release(body, addr, now, out)
         else:
             return rpc.pnio_status(0xDD, 0x81, 0x3F, 0x06), b""
-        reply = rpc.Control(btype | rpc.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
-                            rpc.CMD_DONE)
+        reply = blocks.Control(btype | blocks.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
+                            blocks.CMD_DONE)
         return 0, reply.pack()
 
     def _release(self, body: bytes, addr: tuple[str, int], now: float,
                  out: Out) -> tuple[int, bytes]:
-        btype, b = rpc.split_blocks(body)[0]
-        ctl = rpc.Control.unpack(btype, b)
-        if btype != rpc.BLOCK_RELEASE or not self._own(ctl.ar_uuid, ctl.session_key):
+        btype, b = blocks.split_blocks(body)[0]
+        ctl = blocks.Control.unpack(btype, b)
+        if btype != blocks.BLOCK_RELEASE or not self._own(ctl.ar_uuid, ctl.session_key):
             self._bad(f"Release from {addr[0]} for an unknown AR")
             return rpc.pnio_status(0xDE, 0x81, 0x3F, 0x05), b""
         self.stats.releases += 1
         self._end(out, Event("released", f"AR released by {addr[0]}"))
-        return 0, rpc.Control(btype | rpc.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
-                              rpc.CMD_DONE).pack()
+        return 0, blocks.Control(btype | blocks.RESPONSE_BIT, ctl.ar_uuid, ctl.session_key,
+                              blocks.CMD_DONE).pack()
 
     def _end(self, out: Out, event: Event) -> None:
         self.ar = None
@@ -317,14 +317,14 @@ class Device:
 
     def _read(self, body: bytes, addr: tuple[str, int], now: float,
               out: Out) -> tuple[int, bytes]:
-        req = rpc.RecordRequest.unpack(body)
+        req = blocks.RecordRequest.unpack(body)
         data = self._record(req)
         if data is None:
             # ErrorCode 0xDE IODReadRes, ErrorDecode 0x80 PNIORW, access: invalid index
             return rpc.pnio_status(0xDE, 0x80, 0xB0, 0x00), req.response(0)
         return 0, req.response(len(data)) + data
 
-    def _record(self, req: rpc.RecordRequest) -> bytes | None:
+    def _record(self, req: blocks.RecordRequest) -> bytes | None:
         if req.index == 0xAFF0 and req.slot == 0:
             return imr.im0(self.identity)
         if req.index in imr.RECORDS and req.slot == 0:
@@ -335,7 +335,7 @@ class Device:
 
     def _write(self, body: bytes, addr: tuple[str, int], now: float,
                out: Out) -> tuple[int, bytes]:
-        req = rpc.RecordRequest.unpack(body)
+        req = blocks.RecordRequest.unpack(body)
         sub = mod.find(req.slot, req.subslot)
         # user records (0..0x7FFF) and the port/interface records a controller writes in its
         # parameter phase (0x8000..0xAFFF: PDPortDataCheck, PDInterfaceAdjust, ...) are kept
@@ -348,7 +348,7 @@ class Device:
         self.records[(req.slot, req.subslot, req.index)] = req.data
         return 0, req.response(len(req.data))
 
-    def _write_im(self, req: rpc.RecordRequest, addr: tuple[str, int],
+    def _write_im(self, req: blocks.RecordRequest, addr: tuple[str, int],
                   out: Out) -> tuple[int, bytes]:
         record = imr.RECORDS[req.index]
         data, code1 = imr.written(record, req.data) if req.slot == 0 else (None, 0xB2)
@@ -368,8 +368,8 @@ class Device:
     # ------------------------------------------------------------------ ApplicationReady
 
     def _app_ready_request(self, ar: Ar) -> tuple[bytes, tuple[str, int]]:
-        ctl = rpc.Control(rpc.BLOCK_APP_READY, ar.request.ar_uuid, ar.request.session_key,
-                          rpc.CMD_APP_READY).pack()
+        ctl = blocks.Control(blocks.BLOCK_APP_READY, ar.request.ar_uuid, ar.request.session_key,
+                          blocks.CMD_APP_READY).pack()
         ndr = rpc.Ndr(len(ctl), ctl, len(ctl)).pack(True, response=False)
         head = rpc.RpcHeader(rpc.REQUEST, uuid.UUID(bytes=ar.request.initiator_object),
                              rpc.IFACE_CONTROLLER, ar.app_ready_activity, ar.app_ready_tries,

@@ -11,8 +11,8 @@ import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
 
+from . import blocks
 from . import modules as mod
-from . import rpc
 
 if TYPE_CHECKING:
     from .dcp import Identity
@@ -94,7 +94,7 @@ def im0(ident: Identity) -> bytes:
             + ident.serial.encode("ascii")[:16].ljust(16)
             + struct.pack(">H", 1) + b"V" + bytes([major, minor, patch])
             + struct.pack(">HHHBBH", 0, 0, 0x0005, 1, 1, IM_SUPPORTED))
-    return rpc.block(rpc.BLOCK_IM0, body)
+    return blocks.block(blocks.BLOCK_IM0, body)
 
 
 def real_identification() -> bytes:
@@ -107,4 +107,4 @@ def real_identification() -> bytes:
         body += struct.pack(">HIH", slot, subs[0].module_ident, len(subs))
         for s in subs:
             body += struct.pack(">HI", s.subslot, s.submodule_ident)
-    return rpc.block(rpc.BLOCK_REAL_IDENTIFICATION, body)
+    return blocks.block(blocks.BLOCK_REAL_IDENTIFICATION, body)
