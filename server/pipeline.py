@@ -41,8 +41,9 @@ from mvpose_core.detect import (
     DetectOptions,
     MarkDetection,
     check_image,
+    corrected,
+    corrections_at,
     detect_marks_many,
-    recorrect,
 )
 from mvpose_core.detect.follow import next_near
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
@@ -185,7 +186,7 @@ class Pipeline:
                                              np.random.default_rng(0), 0.0,
                                              require_in_image=False)
             meas = measure(self.station, recipe, obs, None, self.options.estimate, cameras=cams)
-            recorrect(groups, recipe, meas.T_rf_from_pf)
+            corrected(groups, corrections_at(groups, recipe, meas.T_rf_from_pf)[0])
 
     def close(self) -> None:
         if self._pool is not None:
@@ -312,9 +313,10 @@ class Pipeline:
             if self.options.recorrect:
                 t = time.monotonic()
                 keys = [(v, cid) for v in views for cid in v.detections]
-                moved, shift = recorrect([(v.cameras[cid], v.detections[cid]) for v, cid in keys],
-                                         rc, meas.T_rf_from_pf)
+                groups = [(v.cameras[cid], v.detections[cid]) for v, cid in keys]
+                corrs, shift = corrections_at(groups, rc, meas.T_rf_from_pf)
                 if shift > self.options.recorrect_px:
+                    moved = corrected(groups, corrs)
                     for (v, cid), dets in zip(keys, moved, strict=True):
                         v.detections[cid] = dets
                     obs = [o for v in views for o in v.observations()]

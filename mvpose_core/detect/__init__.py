@@ -7,17 +7,13 @@ correction at the better pose; ``stereo_check`` drops marks whose cameras disagr
 
 from __future__ import annotations
 
-from dataclasses import replace
-
-import numpy as np
-
-from mvpose_core.detect.geometry import (
-    Ellipse,
-    MarkPrediction,
+from mvpose_core.detect.correction import (
+    corrected,
+    corrections_at,
     perspective_correction,
     perspective_corrections,
-    predict_marks,
 )
+from mvpose_core.detect.geometry import Ellipse, MarkPrediction, predict_marks
 from mvpose_core.detect.search import identify_marks, search_marks
 from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
 from mvpose_core.detect.types import (
@@ -41,6 +37,8 @@ __all__ = [
     "MarkPrediction",
     "check_image",
     "correct_centres",
+    "corrected",
+    "corrections_at",
     "detect_marks",
     "detect_marks_many",
     "epipolar_distance_px",
@@ -67,25 +65,7 @@ def recorrect(
     T_rf_from_pf: Array,
 ) -> tuple[list[list[MarkDetection]], float]:
     """Each camera's detections corrected for perspective at ``T_rf_from_pf``, and the largest
-    change (px) of any correction against the one the detections carried (none: 0 px)."""
-    usable = [
-        [d for d in dets if d.found and d.uv_ellipse is not None] for _, dets in groups
-    ]
-    corrs = perspective_corrections(
-        [(cam, [d.mark_id for d in ds]) for (cam, _), ds in zip(groups, usable, strict=True)],
-        recipe, T_rf_from_pf,
-    )
-    worst = 0.0
-    out = []
-    for (_, dets), corr in zip(groups, corrs, strict=True):
-        moved = []
-        for d in dets:
-            c = corr.get(d.mark_id)
-            if not d.found or d.uv_ellipse is None or c is None:
-                moved.append(d)
-                continue
-            before = d.correction if d.correction is not None else np.zeros(2)
-            worst = max(worst, float(np.hypot(c[0] - before[0], c[1] - before[1])))
-            moved.append(replace(d, uv=d.uv_ellipse + c, correction=np.array(c, dtype=float)))
-        out.append(moved)
-    return out, worst
+    change (px) of any correction against the one the detections carried (none: 0 px).
+    :func:`corrections_at` gives the change without rebuilding the detections."""
+    corrs, worst = corrections_at(groups, recipe, T_rf_from_pf)
+    return corrected(groups, corrs), worst

@@ -3,12 +3,14 @@
 The image of a circle is (up to lens distortion) an ellipse whose centre is not the image of the
 circle's centre. Both the expected ellipse and the correction come from the same computation: the
 circle's rim is sampled in 3D at the given pose, projected through the lens, and an ellipse is
-fitted to it exactly as the detector fits one to edge points (:func:`fit_ellipses`).
+fitted to it exactly as the detector fits one to edge points (:func:`fit_ellipses`). The
+correction alone, at the estimated pose, is :mod:`mvpose_core.detect.correction`'s.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -20,12 +22,12 @@ from mvpose_core.transforms import Array, compose, invert
 _RIM_SAMPLES = 72
 
 
+@lru_cache(maxsize=8)
 def _cos_sin(n: int) -> Array:
     t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    return np.stack([np.cos(t), np.sin(t)], axis=1)
-
-
-_RIM_COS_SIN = _cos_sin(_RIM_SAMPLES)
+    cs = np.stack([np.cos(t), np.sin(t)], axis=1)
+    cs.flags.writeable = False
+    return cs
 
 
 @dataclass(frozen=True)
@@ -204,7 +206,7 @@ def rims(p_cf: Array, n_cf: Array, radius_mm: float | Array, n: int = _RIM_SAMPL
          nx * e1[:, 1:2] - ny * e1[:, 0:1]],
         axis=1,
     )
-    cs = _RIM_COS_SIN if n == _RIM_SAMPLES else _cos_sin(n)
+    cs = _cos_sin(n)
     r = np.broadcast_to(np.asarray(radius_mm, dtype=float), (p_cf.shape[0],))[:, None, None]
     return p_cf[:, None, :] + r * (
         cs[None, :, :1] * e1[:, None, :] + cs[None, :, 1:] * e2[:, None, :]
@@ -448,66 +450,6 @@ def predict_marks(
                 diameter_mm=dm,
             )
         )
-    return out
-
-
-def perspective_correction(
-    cam: ViewCamera, recipe: RecipeConfig, T_rf_from_pf: Array, mark_ids: list[str]
-) -> dict[str, Array]:
-    """Per mark, the vector (px) from the imaged ellipse's centre to the circle centre's image.
-
-    The same rim projection and ellipse fit as :func:`predict_marks`, without the window and
-    size bounds it also computes (:func:`perspective_corrections` for several cameras at once).
-    """
-    return perspective_corrections([(cam, mark_ids)], recipe, T_rf_from_pf)[0]
-
-
-def perspective_corrections(
-    cameras: list[tuple[ViewCamera, list[str]]], recipe: RecipeConfig, T_rf_from_pf: Array
-) -> list[dict[str, Array]]:
-    """:func:`perspective_correction` for each (camera, mark ids), with one ellipse fit for all.
-
-    This runs once per trigger at the estimated pose, for every camera that saw marks: per
-    camera one transform and one projection of its marks' centres and rims together.
-    """
-    positions, normals = _mark_geometry(recipe)
-    index = {m.id: k for k, m in enumerate(recipe.marks)}
-    radii = recipe.mark_diameters() / 2.0
-    chosen: list[list[str]] = []
-    posed: list[tuple[ViewCamera, Array, Array, Array]] = []  # (camera, p_cf, n_cf, r) facing
-    for cam, ids in cameras:
-        ks = [index[i] for i in ids if i in index]
-        T = compose(invert(cam.T_rf_from_cf), T_rf_from_pf)
-        R, t = T[:3, :3], T[:3, 3]
-        p_cf = positions[ks] @ R.T + t
-        n_cf = normals[ks] @ R.T
-        facing = (p_cf[:, 2] > 1.0) & (np.einsum("mi,mi->m", n_cf, p_cf) < 0.0)
-        chosen.append([recipe.marks[k].id for k, f in zip(ks, facing, strict=True) if f])
-        if facing.any():
-            posed.append((cam, p_cf[facing], n_cf[facing], radii[ks][facing]))
-    if not posed:
-        return [{} for _ in cameras]
-    rim_all = rims(np.concatenate([p for _, p, _, _ in posed]),
-                   np.concatenate([n for _, _, n, _ in posed]),
-                   np.concatenate([r for _, _, _, r in posed]))
-    centres: list[Array] = []
-    rim_images: list[Array] = []
-    first = 0
-    for cam, p_cf, _, _ in posed:
-        m = len(p_cf)
-        pts = np.concatenate([p_cf[:, None, :], rim_all[first : first + m]], axis=1)
-        uv = cam.model.project(pts.reshape(-1, 3)).reshape(m, -1, 2)
-        centres.append(uv[:, 0])
-        rim_images.append(uv[:, 1:])
-        first += m
-    rim_uv = np.concatenate(rim_images)
-    ells = fit_ellipses(rim_uv, np.ones(rim_uv.shape[:2]))
-    corr = np.concatenate(centres) - ells.centre
-    out: list[dict[str, Array]] = []
-    k = 0
-    for ids in chosen:
-        out.append({mid: corr[k + j] for j, mid in enumerate(ids) if bool(ells.ok[k + j])})
-        k += len(ids)
     return out
 
 
