@@ -17,9 +17,10 @@ from mvpose_core.transforms import Array, RobotConvention
 from mvpose_core.uncertainty import (
     calibration_covariance,
     calibration_terms,
-    covariance_in_frame,
     detector_scale,
     detector_sigmas,
+    frame_adjoint,
+    in_frame,
     sigma_figures,
 )
 
@@ -115,7 +116,8 @@ def measure(
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)
     T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
-    cov_grasp = covariance_in_frame(pose.covariance, T_pf_from_grasp)
+    Ad = frame_adjoint(T_pf_from_grasp)
+    cov_grasp = in_frame(pose.covariance, Ad)
     prior = sigma_figures(cov_grasp)
     r = pose.residuals_px[pose.used]
     dof = 2 * r.shape[0] - 6
@@ -126,7 +128,8 @@ def measure(
         ]
         s2 = float(np.sum((r * w[:, None]) ** 2)) / dof
         posterior = sigma_figures(cov_grasp * s2)
-    parts = uncertainty_parts(station, recipe, observations, cameras, marks_pf, pose, dof)
+    parts = uncertainty_parts(station, recipe, observations, cameras, marks_pf, pose, dof,
+                              grasp_adjoint=Ad)
     sig_rot, sig_trans = sigma_figures(parts.covariance_detector + parts.covariance_calibration)
     off = frame_offsets(pose.T_rf_from_pf, T_rf_from_pf0, T_pf_from_grasp, recipe.robot_convention)
     lengths = np.linalg.norm(r, axis=1)
@@ -178,23 +181,27 @@ def uncertainty_parts(
     marks_pf: Mapping[str, np.ndarray],
     pose: PoseResult,
     dof: int,
+    *,
+    grasp_adjoint: Array | None = None,
 ) -> UncertaintyParts:
     """Detector part (σ estimated from the residuals, pooled with the recipe's a-priori σ) and
     calibration part (``station.uncertainty`` propagated through the estimate's Jacobian) of
-    the pose's covariance, at the recipe's grasp frame."""
+    the pose's covariance, at the recipe's grasp frame (``grasp_adjoint``: its
+    :func:`~mvpose_core.uncertainty.frame_adjoint`, when the caller has it)."""
     used = [o for o, u in zip(observations, pose.used, strict=True) if u]
     sigma0 = recipe.detector_noise_px
     w = np.array([1.0 / (o.sigma_px or sigma0) for o in used])
     r = np.asarray(pose.residuals_px, dtype=float)[pose.used]
     k2 = detector_scale(float(np.sum((r * w[:, None]) ** 2)), max(dof, 0),
                         station.uncertainty.detector_prior_dof)
-    T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
-    cov_det = covariance_in_frame(pose.covariance * k2, T_pf_from_grasp)
+    Ad = (grasp_adjoint if grasp_adjoint is not None
+          else frame_adjoint(recipe.T_pf_from_grasp.matrix))
+    cov_det = in_frame(pose.covariance * k2, Ad)
     terms = calibration_terms(station, cameras)
     cov_cal_pf, per = calibration_covariance(
         cameras, marks_pf, [o.key for o in used], w, pose.T_rf_from_pf, terms
     )
-    cov_cal = covariance_in_frame(cov_cal_pf, T_pf_from_grasp)
+    cov_cal = in_frame(cov_cal_pf, Ad)
     det = sigma_figures(cov_det)
     cal = sigma_figures(cov_cal)
     return UncertaintyParts(
@@ -207,6 +214,6 @@ def uncertainty_parts(
         covariance_detector=cov_det,
         covariance_calibration=cov_cal,
         calibration_terms={
-            name: sigma_figures(covariance_in_frame(c, T_pf_from_grasp)) for name, c in per.items()
+            name: sigma_figures(in_frame(c, Ad)) for name, c in per.items()
         },
     )

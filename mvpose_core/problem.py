@@ -53,6 +53,13 @@ class Observation:
     def key(self) -> tuple[int, str, str]:
         return (self.view, self.camera_id, self.mark_id)
 
+    def but(self, **changes: object) -> Observation:
+        """The observation with some fields changed (as ``dataclasses.replace``, without its
+        generic machinery: this runs per observation and solve in the robust rule)."""
+        out = object.__new__(Observation)
+        out.__dict__.update(self.__dict__, **changes)
+        return out
+
 
 @dataclass(frozen=True)
 class Lenses:

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 
@@ -126,7 +128,7 @@ def estimate_pose_robust(
     """:func:`mvpose_core.estimate.estimate_pose` under the robust rule (module docstring)."""
     obs = list(observations)
     n = len(obs)
-    options = replace(options, loss=config.loss, huber_px=config.huber_px, outlier_px=None)
+    options = _rule_options(options, config.loss, config.huber_px)
     by_cam = {(c.view, c.camera_id): c for c in cameras}
     cands = [[o.uv, *o.alternates] for o in obs]
     chosen = [0] * n
@@ -139,7 +141,8 @@ def estimate_pose_robust(
     used = np.array([k not in why_out for k in range(n)])
 
     def solve(mask: np.ndarray, start: Array | None) -> PoseResult:
-        sub = [replace(obs[k], uv=cands[k][chosen[k]]) for k in np.flatnonzero(mask).tolist()]
+        sub = [obs[k] if not chosen[k] else obs[k].but(uv=cands[k][chosen[k]])
+               for k in np.flatnonzero(mask).tolist()]
         return estimate_pose(sub, cameras, marks_pf, options, sigma_px,
                              initial_T_rf_from_pf=initial_T_rf_from_pf,
                              warm_start=start if start is not None else warm_start)
@@ -204,7 +207,7 @@ def estimate_pose_robust(
                 used[k] = True
                 why_out.pop(k, None)
             pose = solve(used, pose.T_rf_from_pf)
-    final = [replace(o, uv=cands[k][chosen[k]]) for k, o in enumerate(obs)]
+    final = [o if not chosen[k] else o.but(uv=cands[k][chosen[k]]) for k, o in enumerate(obs)]
     res_all = np.array([o.uv for o in final], dtype=float) - _predictions(
         final, cands, chosen, pose, used, by_cam, marks_pf)
     keys = [o.key for o in final]
@@ -225,10 +228,23 @@ def estimate_pose_robust(
     )
 
 
+@lru_cache(maxsize=16)
+def _rule_options(options: EstimateOptions, loss: Literal["linear", "huber"],
+                  huber_px: float) -> EstimateOptions:
+    """The estimator's options under the rule's loss (made once: they are validated when made)."""
+    return replace(options, loss=loss, huber_px=huber_px, outlier_px=None)
+
+
 def _threshold(limit: float, res: list[Array], chosen: list[int], used: Array) -> float:
     """``limit``, or four times the median residual of the used observations if larger."""
-    lengths = [res[k][chosen[k]] for k in np.flatnonzero(used).tolist()]
-    return max(limit, 4.0 * float(np.median(lengths))) if lengths else limit
+    lengths = sorted(float(res[k][chosen[k]]) for k in np.flatnonzero(used).tolist())
+    if not lengths:
+        return limit
+    if any(x != x for x in lengths):  # a NaN: np.median's NaN, which max() passes over
+        return limit
+    m = len(lengths) // 2  # the median as np.median takes it: the middle one, or the mean of two
+    median = lengths[m] if len(lengths) % 2 else (lengths[m - 1] + lengths[m]) / 2.0
+    return max(limit, 4.0 * median)
 
 
 def _predictions(

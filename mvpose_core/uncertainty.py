@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dsyevd
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.problem import Observation, pack_layout
 from mvpose_core.refine import Array, residuals_and_jacobian
 from mvpose_core.scene import ViewCamera
@@ -126,7 +127,16 @@ def adjoint(T_b_from_a: NDArray[np.floating[Any]]) -> Array:
 
 def covariance_in_frame(cov_pf: Array, T_pf_from_g: Array) -> Array:
     """Covariance of the perturbation of frame g (rigid to the part) from the one of PF."""
-    Ad = adjoint(np.linalg.inv(T_pf_from_g))
+    return in_frame(cov_pf, frame_adjoint(T_pf_from_g))
+
+
+def frame_adjoint(T_pf_from_g: Array) -> Array:
+    """The 6x6 that moves a covariance of PF's perturbation to frame g's (:func:`in_frame`)."""
+    return adjoint(np.linalg.inv(T_pf_from_g))
+
+
+def in_frame(cov_pf: Array, Ad: Array) -> Array:
+    """:func:`covariance_in_frame` with the frame's :func:`frame_adjoint` made once."""
     return Ad @ cov_pf @ Ad.T
 
 
@@ -136,8 +146,9 @@ def sigma_figures(cov: Array) -> tuple[float, float]:
     √trace is the RMS length of the error vector (what a Monte Carlo RMS error measures);
     it is at least the largest per-axis σ, so a gate on it is conservative.
     """
-    rot = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
-    trans = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+    d = cov.diagonal().tolist()  # the traces in np.trace's order of summation
+    rot = math.degrees(math.sqrt(max(d[0] + d[1] + d[2], 0.0)))
+    trans = math.sqrt(max(d[3] + d[4] + d[5], 0.0))
     return rot, trans
 
 
@@ -173,10 +184,8 @@ def detector_sigmas(observations: Sequence[Observation], sigma0: float) -> list[
     v = np.array([o.centre_variance if o.centre_variance is not None else np.nan for o in free])
     if not free or not np.all(np.isfinite(v) & (v > 0)):
         return list(observations)
-    scale = sigma0 / float(np.sqrt(v.mean()))
-    return [o if o.sigma_px is not None or o.centre_variance is None
-            else replace(o, sigma_px=scale * float(np.sqrt(o.centre_variance)))
-            for o in observations]
+    sigmas = iter((sigma0 / float(np.sqrt(v.mean())) * np.sqrt(v)).tolist())
+    return [o if o.sigma_px is not None else o.but(sigma_px=next(sigmas)) for o in observations]
 
 
 # ----------------------------------------------------------------------- calibration part
@@ -196,15 +205,25 @@ class CalibrationTerm:
     moves: Mapping[tuple[int, str], Array]
 
 
+_TERMS: IdentityCache[tuple[CalibrationTerm, ...]] = IdentityCache(16)
+
+
 def calibration_terms(
     station: StationConfig, cameras: Sequence[ViewCamera]
-) -> list[CalibrationTerm]:
-    """The station's uncertain transforms with a non-zero 1σ (``station.uncertainty``).
+) -> tuple[CalibrationTerm, ...]:
+    """The station's uncertain transforms with a non-zero 1σ (``station.uncertainty``),
+    remembered for the very same station and camera objects (all frozen).
 
     Robot rig: ``T_rf_from_cf = T_rf_from_gf(view) · T_gf_from_rig · T_rig_from_cf`` — one
     robot-repeatability term per view, one hand-eye term per rig shared by every view, one term
     per camera for its place in the rig. Fixed rig: ``T_rf_from_rig · T_rig_from_cf``.
     """
+    return _TERMS.get((station, *cameras), None, lambda: _calibration_terms(station, cameras))
+
+
+def _calibration_terms(
+    station: StationConfig, cameras: Sequence[ViewCamera]
+) -> tuple[CalibrationTerm, ...]:
     u = station.uncertainty
     terms: dict[str, tuple[Array, dict[tuple[int, str], Array]]] = {}
 
@@ -227,7 +246,7 @@ def calibration_terms(
             assert rig.T_gf_from_rig is not None  # validated
             add(f"robot pose at view {vc.view}", u.robot_repeatability.covariance(), key,
                 compose(rig.T_gf_from_rig.matrix, T_rig_from_cf))
-    return [CalibrationTerm(name, cov, moves) for name, (cov, moves) in terms.items()]
+    return tuple(CalibrationTerm(name, cov, moves) for name, (cov, moves) in terms.items())
 
 
 def _skew(p: Array) -> Array:
