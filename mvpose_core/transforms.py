@@ -110,14 +110,23 @@ def check_transform(T: ArrayLike, name: str = "transform", tol: float = 1e-6) ->
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4):
         raise ValueError(f"{name} must be 4x4, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         raise ValueError(f"{name} contains NaN or infinite values")
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+    # np.allclose's test (|a − b| ≤ atol + 1e-5·|b|) without its generic machinery, and the
+    # determinant's sign as a triple product: this runs at every estimate's warm start.
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if (not (np.abs(R @ R.T - _EYE3) <= tol + _RTOL * _EYE3).all()
+            or a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0):
         raise ValueError(f"{name} rotation part is not a proper rotation (R·Rᵀ ≠ I or det < 0)")
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol):
+    if not (np.abs(T[3] - _LAST_ROW) <= tol + _RTOL * _LAST_ROW).all():
         raise ValueError(f"{name} last row must be [0 0 0 1], got {T[3].tolist()}")
     return T
+
+
+_EYE3: Final = np.eye(3)
+_LAST_ROW: Final = np.array([0.0, 0.0, 0.0, 1.0])
+_RTOL: Final = 1e-5  # np.allclose's default relative tolerance, which the checks kept
 
 
 def invert(T: ArrayLike) -> Array:
