@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mvpose_core.cache import IdentityCache
 from mvpose_core.estimate import EstimateOptions, Observation, PoseResult
 from mvpose_core.gate import GateInputs, GateVerdict, evaluate_gate
 from mvpose_core.offset import FrameOffset, frame_offsets
@@ -74,6 +75,11 @@ class UncertaintyParts:
     calibration_terms: dict[str, tuple[float, float]]
 
 
+#: each recipe's :func:`~mvpose_core.uncertainty.frame_adjoint` of its grasp frame (recipes are
+#: frozen: an entry serves that very recipe object only)
+_GRASP_ADJOINTS: IdentityCache[Array] = IdentityCache(16)
+
+
 def measure(
     station: StationConfig,
     recipe: RecipeConfig,
@@ -116,7 +122,7 @@ def measure(
     used = sorted({o.mark_id for o, u in zip(observations, pose.used, strict=True) if u})
     missing = tuple(m.id for m in recipe.marks if m.id not in used)
     T_pf_from_grasp = recipe.T_pf_from_grasp.matrix
-    Ad = frame_adjoint(T_pf_from_grasp)
+    Ad = _GRASP_ADJOINTS.get((recipe,), None, lambda: frame_adjoint(T_pf_from_grasp))
     cov_grasp = in_frame(pose.covariance, Ad)
     prior = sigma_figures(cov_grasp)
     r = pose.residuals_px[pose.used]

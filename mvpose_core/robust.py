@@ -35,6 +35,7 @@ from functools import lru_cache
 from typing import Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mvpose_core.detect.types import MarkDetection
 from mvpose_core.estimate import EstimateOptions, PoseResult, SolveInfo, estimate_pose
@@ -131,6 +132,7 @@ def estimate_pose_robust(
     options = _rule_options(options, config.loss, config.huber_px)
     by_cam = {(c.view, c.camera_id): c for c in cameras}
     cands = [[o.uv, *o.alternates] for o in obs]
+    every = _Candidates.of(cands)
     chosen = [0] * n
     why_out: dict[int, str] = {}  # set aside or dropped, with the reason
     replaced: dict[int, str] = {}
@@ -142,7 +144,7 @@ def estimate_pose_robust(
 
     def solve(mask: np.ndarray, start: Array | None) -> PoseResult:
         sub = [obs[k] if not chosen[k] else obs[k].but(uv=cands[k][chosen[k]])
-               for k in np.flatnonzero(mask).tolist()]
+               for k in np.asarray(mask).nonzero()[0].tolist()]
         return estimate_pose(sub, cameras, marks_pf, options, sigma_px,
                              initial_T_rf_from_pf=initial_T_rf_from_pf,
                              warm_start=start if start is not None else warm_start)
@@ -159,7 +161,7 @@ def estimate_pose_robust(
     limit = None if config.outlier_px is None else max(config.outlier_px, 5.0 * sigma_px)
     if limit is not None:
         for _ in range(2 * n + 2):  # each pass makes one change; a few suffice in practice
-            res = _all_residuals(obs, cands, chosen, pose, used, by_cam, marks_pf)
+            res = _all_residuals(obs, cands, every, chosen, pose, used, by_cam, marks_pf)
             cur = np.array([res[k][chosen[k]] for k in range(n)])
             length = np.where(used, cur, -1.0)
             worst = int(np.argmax(length))
@@ -172,7 +174,8 @@ def estimate_pose_robust(
                     without = solve(trial, pose.T_rf_from_pf)
                 except PoseInputError:
                     break  # the rest would not fix a pose: keep it, the gate judges
-                res_w = _all_residuals(obs, cands, chosen, without, trial, by_cam, marks_pf)
+                res_w = _all_residuals(obs, cands, every, chosen, without, trial, by_cam,
+                                       marks_pf)
                 tau = _threshold(limit, res_w, chosen, trial)
                 best = int(np.argmin(res_w[worst])) if config.candidates else chosen[worst]
                 if res_w[worst][chosen[worst]] <= tau:
@@ -217,7 +220,7 @@ def estimate_pose_robust(
         info.converged, info.initializer, tuple(keys[k] for k in sorted(why_out)),
     )
     in_objective = np.zeros(n, dtype=bool)  # left_only leaves right cameras out as well
-    in_objective[np.flatnonzero(used)] = pose.used
+    in_objective[used.nonzero()[0]] = pose.used
     full = PoseResult(pose.T_rf_from_pf, pose.covariance, res_all, info, in_objective)
     return RobustResult(
         full,
@@ -237,7 +240,7 @@ def _rule_options(options: EstimateOptions, loss: Literal["linear", "huber"],
 
 def _threshold(limit: float, res: list[Array], chosen: list[int], used: Array) -> float:
     """``limit``, or four times the median residual of the used observations if larger."""
-    lengths = sorted(float(res[k][chosen[k]]) for k in np.flatnonzero(used).tolist())
+    lengths = sorted(float(res[k][chosen[k]]) for k in used.nonzero()[0].tolist())
     if not lengths:
         return limit
     if any(x != x for x in lengths):  # a NaN: np.median's NaN, which max() passes over
@@ -255,11 +258,11 @@ def _predictions(
     candidates ``chosen``) puts each observation's mark: from the estimate's own residuals for
     those, one projection per camera for the rest (inf behind the camera)."""
     out = np.empty((len(obs), 2))
-    idx = np.flatnonzero(mask)
+    idx = np.asarray(mask).nonzero()[0]
     out[idx] = np.array([cands[k][chosen[k]] for k in idx.tolist()], dtype=float).reshape(
         -1, 2) - pose.residuals_px
     rows: dict[tuple[int, str], list[int]] = {}
-    for k in np.flatnonzero(~np.asarray(mask, dtype=bool)).tolist():
+    for k in (~np.asarray(mask, dtype=bool)).nonzero()[0].tolist():
         rows.setdefault((obs[k].view, obs[k].camera_id), []).append(k)
     for key, ks in rows.items():
         cam = by_cam[key]
@@ -271,14 +274,34 @@ def _predictions(
     return out
 
 
+@dataclass(frozen=True)
+class _Candidates:
+    """Every observation's candidates in one array ``["K", 2]``: observation ``k``'s are rows
+    ``bounds[k]:bounds[k + 1]``, and ``owner`` names each row's observation."""
+
+    uv: Array
+    owner: NDArray[np.intp]
+    bounds: list[int]
+
+    @classmethod
+    def of(cls, cands: list[list[Array]]) -> _Candidates:
+        counts = [len(cs) for cs in cands]
+        uv = np.array([c for cs in cands for c in cs], dtype=float).reshape(-1, 2)
+        owner = np.repeat(np.arange(len(cands)), counts)
+        return cls(uv, owner, np.concatenate([[0], np.cumsum(counts)]).tolist())
+
+
 def _all_residuals(
-    obs: Sequence[Observation], cands: list[list[Array]], chosen: list[int], pose: PoseResult,
-    mask: Array, by_cam: Mapping[tuple[int, str], ViewCamera], marks_pf: Mapping[str, np.ndarray],
+    obs: Sequence[Observation], cands: list[list[Array]], every: _Candidates, chosen: list[int],
+    pose: PoseResult, mask: Array, by_cam: Mapping[tuple[int, str], ViewCamera],
+    marks_pf: Mapping[str, np.ndarray],
 ) -> list[Array]:
     """Per observation, the residual length (px) of each of its candidates at ``pose``."""
     pred = _predictions(obs, cands, chosen, pose, mask, by_cam, marks_pf)
-    return [np.linalg.norm(np.asarray(cs, dtype=float) - pred[k], axis=1)
-            for k, cs in enumerate(cands)]
+    d = every.uv - pred[every.owner]
+    length = np.sqrt(np.add.reduce(d * d, axis=1))  # what np.linalg.norm(axis=1) computes
+    b = every.bounds
+    return [length[b[k]:b[k + 1]] for k in range(len(cands))]
 
 
 def _skew(t: Array) -> Array:
