@@ -53,6 +53,33 @@ def test_check_transform_rejects_bad_matrices() -> None:
         check_transform(mirror)
 
 
+def test_check_transform_judges_as_np_allclose_and_det() -> None:
+    """Its rotation and last-row tests give the verdicts of np.allclose (atol = tol, rtol 1e-5)
+    and np.linalg.det, near the tolerance's edge from both sides."""
+    rng = np.random.default_rng(3)
+    verdicts = set()
+    for k in range(400):
+        T = random_transform(rng)
+        T[:3, :3] *= 1.0 + rng.choice([-1, 1]) * rng.uniform(0.0, 1.2e-5)  # around the edge
+        if k % 4 == 1:
+            T[:3, :3] += rng.normal(0.0, 3e-7, (3, 3))
+        if k % 4 == 2:
+            T[3, rng.integers(4)] += rng.choice([-1, 1]) * rng.uniform(0.0, 2e-5)
+        if k % 4 == 3:
+            T[:3, 2] *= -1.0  # a mirror
+        R = T[:3, :3]
+        expected = (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) >= 0
+                    and np.allclose(T[3], [0, 0, 0, 1], atol=1e-6))
+        try:
+            check_transform(T)
+            got = True
+        except ValueError:
+            got = False
+        assert got == expected, (k, T)
+        verdicts.add(got)
+    assert verdicts == {True, False}
+
+
 # Published/hand-derivable examples: (convention, pose vector, expected rotation matrix).
 _QUARTER_Z = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 _HALF_X = np.diag([1.0, -1.0, -1.0])
