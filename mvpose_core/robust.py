@@ -159,9 +159,11 @@ def estimate_pose_robust(
         pose = solve(used, None)
     # Five σ of the a-priori noise at least: a noisy station never loses good observations.
     limit = None if config.outlier_px is None else max(config.outlier_px, 5.0 * sigma_px)
+    seen: tuple[PoseResult, Array] | None = None  # a pose and its predictions, once made
     if limit is not None:
         for _ in range(2 * n + 2):  # each pass makes one change; a few suffice in practice
-            res = _all_residuals(obs, cands, every, chosen, pose, used, by_cam, marks_pf)
+            res, pred = _all_residuals(obs, cands, every, chosen, pose, used, by_cam, marks_pf)
+            seen = (pose, pred)  # every change below comes with a new pose
             cur = np.array([res[k][chosen[k]] for k in range(n)])
             length = np.where(used, cur, -1.0)
             worst = int(np.argmax(length))
@@ -174,8 +176,8 @@ def estimate_pose_robust(
                     without = solve(trial, pose.T_rf_from_pf)
                 except PoseInputError:
                     break  # the rest would not fix a pose: keep it, the gate judges
-                res_w = _all_residuals(obs, cands, every, chosen, without, trial, by_cam,
-                                       marks_pf)
+                res_w, _ = _all_residuals(obs, cands, every, chosen, without, trial, by_cam,
+                                          marks_pf)
                 tau = _threshold(limit, res_w, chosen, trial)
                 best = int(np.argmin(res_w[worst])) if config.candidates else chosen[worst]
                 if res_w[worst][chosen[worst]] <= tau:
@@ -211,8 +213,9 @@ def estimate_pose_robust(
                 why_out.pop(k, None)
             pose = solve(used, pose.T_rf_from_pf)
     final = [o if not chosen[k] else o.but(uv=cands[k][chosen[k]]) for k, o in enumerate(obs)]
-    res_all = np.array([o.uv for o in final], dtype=float) - _predictions(
-        final, cands, chosen, pose, used, by_cam, marks_pf)
+    pred = (seen[1] if seen is not None and seen[0] is pose
+            else _predictions(final, cands, chosen, pose, used, by_cam, marks_pf))
+    res_all = np.array([o.uv for o in final], dtype=float) - pred
     keys = [o.key for o in final]
     info = pose.info
     info = SolveInfo(
@@ -295,13 +298,14 @@ def _all_residuals(
     obs: Sequence[Observation], cands: list[list[Array]], every: _Candidates, chosen: list[int],
     pose: PoseResult, mask: Array, by_cam: Mapping[tuple[int, str], ViewCamera],
     marks_pf: Mapping[str, np.ndarray],
-) -> list[Array]:
-    """Per observation, the residual length (px) of each of its candidates at ``pose``."""
+) -> tuple[list[Array], Array]:
+    """Per observation, the residual length (px) of each of its candidates at ``pose``; and
+    the :func:`_predictions` they come from."""
     pred = _predictions(obs, cands, chosen, pose, mask, by_cam, marks_pf)
     d = every.uv - pred[every.owner]
     length = np.sqrt(np.add.reduce(d * d, axis=1))  # what np.linalg.norm(axis=1) computes
     b = every.bounds
-    return [length[b[k]:b[k + 1]] for k in range(len(cands))]
+    return [length[b[k]:b[k + 1]] for k in range(len(cands))], pred
 
 
 def _skew(t: Array) -> Array:

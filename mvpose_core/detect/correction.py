@@ -82,12 +82,14 @@ def perspective_corrections(
     rim = rims(p_cf, n_cf, radii, rim_samples)
     pts = np.concatenate([p_cf[:, None, :], rim], axis=1)  # [F, 1 + n, 3]: centre, then rim
     models = [cameras[c][0].model for c, f in zip(ci, keep, strict=True) if f]
-    if all(m == models[0] for m in models):  # one lens (the usual station): one projection
-        uv = models[0].project(pts.reshape(-1, 3)).reshape(pts.shape[0], -1, 2)
-    else:
+    first = models[0]  # one lens (the usual station): one projection
+    if all(m is first or m == first for m in models):
+        uv = first.project(pts.reshape(-1, 3)).reshape(pts.shape[0], -1, 2)
+    else:  # one projection per run of rows with the same lens (a camera's rows are one run)
         uv = np.empty(pts.shape[:2] + (2,))
-        for j, m in enumerate(models):
-            uv[j] = m.project(pts[j])
+        cuts = [j for j in range(1, len(models)) if models[j] is not models[j - 1]]
+        for a, b in zip([0, *cuts], [*cuts, len(models)], strict=True):
+            uv[a:b] = models[a].project(pts[a:b].reshape(-1, 3)).reshape(b - a, -1, 2)
     ells = fit_ellipses(uv[:, 1:], np.ones(uv.shape[:1] + (rim_samples,)))
     corr = uv[:, 0] - ells.centre
     ok = ells.ok.tolist()
