@@ -37,6 +37,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from mvpose_core.cache import IdentityCache
+from mvpose_core.camera import CameraModel
 from mvpose_core.detect.types import MarkDetection
 from mvpose_core.estimate import EstimateOptions, PoseResult, SolveInfo, estimate_pose
 from mvpose_core.problem import Observation, PoseInputError
@@ -312,6 +314,17 @@ def _skew(t: Array) -> Array:
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
+#: the essential matrix of each camera pair (x_b^T E x_a = 0), for those very camera objects
+_ESSENTIAL: IdentityCache[Array] = IdentityCache(64)
+
+
+def _essential(ca: ViewCamera, cb: ViewCamera) -> Array:
+    T_b_from_a = compose(invert(cb.T_rf_from_cf), ca.T_rf_from_cf)
+    E = _skew(T_b_from_a[:3, 3]) @ T_b_from_a[:3, :3]
+    E.flags.writeable = False
+    return E
+
+
 def _stereo(
     obs: Sequence[Observation], by_cam: Mapping[tuple[int, str], ViewCamera], limit: float,
     why_out: dict[int, str],
@@ -330,23 +343,24 @@ def _stereo(
     for ks in groups.values():
         for k in ks:
             per_cam.setdefault((obs[k].view, obs[k].camera_id), []).append(k)
-    rays: dict[int, Array] = {}
+    # One undistortion per lens (points are undistorted one by one: the same rays as per camera).
+    per_lens: dict[CameraModel, list[int]] = {}  # equal models: the same lens
     for key, ks in per_cam.items():
-        xy = by_cam[key].model.undistort_normalized(np.array([obs[k].uv for k in ks], dtype=float))
+        per_lens.setdefault(by_cam[key].model, []).extend(ks)
+    rays: dict[int, Array] = {}
+    for model, ks in per_lens.items():
+        xy = model.undistort_normalized(np.array([obs[k].uv for k in ks], dtype=float))
         for k, x in zip(ks, xy, strict=True):
             rays[k] = np.array([x[0], x[1], 1.0])
-    essential: dict[tuple[tuple[int, str], tuple[int, str]], Array] = {}
 
     def dist(a: int, b: int) -> float:
-        ka, kb = (obs[a].view, obs[a].camera_id), (obs[b].view, obs[b].camera_id)
-        E = essential.get((ka, kb))
-        if E is None:
-            T_b_from_a = compose(invert(by_cam[kb].T_rf_from_cf), by_cam[ka].T_rf_from_cf)
-            E = essential[(ka, kb)] = _skew(T_b_from_a[:3, 3]) @ T_b_from_a[:3, :3]
+        ca = by_cam[(obs[a].view, obs[a].camera_id)]
+        cb = by_cam[(obs[b].view, obs[b].camera_id)]
+        E = _ESSENTIAL.get((ca, cb), None, lambda: _essential(ca, cb))
         xa, xb = rays[a], rays[b]
         la, lb = E.T @ xb, E @ xa  # epipolar lines in a and in b (x_b^T E x_a = 0)
-        da = abs(float(la @ xa)) / np.hypot(la[0], la[1]) * by_cam[ka].model.fx
-        db = abs(float(lb @ xb)) / np.hypot(lb[0], lb[1]) * by_cam[kb].model.fx
+        da = abs(float(la @ xa)) / np.hypot(la[0], la[1]) * ca.model.fx
+        db = abs(float(lb @ xb)) / np.hypot(lb[0], lb[1]) * cb.model.fx
         return 0.5 * (da + db)
 
     for ks in groups.values():
