@@ -95,7 +95,7 @@ def detect_marks_many(
             # part's pose (follow.py): every image is searched in the small windows around it.
             # An image with a mark still without a blob is searched with the whole tolerance's
             # windows; only those blobs are measured, in the same batch as the other images'.
-            wider = [k for k in todo if _unfound(searches[k])]
+            wider = [k for k in todo if _unfound(searches[k], options)]
             if wider:
                 wider = _follow(checked, recipe, T_rf_from_pf_prior, start, options, reach,
                                 map_fn, searches)
@@ -129,7 +129,7 @@ def _follow(
     T = pose_from_blobs([(checked[k][1], searches[k].live, searches[k].cands) for k in keys],
                         recipe, T_prior, start)
     if T is None:
-        return [k for k in keys if _unfound(searches[k])]
+        return [k for k in keys if _unfound(searches[k], options)]
     # A mark whose first window already held it whole, near its projection at the pose, keeps
     # those blobs; only the other marks' windows around the pose are searched (an image whose
     # marks are laid out otherwise there: all of them).
@@ -142,7 +142,7 @@ def _follow(
     for k in keys:
         v = kept[k]
         searches[k] = found[k] if v is None else _joined(v[0], found.get(k))
-    return [k for k in keys if _unfound(searches[k])]
+    return [k for k in keys if _unfound(searches[k], options)]
 
 
 def _kept_at(
@@ -237,11 +237,33 @@ def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options:
                                           options.shape_slack_deg, 1.0)}
 
 
-def _unfound(s: _Search) -> bool:
-    """Whether a mark that faces the camera has no blob in its window (or no window in the
-    image): it cannot be found in this search."""
-    held = {k for k, _ in s.cands}
-    return len(held) < sum(p.facing for p in s.preds)
+def _unfound(s: _Search, options: DetectOptions) -> bool:
+    """Whether a mark that faces the camera has no blob it could be given (or no window in the
+    image): it cannot be found in this search.
+
+    A blob can be given to a mark only within the mark's gate (its possible shift and
+    ``window_extra_px`` from its prediction, :func:`_assign`); a window is wider than that by
+    the mark's largest radius, so a blob of a part beyond the window's reach may lie in it
+    and still never be the mark's. Such a blob counts from a little beyond the gate (its
+    coarse centre is within a few coarse pixels of the measured one)."""
+    if len(s.live) < sum(p.facing for p in s.preds):
+        return True
+    held = set()
+    for _, c in s.cands:
+        u, v = c.ellipse.centre
+        for j, p in enumerate(s.live):
+            if math.hypot(u - p.uv[0], v - p.uv[1]) <= _gate(p, options) + _COARSE_SLACK_PX:
+                held.add(j)
+    return len(held) < len(s.live)
+
+
+#: how far beyond a mark's gate (px) a coarse blob still counts as one the mark could be given
+_COARSE_SLACK_PX = 8.0
+
+
+def _gate(p: MarkPrediction, options: DetectOptions) -> float:
+    """How far from its prediction (px) a mark may be given a blob (:func:`_assign`)."""
+    return p.max_shift_px + options.window_extra_px
 
 
 FACES_AWAY = "mark faces away from the camera"
@@ -465,7 +487,7 @@ def _assign(
     uv = np.array([d.uv_ellipse for d in pool])
     pred_uv = np.array([p.uv for p in preds])
     dist = np.linalg.norm(pred_uv[:, None, :] - uv[None, :, :], axis=2)
-    gate = np.array([p.max_shift_px + options.window_extra_px for p in preds])
+    gate = np.array([_gate(p, options) for p in preds])
     cost = np.where(dist <= gate[:, None], dist, 1e9)
     rows, cols = linear_sum_assignment(cost)
     taken = {int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}

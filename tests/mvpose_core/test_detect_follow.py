@@ -87,7 +87,7 @@ def test_windows_near_the_last_part_give_the_whole_tolerance_result(  # type: ig
     _same_as_whole(cams, recipe, T, followed, whole, once=abs(share - last) < 0.1)
     if abs(share - last) < 0.1:  # the part within the first windows around the last one
         first = [_search(img, cam, recipe, near, DetectOptions(), 0.25) for img, cam in frames]
-        assert not any(_unfound(s) for s in first)
+        assert not any(_unfound(s, DetectOptions()) for s in first)
 
 
 # The next trigger's first windows go where the last part was once two parts in a row lay within
@@ -127,7 +127,7 @@ def test_the_blobs_of_the_small_windows_give_the_pose(  # type: ignore[no-untype
     T = displaced(recipe, share)
     frames = _frames(cams, recipe, T, clutter=False)
     first = [_search(img, cam, recipe, T0, DetectOptions(), 0.25) for img, cam in frames]
-    assert any(_unfound(s) for s in first)  # the part is beyond the first reach
+    assert any(_unfound(s, DetectOptions()) for s in first)  # the part is beyond the first reach
     est = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
                                                                        strict=True)],
                           recipe, T0)
@@ -146,7 +146,7 @@ def test_too_few_marks_for_a_pose_fall_back_to_the_whole_tolerance(  # type: ign
     T0 = recipe.T_rf_from_pf0.matrix
     frames = _frames(cams[:1], recipe, displaced(recipe, 0.5), clutter=False)
     first = _search(frames[0][0], cams[0], recipe, T0, DetectOptions(), 0.25)
-    assert _unfound(first)
+    assert _unfound(first, DetectOptions())
     assert pose_from_blobs([(cams[0], first.live, first.cands)], recipe, T0) is None
     one = detect_marks_many(frames, recipe, T0, DetectOptions())
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
@@ -190,3 +190,28 @@ def test_marks_whose_first_windows_held_them_keep_their_blobs(  # type: ignore[n
                        opts, 0.25)
     assert clipped is not None and clipped[1] == {s.live[j].mark.mark_id}
     assert [c for _, c in clipped[0].cands] == [c for _, c in s.cands[1:]]
+
+
+# A part whose every first window holds a blob, most of them too far from their marks'
+# predictions to be given to them (beyond the gate: a window is wider by the largest radius):
+# those marks cannot be found there, so the blobs' pose moves the windows (the corrections are
+# then at that pose, within recorrect_px of the part's: measured once), instead of the whole
+# tolerance's windows at the prior after measuring.
+@pytest.mark.parametrize("clutter", [False, True])
+def test_blobs_beyond_their_gates_send_the_search_to_the_blobs_pose(  # type: ignore[no-untyped-def]
+    station1, clutter: bool
+) -> None:
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    opts = DetectOptions()
+    T = displaced(recipe, 0.43, np.array([0.41, 0.36, 0.84]), np.array([-0.37, 0.01, -0.93]))
+    frames = _frames(cams, recipe, T, clutter)
+    first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
+    assert all({k for k, _ in s.cands} == set(range(len(s.live))) for s in first)
+    assert sum(_unfound(s, opts) for s in first) >= 2
+    gate = [[p.max_shift_px + opts.window_extra_px for p in s.live] for s in first]
+    assert any(np.hypot(*(c.ellipse.centre - s.live[k].uv)) > g[k] + 8.0
+               for s, g in zip(first, gate, strict=True) for k, c in s.cands)
+    followed = detect_marks_many(frames, recipe, T0, opts)
+    whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
+    _same_as_whole(cams, recipe, T, followed, whole, once=True)

@@ -314,6 +314,6 @@ def test_an_image_with_a_blobless_window_is_sent_to_the_whole_tolerance(lab) -> 
     near = render_view(cams[0], recipe, T0, np.random.default_rng(5)).image
     far = render_view(cams[0], recipe, T0 @ xyzwpr_to_matrix([50.0, -50.0, 25.0, 5.0, -5.0, 2.5]),
                       np.random.default_rng(5)).image
-    assert not _unfound(_search(near, cams[0], recipe, T0, DetectOptions(), 0.25))
-    assert _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 0.25))
-    assert not _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 1.0))
+    assert not _unfound(_search(near, cams[0], recipe, T0, DetectOptions(), 0.25), DetectOptions())
+    assert _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 0.25), DetectOptions())
+    assert not _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 1.0), DetectOptions())
