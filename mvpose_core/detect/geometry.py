@@ -96,8 +96,9 @@ class Ellipses:
         return np.ones(len(self.a), dtype=bool) if self.valid is None else self.valid
 
     def radius_towards(self, phi: Array) -> Array:
-        """``["C", "R"]`` distances from each centre to its ellipse along directions ``phi``."""
-        d = phi[None, :] - self.angle[:, None]
+        """``["C", "R"]`` distances from each centre to its ellipse along directions ``phi``
+        (``["R"]`` for all, or ``["C", "R"]``)."""
+        d = (phi if phi.ndim == 2 else phi[None, :]) - self.angle[:, None]
         a, b = self.a[:, None], self.b[:, None]
         return a * b / np.hypot(b * np.cos(d), a * np.sin(d))
 

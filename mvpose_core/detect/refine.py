@@ -127,25 +127,53 @@ def _ray_grid(n_rays: int, half: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     return phi, cos, sin, t
 
 
+@lru_cache(maxsize=64)
+def _mixed_grid(counts: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                  np.ndarray]:
+    """Rays for candidates with ray counts of their own, in one array: angles ``[C, R]`` (``R``
+    the largest count; candidate ``c`` has the angles of :func:`_ray_grid` for its own count,
+    then copies of its first ray), their cos and sin ``[C, R, 1]`` (float32), which rays are
+    the candidate's own ``[C, R]``, and the values that stand for the others' contrasts in a
+    row median (as many -inf as +inf: every count is a multiple of 16, so the median of a row
+    is that of its own rays; float32, as the profiles)."""
+    R = max(counts)
+    phi = np.zeros((len(counts), R))
+    own = np.zeros((len(counts), R), dtype=bool)
+    for c, n in enumerate(counts):
+        phi[c, :n] = _ray_grid(n, 0.0)[0]
+        own[c, :n] = True
+    cos = np.cos(phi).astype(np.float32)[:, :, None]
+    sin = np.sin(phi).astype(np.float32)[:, :, None]
+    pad = np.where(np.cumsum(~own, axis=1) <= (R - own.sum(axis=1))[:, None] // 2, -np.inf,
+                   np.inf)
+    return phi, cos, sin, own, np.where(own, 0.0, pad).astype(np.float32)
+
+
 def _rays(
     images: Sequence[np.ndarray],
     owner: np.ndarray,
     ell: Ellipses,
-    n_rays: int,
+    n_rays: int | np.ndarray,
     half: float,
     dark: bool | np.ndarray,
     lo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px.
+    """Grey profiles along ``n_rays`` rays per candidate, across its expected rim ± ``half`` px
+    (one count for all, or one per candidate ``[C]``: :func:`_mixed_grid`'s rays).
 
     Candidate ``c`` lies in ``images[owner[c]]``; its own ray is samples ``lo[c]`` to
     ``S - 1 - lo[c]`` (default: all). Returns profiles ``[C, R, S]`` (increasing outwards for
-    the recipe's polarity), the radius of every sample, the ray angles ``[R]`` and which rays lie
-    wholly inside their image ``[C, R]``. Sampling is OpenCV's bilinear ``remap``
-    (1/32 px positions, 8-bit values): both quantisations are far below the noise and average
-    out over the rim.
+    the recipe's polarity), the radius of every sample, the ray angles ``[R]`` (or ``[C, R]``)
+    and which rays lie wholly inside their image ``[C, R]`` (a candidate's own rays only).
+    Sampling is OpenCV's bilinear ``remap`` (1/32 px positions, 8-bit values): both
+    quantisations are far below the noise and average out over the rim.
     """
-    phi, cos, sin, t = _ray_grid(n_rays, half)
+    own: np.ndarray | None = None
+    if isinstance(n_rays, int):
+        phi, cos, sin, t = _ray_grid(n_rays, half)
+    else:
+        phi, cos, sin, own, _ = _mixed_grid(tuple(n_rays.tolist()))
+        t = _ray_grid(int(n_rays.max()), half)[3]
     radii = ell.radius_towards(phi).astype(np.float32)[:, :, None] + t  # [C, R, S]
     np.maximum(radii, 0.0, out=radii)
     cu = ell.centre[:, 0].astype(np.float32)[:, None, None]
@@ -163,6 +191,8 @@ def _rays(
         ends_u = np.take_along_axis(u, ends, axis=2)
         ends_v = np.take_along_axis(v, ends, axis=2)
     inside = np.all((ends_u >= 0) & (ends_u < W - 1) & (ends_v >= 0) & (ends_v < H - 1), axis=2)
+    if own is not None:
+        inside &= own
     if len(images) == 1:
         prof = _remap(images[0], u.reshape(C * R, S), v.reshape(C * R, S)).reshape(C, R, S)
     else:
@@ -268,8 +298,9 @@ def measure_in(
     ± ``search_px`` (one for all, or one per candidate; rounded up to the 0.5 px sample step)
     around the start ellipse locate the rim; then 32-96 rays (one per 1.5 px of rim or closer,
     of the largest candidate of the image) within ± 3 px of that rim give the final edge points and
-    fit. Every step is one array operation over all candidates, or over the images with the same
-    ray count (a Python loop per candidate, or per image, would cost more than the arithmetic).
+    fit. Every step is one array operation over all candidates, images with different ray counts
+    too (each candidate's rays its own, :func:`_mixed_grid`; a Python loop per candidate, or per
+    image, would cost more than the arithmetic).
     A candidate's result depends on its ``search_px`` and its image's candidates only, not on
     the other images of the batch.
     """
@@ -292,21 +323,12 @@ def measure_in(
         n_fine = np.array([n_image[k] for k in owner.tolist()])
     ell, failed, *_ = _pass(images, owner, ell, failed, 16, _STEP * float(steps.max()), span,
                             dark, min_contrast, min_edge_fraction)
-    groups = np.unique(n_fine).tolist()  # usually one: the cameras of a station are alike
-    contrast, residual = np.zeros(C), np.zeros(C)
-    npts = np.zeros(C, dtype=int)
-    final = [ell.centre.copy(), ell.a.copy(), ell.b.copy(), ell.angle.copy()]
-    for n in groups:
-        # one group: every candidate, as views (no copies)
-        idx: slice | np.ndarray = slice(None) if len(groups) == 1 else np.flatnonzero(n_fine == n)
-        sub = Ellipses(ell.centre[idx], ell.a[idx], ell.b[idx], ell.angle[idx])
-        e, failed[idx], residual[idx], npts[idx], contrast[idx] = _fine(
-            images, owner[idx], sub, failed[idx], n,
-            dark[idx] if isinstance(dark, np.ndarray) else dark, min_contrast, min_edge_fraction,
-            max_fit_residual_px)
-        for out, part in zip(final, (e.centre, e.a, e.b, e.angle), strict=True):
-            out[idx] = part
-    ell = Ellipses(*final)
+    # One pass for every candidate, each image with its own ray count (usually one for all:
+    # the cameras of a station are alike).
+    counts = n_fine if np.any(n_fine != n_fine[0]) else int(n_fine[0])
+    ell, failed, residual, npts, contrast = _fine(
+        images, owner, ell, failed, counts, dark, min_contrast, min_edge_fraction,
+        max_fit_residual_px)
     return [
         Measurement(
             ell[c] if failed[c] == 0 else None,
@@ -331,7 +353,7 @@ def _fine(
     owner: np.ndarray,
     ell: Ellipses,
     failed: np.ndarray,
-    n_rays: int,
+    n_rays: int | np.ndarray,
     dark: bool | np.ndarray,
     min_contrast: float,
     min_edge_fraction: float,
@@ -352,14 +374,15 @@ def _pass(
     owner: np.ndarray,
     ell: Ellipses,
     failed: np.ndarray,
-    n_rays: int,
+    n_rays: int | np.ndarray,
     half: float,
     span: np.ndarray | None,
     dark: bool | np.ndarray,
     min_contrast: float,
     min_edge_fraction: float,
 ) -> tuple[Ellipses, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One measuring pass: edge points on ``n_rays`` rays, the fit, the checks.
+    """One measuring pass: edge points on ``n_rays`` rays (one count for all, or per candidate),
+    the fit, the checks.
 
     Returns the ellipses (the fitted ones where the candidate is still fine, else as given),
     the failure codes (earlier failures stick), and the pass's edge points, their validity,
@@ -367,10 +390,14 @@ def _pass(
     """
     prof, radii, phi, inside = _rays(images, owner, ell, n_rays, half, dark, span)
     edge_r, ray_contrast, crossed = _crossings(prof, radii, span)
-    contrast = _row_median(ray_contrast)
+    if isinstance(n_rays, int):
+        cos, sin = _ray_grid(n_rays, half)[1:3]
+        contrast = _row_median(ray_contrast)
+    else:  # the median of each candidate's own rays (the others stand in as ±inf)
+        _, cos, sin, _, pad = _mixed_grid(tuple(n_rays.tolist()))
+        contrast = _row_median(np.where(np.isfinite(pad), ray_contrast, pad))
     good = inside & crossed & (ray_contrast > 0.5 * contrast[:, None])
     npts = good.sum(axis=1)
-    _, cos, sin, _ = _ray_grid(n_rays, half)
     pts = np.stack(
         [
             ell.centre[:, 0, None] + edge_r * cos[..., 0],

@@ -22,6 +22,8 @@ from mvpose_core.detect import (
     search_marks,
     stereo_check,
 )
+from mvpose_core.detect.geometry import Ellipse
+from mvpose_core.detect.refine import measure_in
 from mvpose_core.reasons import Reason
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.render_scene import plate_scene
@@ -216,6 +218,28 @@ def test_several_images_detected_in_one_batch_agree_with_one_at_a_time(lab) -> N
         for a, b in zip(dets, alone, strict=True):
             if a.found:  # a blob's measurement depends on that blob and its image only
                 assert np.abs(a.uv - b.uv).max() < 1e-9, (cam.key, a.mark_id)
+
+
+# Images whose largest marks differ in size get their own count of fine rays (80 and 96 here)
+# and are measured in one pass: each candidate's result is the one it gets in its image alone.
+def test_images_with_different_ray_counts_measure_as_alone() -> None:
+    rng = np.random.default_rng(5)
+    images, starts = [], []
+    for radius, centre in ((19.3, (100.4, 97.8)), (29.6, (101.7, 103.2))):
+        yy, xx = np.mgrid[0:200, 0:200].astype(float)
+        d = np.hypot(xx - centre[0], (yy - centre[1]) * 1.1)  # slightly elliptical
+        img = 200.0 - 140.0 * np.clip(radius - d + 0.5, 0.0, 1.0) + rng.normal(0.0, 2.0, d.shape)
+        images.append(np.clip(img, 0, 255).astype(np.uint8))
+        starts.append(Ellipse(np.array(centre) + [1.5, -1.0], radius + 1.0, radius - 1.0, 0.3))
+    args = (20.0, 0.5, 0.8)  # min contrast, largest fit residual, edge fraction
+    both = measure_in(images, np.array([0, 1]), starts, True, *args, search_px=4.0)
+    for k, (image, start) in enumerate(zip(images, starts, strict=True)):
+        (alone,) = measure_in([image], np.array([0]), [start], True, *args, search_px=4.0)
+        assert alone.ellipse is not None and both[k].ellipse is not None
+        assert both[k].edge_points == alone.edge_points
+        assert np.abs(both[k].ellipse.centre - alone.ellipse.centre).max() < 1e-9
+        assert abs(both[k].contrast - alone.contrast) < 1e-9
+    assert both[0].edge_points <= 80 < both[1].edge_points
 
 
 def test_a_bad_image_in_a_batch_names_its_camera(lab) -> None:  # type: ignore[no-untyped-def]
