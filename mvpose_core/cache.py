@@ -47,6 +47,17 @@ class IdentityCache(Generic[V]):
                 self._entries.popitem(last=False)
         return value
 
+    def peek(self, owners: tuple[object, ...], extra: Hashable) -> V | None:
+        """The value for (``owners``, ``extra``) if there is one (then the most recently used),
+        else None; nothing is computed."""
+        key = (tuple(id(o) for o in owners), extra)
+        with self._lock:
+            hit = self._entries.get(key)
+            if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
+                self._entries.move_to_end(key)
+                return hit[1]
+        return None
+
     def values(self) -> list[V]:
         """The values held, least recently used first."""
         with self._lock:

@@ -286,6 +286,54 @@ def predict_marks_cached(
     )
 
 
+def predict_marks_cached_many(
+    cams: list[ViewCamera],
+    recipe: RecipeConfig,
+    T_rf_from_pf: Array,
+    size_tolerance: float = 0.15,
+    shape_slack_deg: float = 8.0,
+    reach: float = 1.0,
+) -> list[list[MarkPrediction]]:
+    """:func:`predict_marks_cached` for several cameras at one pose: the cameras whose
+    prediction there is not remembered (nor that of their camera place) are predicted together
+    (:func:`predict_marks_many`, one ellipse fit for all) and remembered as it does."""
+    T = np.ascontiguousarray(T_rf_from_pf, dtype=float)
+    extra = (T.tobytes(), float(size_tolerance), float(shape_slack_deg), float(reach))
+    found: list[list[MarkPrediction] | None] = []
+    for cam in cams:
+        preds = _PREDICTIONS.peek((cam, recipe), extra)
+        if preds is None:
+            place = _PLACES.peek((recipe,), (_place_key(cam), extra))
+            if place is not None:  # that place's own camera, or one to re-pose it for
+                preds = predict_marks_cached(cam, recipe, T, size_tolerance, shape_slack_deg,
+                                             reach)
+        found.append(preds)
+    missing = [k for k, f in enumerate(found) if f is None]
+    if missing:
+        made = predict_marks_many(
+            [(cams[k], sighted_marks(recipe, cams[k].view, cams[k].camera_id)) for k in missing],
+            recipe, T, size_tolerance, shape_slack_deg, reach)
+        for k, preds in zip(missing, made, strict=True):
+            _remember(cams[k], recipe, T, extra, preds, reach)
+            found[k] = preds
+    return [f for f in found if f is not None]
+
+
+def _remember(cam: ViewCamera, recipe: RecipeConfig, T: Array,
+              extra: tuple[bytes, float, float, float], preds: list[MarkPrediction],
+              reach: float) -> None:
+    """Keep predictions made elsewhere as :func:`predict_marks_cached` keeps its own."""
+
+    def place() -> _Place:
+        return _place_of(cam, recipe, T, preds, reach)
+
+    def made() -> list[MarkPrediction]:
+        return preds
+
+    _PLACES.get((recipe,), (_place_key(cam), extra), place)
+    _PREDICTIONS.get((cam, recipe), extra, made)
+
+
 @dataclass(frozen=True)
 class _Place:
     """The first prediction made at a camera place, with what re-posing it needs."""
@@ -304,9 +352,19 @@ _PLACES: IdentityCache[_Place] = IdentityCache(64)
 REPOSE_SHARE = 0.01
 
 
+def _place_key(cam: ViewCamera) -> tuple[object, ...]:
+    """A camera place: its view, camera, rig and lens (by value), whatever its pose."""
+    return (cam.view, cam.camera_id, cam.rig_id, cam.rig_position, cam.model)
+
+
 def _place(cam: ViewCamera, recipe: RecipeConfig, T: Array, size_tolerance: float,
            shape_slack_deg: float, reach: float) -> _Place:
     preds = predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg, reach=reach)
+    return _place_of(cam, recipe, T, preds, reach)
+
+
+def _place_of(cam: ViewCamera, recipe: RecipeConfig, T: Array, preds: list[MarkPrediction],
+              reach: float) -> _Place:
     index = {m.id: k for k, m in enumerate(recipe.marks)}
     ks = [index[p.mark.mark_id] for p in preds]
     p_rf = recipe.mark_positions()[ks] @ T[:3, :3].T + T[:3, 3]
@@ -336,8 +394,7 @@ def _predict_reposed(
     reach of ~575 px changes by 0.6 px for 0.5 mm and 0.02°, by ~0.02 px for a robot's 0.02 mm
     repeatability; tests/mvpose_core/test_repose.py); else the prediction is computed anew.
     """
-    key = (cam.view, cam.camera_id, cam.rig_id, cam.rig_position, cam.model)
-    place = _PLACES.get((recipe,), (key, extra), lambda: _place(
+    place = _PLACES.get((recipe,), (_place_key(cam), extra), lambda: _place(
         cam, recipe, T, size_tolerance, shape_slack_deg, reach))
     if place.cam is cam or not place.preds:
         return place.preds
@@ -380,34 +437,68 @@ def predict_marks(
         ids = sighted_marks(recipe, cam.view, cam.camera_id)
     else:
         ids = [m.id for m in recipe.marks if m.id in mark_ids]
-    if not ids:
-        return []
-    # Everything below is batched over the marks: one projection (centres, rims and the
-    # displaced centres together), one ellipse fit.
+    return predict_marks_many([(cam, ids)], recipe, T_rf_from_pf, size_tolerance,
+                              shape_slack_deg, reach)[0]
+
+
+def predict_marks_many(
+    cameras: list[tuple[ViewCamera, list[str]]],
+    recipe: RecipeConfig,
+    T_rf_from_pf: Array,
+    size_tolerance: float = 0.15,
+    shape_slack_deg: float = 8.0,
+    reach: float = 1.0,
+) -> list[list[MarkPrediction]]:
+    """:func:`predict_marks` of the marks ``ids`` for each (camera, ids), in their order.
+
+    Batched over the marks of every camera: per camera one transform and one projection (its
+    centres, rims and displaced centres together), then one ellipse fit and the ranges for
+    all; each camera's predictions are those :func:`predict_marks` gives it alone (a part's
+    pose from its first blobs is new at every trigger, and its windows are predicted in every
+    camera at once).
+    """
     positions, normals = _mark_geometry(recipe)
     diameters, darks = _mark_looks(recipe)
     index = {m.id: k for k, m in enumerate(recipe.marks)}
-    ks = [index[i] for i in ids]
-    M = len(ks)
-    T = compose(invert(cam.T_rf_from_cf), np.asarray(T_rf_from_pf, dtype=float))
-    R, t = T[:3, :3], T[:3, 3]
-    p_cf = positions[ks] @ R.T + t
-    n_cf = normals[ks] @ R.T
+    cams = [(cam, [index[i] for i in ids]) for cam, ids in cameras]
+    used = [(cam, ks) for cam, ks in cams if ks]
+    if not used:
+        return [[] for _ in cameras]
+    T_pf = np.asarray(T_rf_from_pf, dtype=float)
+    ks_all = [k for _, ks in used for k in ks]
+    posed = []
+    for cam, ks in used:
+        T = compose(invert(cam.T_rf_from_cf), T_pf)
+        R, t = T[:3, :3], T[:3, 3]
+        posed.append((positions[ks] @ R.T + t, normals[ks] @ R.T))
+    p_cf = np.concatenate([p for p, _ in posed])
+    n_cf = np.concatenate([n for _, n in posed])
     z = p_cf[:, 2]
     in_front = z > 1.0
-    diam = diameters[ks]
+    diam = diameters[ks_all]
     rim = rims(p_cf, n_cf, diam / 2.0)  # [M, n, 3]
     rim[~in_front] = [0.0, 0.0, 1.0]  # keeps the projection finite; such marks are not used
-    D = displacement_mm(recipe, reach)[ks]
+    D = displacement_mm(recipe, reach)[ks_all]
     moved = p_cf[:, None, :] + D[:, None, None] * _DIRS[None]  # [M, 14, 3]
     ahead = moved[..., 2] > 0.2 * np.maximum(z, 1.0)[:, None]
     moved[..., 2] = np.where(ahead, moved[..., 2], 1.0)
-    n_rim, n_dir = rim.shape[1], _DIRS.shape[0]
-    uv_all = cam.model.project(
-        np.concatenate([p_cf, rim.reshape(-1, 3), moved.reshape(-1, 3)]))
-    uv = uv_all[:M]
-    ells = fit_ellipses(uv_all[M : M + M * n_rim].reshape(M, n_rim, 2), np.ones((M, n_rim)))
-    moved_uv = uv_all[M + M * n_rim :].reshape(M, n_dir, 2) - uv[:, None]
+    # per camera one projection of its centres, rims and displaced centres
+    M_all, n_rim, n_dir = len(ks_all), rim.shape[1], _DIRS.shape[0]
+    uv = np.empty((M_all, 2))
+    rim_uv = np.empty((M_all, n_rim, 2))
+    moved_uv = np.empty((M_all, n_dir, 2))
+    first = 0
+    for cam, ks in used:
+        m = slice(first, first + len(ks))
+        M = len(ks)
+        uv_all = cam.model.project(
+            np.concatenate([p_cf[m], rim[m].reshape(-1, 3), moved[m].reshape(-1, 3)]))
+        uv[m] = uv_all[:M]
+        rim_uv[m] = uv_all[M : M + M * n_rim].reshape(M, n_rim, 2)
+        moved_uv[m] = uv_all[M + M * n_rim :].reshape(M, n_dir, 2)
+        first += M
+    moved_uv -= uv[:, None]
+    ells = fit_ellipses(rim_uv, np.ones(rim_uv.shape[:2]))
     shift_all = np.sqrt(np.einsum("mdi,mdi->md", moved_uv, moved_uv))
     shift = np.where(ahead.all(axis=1), shift_all.max(axis=1), 1e9)
     view = p_cf / np.linalg.norm(p_cf, axis=1, keepdims=True)
@@ -431,13 +522,14 @@ def predict_marks(
         1.0,
     )
     corr = uv - centre
-    out: list[MarkPrediction] = []
+    ids_all = [recipe.marks[k].id for k in ks_all]
+    preds: list[MarkPrediction] = []
     for k, (mid, zk, ak, bk, gk, sk, lo, hi, qlo, qhi, fk, dk, dm) in enumerate(zip(
-        ids, z.tolist(), a.tolist(), b.tolist(), angle.tolist(), shift.tolist(), r_lo.tolist(),
-        r_hi.tolist(), ratio_lo.tolist(), ratio_hi.tolist(), facing.tolist(),
-        darks[ks].tolist(), diam.tolist(), strict=True,
+        ids_all, z.tolist(), a.tolist(), b.tolist(), angle.tolist(), shift.tolist(),
+        r_lo.tolist(), r_hi.tolist(), ratio_lo.tolist(), ratio_hi.tolist(), facing.tolist(),
+        darks[ks_all].tolist(), diam.tolist(), strict=True,
     )):
-        out.append(
+        preds.append(
             MarkPrediction(
                 mark=ProjectedMark(mark_id=mid, uv=uv[k], depth_mm=zk, p_cf=p_cf[k],
                                    n_cf=n_cf[k]),
@@ -451,6 +543,11 @@ def predict_marks(
                 diameter_mm=dm,
             )
         )
+    out: list[list[MarkPrediction]] = []
+    first = 0
+    for _, ks in cams:
+        out.append(preds[first : first + len(ks)])
+        first += len(ks)
     return out
 
 

@@ -24,7 +24,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mvpose_core.detect.follow import AGREE_PX, held_predictions, pose_from_blobs
-from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
+from mvpose_core.detect.geometry import (
+    MarkPrediction,
+    predict_marks_cached,
+    predict_marks_cached_many,
+)
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
@@ -130,6 +134,9 @@ def _follow(
                         recipe, T_prior, start)
     if T is None:
         return [k for k in keys if _unfound(searches[k], options)]
+    # the windows around the pose are new at every trigger: predicted in every camera at once
+    predict_marks_cached_many([checked[k][1] for k in keys], recipe, T, options.size_tolerance,
+                              options.shape_slack_deg, reach)
     # A mark whose first window already held it whole, near its projection at the pose, keeps
     # those blobs; only the other marks' windows around the pose are searched (an image whose
     # marks are laid out otherwise there: all of them).

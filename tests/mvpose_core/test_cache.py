@@ -49,3 +49,15 @@ def test_a_failing_make_leaves_nothing_and_the_size_is_bounded() -> None:
     assert cache.get((owner,), 0, lambda: -1) == -1  # the oldest were dropped
     with pytest.raises(ValueError, match="size"):
         IdentityCache(0)
+
+
+def test_peek_finds_without_making() -> None:
+    cache: IdentityCache[str] = IdentityCache(2)
+    a = Owner("a")
+    assert cache.peek((a,), 1) is None and len(cache) == 0
+    cache.get((a,), 1, lambda: "one")
+    cache.get((a,), 2, lambda: "two")
+    assert cache.peek((a,), 1) == "one"  # and now the most recently used
+    assert cache.peek((Owner("a"),), 1) is None
+    cache.get((a,), 3, lambda: "three")
+    assert cache.values() == ["one", "three"]
