@@ -30,7 +30,7 @@ from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
 from mvpose_core.detect.refine import Candidate
 from mvpose_core.detect.types import DetectOptions
 from mvpose_core.problem import Observation, PoseInputError, build_problem
-from mvpose_core.refine import LMResult, Packed, levenberg_marquardt, residuals_and_jacobian
+from mvpose_core.refine import LMResult, Packed, levenberg_marquardt
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
 from mvpose_core.transforms import Array
@@ -74,24 +74,22 @@ def pose_from_blobs(
         pk = build_problem(obs, [c for c, _, _ in blobs], marks_pf, 1.0).pk
         lm = _refine(pk, T_start[:3, :3], T_start[:3, 3])
         # The estimator's outlier rule: the blob farthest from its projection beyond AGREE_PX
-        # is dropped and the pose refined again, never below three marks.
-        active = np.ones(len(obs), dtype=bool)
-        for _ in range(_REJECTIONS):
-            r = residuals_and_jacobian(pk, lm.R, lm.t)[0]
-            length = np.where(active, np.hypot(r[:, 0], r[:, 1]), -1.0)
+        # is dropped and the pose refined again, never below three marks. The residuals and
+        # depths are the refinement's own, of the blobs kept (at its converged step, moved to
+        # first order: far below the pixel).
+        rows = np.arange(len(obs))
+        for n in range(_REJECTIONS + 1):
+            length = np.hypot(lm.residuals[:, 0], lm.residuals[:, 1])
             worst = int(np.argmax(length))
-            if length[worst] <= AGREE_PX:
+            if length[worst] <= AGREE_PX or n == _REJECTIONS:
                 break
-            active[worst] = False
-            if len({obs[i].mark_id for i in np.flatnonzero(active).tolist()}) < 3:
+            rows = np.delete(rows, worst)
+            if len({obs[i].mark_id for i in rows.tolist()}) < 3:
                 return None
-            lm = _refine(pk.subset(active), lm.R, lm.t)
-        r, _, depth = residuals_and_jacobian(pk, lm.R, lm.t)
+            lm = _refine(pk.subset(rows), lm.R, lm.t)
     except (PoseInputError, np.linalg.LinAlgError):
         return None
-    kept = r[active]
-    if (not bool((depth[active] > 0).all())
-            or float(np.max(np.hypot(kept[:, 0], kept[:, 1]))) > AGREE_PX):
+    if not bool((lm.depth > 0).all()) or float(length[worst]) > AGREE_PX:
         return None
     T = np.eye(4)
     T[:3, :3] = lm.R
