@@ -100,7 +100,7 @@ def pose_from_blobs(
 
 
 def _refine(pk: Packed, R: Array, t: Array) -> LMResult:
-    return levenberg_marquardt(pk, R, t, max_iterations=10, step_tol=3e-2)
+    return levenberg_marquardt(pk, R, t, max_iterations=10, step_tol=0.3)
 
 
 def _predictions(cam: ViewCamera, recipe: RecipeConfig, T: Array, options: DetectOptions,
