@@ -1,16 +1,16 @@
 """Window mode: find each recipe mark near where the prior pose predicts it, keeping its identity.
 
 A mark's window is its predicted ellipse widened by how far the mark can move when the part is
-anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from the
-geometry of this camera. The search first uses small windows, quickly searched: for a part near
-the prior pose, or near where the last good part was (``near``), within
+anywhere within the recipe's tolerances (``max_offset_mm``, ``max_offset_deg``), computed from
+the geometry of this camera. The search first uses small windows, quickly searched: for a part
+near the prior pose, or near where the last good part was (``near``), within
 ``DetectOptions.first_reach_mm`` / ``first_reach_deg`` when the tolerances are wider. When a
-mark had no blob there, the blobs the small windows did hold give the part's pose (follow.py)
-and every image is searched in the small windows around that pose (but a mark whose first
-window held it near there, unclipped, keeps those blobs); an image where a mark is
-still not found is searched over the whole tolerance. Accepted
-candidates from all windows are assigned to marks jointly (least total distance to the
-predictions), so two marks never take the same blob.
+mark had no blob there that it could be given (within its gate), the blobs the small windows did
+hold give the part's pose (follow.py) and every image is searched in the small windows around
+that pose (but a mark whose first window held it near there, unclipped, keeps those blobs); an
+image where a mark is still not found is searched over the whole tolerance. Accepted candidates
+from all windows are assigned to marks jointly (least total distance to the predictions), so two
+marks never take the same blob.
 """
 
 from __future__ import annotations
@@ -70,11 +70,12 @@ def detect_marks_many(
     Two reaches (``options.first_reach_mm`` / ``first_reach_deg``, when the recipe's tolerances
     are wider): the windows first allow for a part near the prior pose; an image where a mark
     that faces its camera was not found is searched again with windows for the recipe's whole
-    tolerance, and that result is the image's. Before that, when a facing mark has no blob at
-    all in its small window, the pose of the blobs that the small windows held (three marks or
-    more, :func:`~mvpose_core.detect.follow.pose_from_blobs`) moves every image's small windows
-    there (a mark whose blobs already agree with it keeps them, :func:`_kept_at`); only an
-    image still missing a blob then gets the whole tolerance's windows.
+    tolerance, and that result is the image's. Before that, when a facing mark has no blob in
+    its small window that it could be given (:func:`_unfound`), the pose of the blobs that the
+    small windows held (three marks or more, :func:`~mvpose_core.detect.follow.pose_from_blobs`)
+    moves every image's small windows there (a mark whose blobs already agree with it keeps
+    them, :func:`_kept_at`); only an image still missing a blob then gets the whole tolerance's
+    windows.
     ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
     puts the first search's small windows there instead of at the prior, held to what the
     whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
@@ -94,11 +95,12 @@ def detect_marks_many(
             search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options, reach)
         searches = dict(zip(todo, map_fn(search, todo), strict=True))
         if n + 1 < len(reaches):
-            # An image with a mark that has no blob in its small window would be searched again
-            # whatever its measurement says. The blobs the small windows did hold give the
-            # part's pose (follow.py): every image is searched in the small windows around it.
-            # An image with a mark still without a blob is searched with the whole tolerance's
-            # windows; only those blobs are measured, in the same batch as the other images'.
+            # An image with a mark that has no blob it could be given in its small window would
+            # be searched again whatever its measurement says. The blobs the small windows did
+            # hold give the part's pose (follow.py): every image is searched in the small
+            # windows around it. An image with a mark still without a blob is searched with the
+            # whole tolerance's windows; only those blobs are measured, in the same batch as the
+            # other images'.
             wider = [k for k in todo if _unfound(searches[k], options)]
             if wider:
                 wider = _follow(checked, recipe, T_rf_from_pf_prior, start, options, reach,
