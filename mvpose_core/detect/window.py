@@ -142,11 +142,14 @@ def _follow(
     # A mark whose first window already held it whole, near its projection at the pose, keeps
     # those blobs; only the other marks' windows around the pose are searched (an image whose
     # marks are laid out otherwise there: all of them).
+    ats = {k: _at_pose(checked[k], recipe, T_prior, T, options, reach) for k in keys}
     kept: dict[int, tuple[_Search, frozenset[str]] | None] = {
-        k: _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach) for k in keys}
+        k: _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach, ats[k])
+        for k in keys}
     only = {k: None if v is None else v[1] for k, v in kept.items()}
     again = [k for k in keys if only[k] is None or only[k]]
-    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach, only)
+    search = partial(_search_followed, checked, recipe, T_prior, T, options, reach, only,
+                     ats=ats)
     found = dict(zip(again, map_fn(search, again), strict=True))
     for k in keys:
         v = kept[k]
@@ -154,9 +157,24 @@ def _follow(
     return [k for k in keys if _unfound(searches[k], options)]
 
 
+_Boxes = dict[str, tuple[int, int, int, int]]
+
+
+def _at_pose(frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
+             T: Array, options: DetectOptions, reach: float) -> tuple[list[MarkPrediction],
+                                                                     _Boxes]:
+    """An image's predictions at ``T`` held to the whole tolerance's ranges, and the whole
+    tolerance's windows at the prior: what :func:`_kept_at` and :func:`_search_followed` judge
+    its blobs by."""
+    H, W = frame[0].shape
+    return (held_predictions(frame[1], recipe, T_prior, T, options, reach),
+            _whole_boxes(frame[1], recipe, T_prior, options, W, H))
+
+
 def _kept_at(
     s: _Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
+    at: tuple[list[MarkPrediction], _Boxes] | None = None,
 ) -> tuple[_Search, frozenset[str]] | None:
     """The first search's blobs as the small windows around ``T`` would judge them, and the
     marks whose windows there are still to be searched; None: search every window.
@@ -166,16 +184,16 @@ def _kept_at(
     measurement may fail); only those inside both its followed window and the whole
     tolerance's at the prior are kept, judged by the predictions at ``T`` held to the whole
     tolerance's ranges, as :func:`_search_followed`'s. None when the marks with a window in
-    the image differ between the first windows and those at ``T``."""
+    the image differ between the first windows and those at ``T`` (``at``: :func:`_at_pose`'s,
+    computed when None)."""
     image, cam = frame
     H, W = image.shape
-    at_T = held_predictions(cam, recipe, T_prior, T, options, reach)
+    at_T, whole = _at_pose(frame, recipe, T_prior, T, options, reach) if at is None else at
     live = [p for p in at_T if p.facing]
     boxes = [_box(p, options, W, H) for p in live]
     if (any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes)
             or [p.mark.mark_id for p in live] != [p.mark.mark_id for p in s.live]):
         return None
-    whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
     near = [False] * len(live)
     clipped = [False] * len(live)
     for k, c in s.cands:
@@ -219,19 +237,20 @@ def _joined(kept: _Search, found: _Search | None) -> _Search:
 def _search_followed(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
-    only: dict[int, frozenset[str] | None] | None, k: int,
+    only: dict[int, frozenset[str] | None] | None, k: int, *,
+    ats: dict[int, tuple[list[MarkPrediction], _Boxes]] | None = None,
 ) -> _Search:
     """The small windows around the pose ``T`` (those of the marks ``only[k]``; None: all),
     held to what the whole tolerance's search at the prior accepts: only blobs inside the
     mark's whole window, sizes and shapes within its ranges. The perspective correction is the
     one at ``T``, nearer the part than the prior's (the server then seldom measures the pose a
-    second time, docs/detection.md)."""
+    second time, docs/detection.md; ``ats``: :func:`_at_pose`'s per image, computed when
+    None)."""
     image, cam = checked[k]
     s = _search(image, cam, recipe, T, options, reach, None if only is None else only[k])
-    H, W = image.shape
-    whole = _whole_boxes(cam, recipe, T_prior, options, W, H)
-    held = {p.mark.mark_id: p for p in held_predictions(cam, recipe, T_prior, T, options,
-                                                           reach)}
+    at_T, whole = (_at_pose(checked[k], recipe, T_prior, T, options, reach) if ats is None
+                   else ats[k])
+    held = {p.mark.mark_id: p for p in at_T}
     live = [held[p.mark.mark_id] for p in s.live]
     kept = [(j, (k_, c)) for j, (k_, c) in enumerate(s.cands)
             if _holds(whole[live[k_].mark.mark_id], *c.ellipse.centre)]
@@ -240,7 +259,7 @@ def _search_followed(
 
 
 def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options: DetectOptions,
-                 W: int, H: int) -> dict[str, tuple[int, int, int, int]]:
+                 W: int, H: int) -> _Boxes:
     return {p.mark.mark_id: _box(p, options, W, H)
             for p in predict_marks_cached(cam, recipe, T_prior, options.size_tolerance,
                                           options.shape_slack_deg, 1.0)}
