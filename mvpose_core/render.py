@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from mvpose_core.camera import CameraModel
-from mvpose_core.detect.geometry import rim_points
+from mvpose_core.detect.ellipse import rim_points
 from mvpose_core.render_clutter import paint_clutter, paint_decoy, paint_occluder
 from mvpose_core.scene import ProjectedMark, ViewCamera, project_recipe_marks
 from mvpose_core.station import RecipeConfig

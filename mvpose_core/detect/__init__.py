@@ -13,7 +13,8 @@ from mvpose_core.detect.correction import (
     perspective_correction,
     perspective_corrections,
 )
-from mvpose_core.detect.geometry import Ellipse, MarkPrediction, predict_marks
+from mvpose_core.detect.ellipse import Ellipse
+from mvpose_core.detect.geometry import MarkPrediction, predict_marks
 from mvpose_core.detect.search import identify_marks, search_marks
 from mvpose_core.detect.stereo import EpipolarFailure, epipolar_distance_px, stereo_check
 from mvpose_core.detect.types import (

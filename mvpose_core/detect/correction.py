@@ -20,7 +20,8 @@ from dataclasses import replace
 import numpy as np
 
 from mvpose_core.cache import IdentityCache
-from mvpose_core.detect.geometry import _mark_geometry, fit_ellipses, rims
+from mvpose_core.detect.ellipse import fit_ellipses, rims
+from mvpose_core.detect.geometry import _mark_geometry
 from mvpose_core.detect.types import MarkDetection
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig

@@ -16,7 +16,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from mvpose_core.detect.geometry import Ellipse, Ellipses, fit_ellipses
+from mvpose_core.detect.ellipse import Ellipse, Ellipses, fit_ellipses
 
 _STEP = 0.5  # px between samples along a ray
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))

@@ -22,7 +22,7 @@ from mvpose_core.detect import (
     search_marks,
     stereo_check,
 )
-from mvpose_core.detect.geometry import Ellipse
+from mvpose_core.detect.ellipse import Ellipse
 from mvpose_core.detect.refine import measure_in
 from mvpose_core.reasons import Reason
 from mvpose_core.render import RenderOptions, render_view

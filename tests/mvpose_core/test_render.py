@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mvpose_core.detect.geometry import fit_ellipse, rim_points
+from mvpose_core.detect.ellipse import fit_ellipse, rim_points
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.render_scene import plate_scene
 from mvpose_core.scene import project_recipe_marks
