@@ -33,12 +33,9 @@ class IdentityCache(Generic[V]):
 
         ``make`` runs outside the lock; an exception from it leaves the cache unchanged.
         """
-        key = (tuple(id(o) for o in owners), extra)
-        with self._lock:
-            hit = self._entries.get(key)
-            if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
-                self._entries.move_to_end(key)
-                return hit[1]
+        key, hit = self._find(owners, extra)
+        if hit is not None:
+            return hit[0]
         value = make()
         with self._lock:
             self._entries[key] = (owners, value)
@@ -50,13 +47,20 @@ class IdentityCache(Generic[V]):
     def peek(self, owners: tuple[object, ...], extra: Hashable) -> V | None:
         """The value for (``owners``, ``extra``) if there is one (then the most recently used),
         else None; nothing is computed."""
+        hit = self._find(owners, extra)[1]
+        return None if hit is None else hit[0]
+
+    def _find(self, owners: tuple[object, ...],
+              extra: Hashable) -> tuple[Hashable, tuple[V] | None]:
+        """The entry's key, and its value (in a 1-tuple, then the most recently used) when it
+        is there for these very owners."""
         key = (tuple(id(o) for o in owners), extra)
         with self._lock:
             hit = self._entries.get(key)
             if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
                 self._entries.move_to_end(key)
-                return hit[1]
-        return None
+                return key, (hit[1],)
+        return key, None
 
     def values(self) -> list[V]:
         """The values held, least recently used first."""
