@@ -4,10 +4,13 @@ Every backend is a folder ``drivers/links/<backend>/`` with its link class and i
 model (the station file's ``links.<backend>`` block). ``BACKENDS`` and ``SETTINGS`` name each
 backend's module and class; they are imported only when a station file names the backend, so a
 station without OPC UA never imports asyncua. A backend in ``OWN_PROCESS`` runs in a child
-process of the station (:mod:`drivers.links.process`): its per-result work is pure Python and
-would otherwise hold the station process's GIL beside the trigger path. A backend in
-``ON_BY_DEFAULT`` runs with its default settings when the station file does not name it. A
-backend in ``CLIENTS`` connects to the PLC: its ``host`` and ``port`` are the PLC's address.
+process of the station (:mod:`drivers.links.process`): its per-result work (OPC UA) or its
+per-poll work (Modbus/TCP: a PLC reads its status every few milliseconds) is pure Python and
+would otherwise take the station process's GIL beside the trigger path; one in ``REALTIME``
+keeps the station's real-time priority there (the PLC's handshake is the trigger path). A
+backend in ``ON_BY_DEFAULT`` runs with its default settings when the station file does not
+name it. A backend in ``CLIENTS`` connects to the PLC: its ``host`` and ``port`` are the PLC's
+address.
 """
 
 from __future__ import annotations
@@ -34,7 +37,10 @@ SETTINGS: dict[str, tuple[str, str]] = {
     "s7": ("drivers.links.s7.settings", "S7LinkConfig"),
     "profinet": ("drivers.links.profinet.settings", "ProfinetLinkConfig"),
 }
-OWN_PROCESS: frozenset[str] = frozenset({"opcua"})
+OWN_PROCESS: frozenset[str] = frozenset({"opcua", "modbus"})
+#: backends of OWN_PROCESS whose child runs at the station's real-time priority (the others at
+#: the normal one)
+REALTIME: frozenset[str] = frozenset({"modbus"})
 #: backends that connect to the PLC (their host and port are the PLC's, not ours to listen on)
 CLIENTS: frozenset[str] = frozenset({"s7"})
 ON_BY_DEFAULT: tuple[str, ...] = ("modbus",)
@@ -106,6 +112,6 @@ def open_links(configs: Mapping[str, Any], handler: StationHandler) -> list[Link
             for name, cfg in configs.items() if getattr(cfg, "enabled", True)]
 
 
-__all__ = ["BACKENDS", "CLIENTS", "ON_BY_DEFAULT", "OWN_PROCESS", "SETTINGS", "Link", "LinkOutcome",
-           "LinkRequest", "LinkSettingsError", "StationHandler", "link_class", "link_settings",
-           "open_links", "relay", "settings_model"]
+__all__ = ["BACKENDS", "CLIENTS", "ON_BY_DEFAULT", "OWN_PROCESS", "REALTIME", "SETTINGS", "Link",
+           "LinkOutcome", "LinkRequest", "LinkSettingsError", "StationHandler", "link_class",
+           "link_settings", "open_links", "relay", "settings_model"]

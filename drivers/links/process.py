@@ -2,26 +2,30 @@
 over a socket: the station keeps one GIL for its trigger path.
 
 A backend whose protocol work is pure Python and heavy per result (OPC UA: each result event is
-built, deep-copied and encoded by asyncua) would hold the station process's GIL while the trigger
-thread and the Modbus loop wait for it. Listed in ``drivers.links.OWN_PROCESS``, it runs in a
-child process instead:
+built, deep-copied and encoded by asyncua) or frequent (Modbus/TCP: a PLC polls its status every
+few milliseconds) would take the station process's GIL while the trigger thread waits for it.
+Listed in ``drivers.links.OWN_PROCESS``, it runs in a child process instead:
 
 - :class:`ProcessLink` stands for it in the station (on the station's loop): it starts the child,
-  serves the child's handler calls with the station's handler, forwards each result to it, and
-  shows the child's status and readiness. A child that dies is started again (backoff 1 s to 30 s);
-  the station and its other links go on meanwhile. A child that does not answer its start within
-  ``START_S``, or leaves ``BACKLOG_BYTES`` unread (frozen), is killed.
+  serves the child's handler calls with the station's handler (also while the child's link
+  starts), forwards each result to it, and shows the child's status, readiness and line state.
+  A child that dies is started again (backoff 1 s to 30 s); the station and its other links go
+  on meanwhile. A child that does not answer its start within ``START_S``, or leaves
+  ``BACKLOG_BYTES`` unread (frozen), is killed.
 - In the child, ``python -m drivers.links.process <backend>``, the backend runs unchanged against
   :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
   without a call (the selected recipe, its robot convention) comes with every reply and with each
   recipe change.
 
 The child is started with ``posix_spawn`` under the normal scheduling policy: a station whose
-threads run under SCHED_FIFO does not pass its real-time priority on. It ends when its socket
-closes, so a station killed with SIGKILL leaves no child behind. The socket is a private
-socketpair between the station and its own child; messages are pickled frames (length, pickle) of
-this module's tuples and the seam's dataclasses; a result event crosses as its own JSON
-(``ResultEvent.to_json``). This module is the only one that knows them.
+threads run under SCHED_FIFO does not pass its real-time priority on, unless the backend is in
+``drivers.links.REALTIME`` (the Modbus link: the PLC's handshake is the trigger path, and its
+polls must not wait for the station PC's other work); that child runs at the station loop's
+priority. It ends when its socket closes, so a station killed with SIGKILL leaves no child
+behind. The socket is a private socketpair between the station and its own child; messages are
+pickled frames (length, pickle) of this module's tuples and the seam's dataclasses; a result
+event crosses as its own JSON (``ResultEvent.to_json``). This module is the only one that knows
+them.
 """
 
 from __future__ import annotations
@@ -119,6 +123,7 @@ class ProcessLink(Link):
     Made per backend by :func:`hosted`; started and stopped on the station's loop."""
 
     backend: ClassVar[str] = ""
+    realtime: ClassVar[bool] = False  # the child keeps the station loop's scheduling policy
 
     def __init__(self, config: Any, handler: StationHandler) -> None:
         super().__init__(config, handler)
@@ -128,6 +133,7 @@ class ProcessLink(Link):
         # the child's link says it is ready (also waited on by tests and other threads)
         self.started = threading.Event()
         self._status: dict[str, Any] = {"running": False, "starting": True, "error": None}
+        self._line_state: str | None = None  # the child's link's handshake state, if it has one
         self._wire: _Wire | None = None
         self._pidfd = -1
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -171,6 +177,10 @@ class ProcessLink(Link):
             raise RuntimeError(f"the {self.name} link is not running")
         return port
 
+    def line_state(self) -> str | None:
+        """The child's link's handshake state as its last status report gave it."""
+        return self._line_state
+
     def recipe_changed(self) -> None:
         if self._wire is not None:
             self._send(self._wire, "recipe_changed", self._snapshot())
@@ -185,11 +195,14 @@ class ProcessLink(Link):
         root = str(Path(__file__).resolve().parents[2])
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
+        argv = [sys.executable, "-m", "drivers.links.process", self.backend]
+        actions = [(os.POSIX_SPAWN_DUP2, theirs.fileno(), CHILD_FD)]
         try:
-            pid = os.posix_spawn(
-                sys.executable, [sys.executable, "-m", "drivers.links.process", self.backend],
-                env, file_actions=[(os.POSIX_SPAWN_DUP2, theirs.fileno(), CHILD_FD)],
-                scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+            if self.realtime:  # the policy of this thread: the station loop's
+                pid = os.posix_spawn(sys.executable, argv, env, file_actions=actions)
+            else:
+                pid = os.posix_spawn(sys.executable, argv, env, file_actions=actions,
+                                     scheduler=(os.SCHED_OTHER, os.sched_param(0)))
         finally:
             theirs.close()
         self.pid, self.starts = pid, self.starts + 1
@@ -200,7 +213,7 @@ class ProcessLink(Link):
                   self._snapshot())
         hung = False
         try:
-            answer = await asyncio.wait_for(wire.read(), START_S)
+            answer = await asyncio.wait_for(self._until_started(wire), START_S)
         except TimeoutError:
             answer, hung = None, True
         if answer is None or answer[0] != "started" or answer[1] is not None:
@@ -226,6 +239,7 @@ class ProcessLink(Link):
             await self._serve(self._wire)
             self._wire = None
             self.started.clear()
+            self._line_state = None
             how = await self._reap(STOP_S)
             why, self._killed_why = self._killed_why, ""
             self.last_exit = f"process {self.pid} ended ({how}{'; ' + why if why else ''})"
@@ -244,21 +258,33 @@ class ProcessLink(Link):
                 except Exception as err:  # noqa: BLE001 - shown in the status, tried again
                     self.last_exit = str(err)
 
+    async def _until_started(self, wire: _Wire) -> tuple[Any, ...] | None:
+        """The child's "started" (None: it ended first), serving its calls meanwhile (a link
+        may select its initial recipe while it starts)."""
+        while (message := await wire.read()) is not None:
+            if message[0] == "started":
+                return message
+            self._dispatch(wire, message)
+        return None
+
     async def _serve(self, wire: _Wire) -> None:
         while (message := await wire.read()) is not None:
-            kind = message[0]
-            if kind == "call":
-                self._call(wire, *message[1:])
-            elif kind == "status":
-                self._status = message[1]
-                if message[2]:
-                    self.started.set()
-                else:
-                    self.started.clear()
-            elif kind == "listen" and not self._listening:
-                self._listening = True  # once per ProcessLink: a restarted child gets the same
-                self.handler.add_listener(self._on_result)
+            self._dispatch(wire, message)
         wire.close()
+
+    def _dispatch(self, wire: _Wire, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "call":
+            self._call(wire, *message[1:])
+        elif kind == "status":
+            self._status, ready, self._line_state = message[1:4]
+            if ready:
+                self.started.set()
+            else:
+                self.started.clear()
+        elif kind == "listen" and not self._listening:
+            self._listening = True  # once per ProcessLink: a restarted child gets the same
+            self.handler.add_listener(self._on_result)
 
     def _call(self, wire: _Wire, call_id: int, method: str, args: tuple[Any, ...]) -> None:
         if method not in CALLS:
@@ -318,6 +344,7 @@ class ProcessLink(Link):
     async def _end_child(self) -> None:
         wire, self._wire = self._wire, None
         self.started.clear()
+        self._line_state = None
         deadline = time.monotonic() + STOP_S  # reading "stop" and ending, together
         if wire is not None:
             wire.send("stop")
@@ -366,9 +393,12 @@ _HOSTED: dict[str, type[ProcessLink]] = {}
 def hosted(backend: str) -> type[ProcessLink]:
     """The ProcessLink class that runs ``backend`` (a key of BACKENDS) in a child process, under
     the backend's name."""
+    from . import REALTIME
+
     if backend not in _HOSTED:
         _HOSTED[backend] = type(f"{backend.capitalize()}ProcessLink", (ProcessLink,),
-                                {"name": backend, "backend": backend})
+                                {"name": backend, "backend": backend,
+                                 "realtime": backend in REALTIME})
     return _HOSTED[backend]
 
 
@@ -505,21 +535,28 @@ async def _child(sock: socket.socket) -> int:
                                "%(message)s")
     handler = RemoteHandler(wire, snapshot)
     link = link_class(backend)(config, handler)
+    # One reader: the station's replies answer the handler's calls at once (the link may ask
+    # the station while it starts, e.g. for its initial recipe); its other messages wait in
+    # order until the link has started. None: the station has gone.
+    inbox: asyncio.Queue[tuple[Any, ...] | None] = asyncio.Queue()
+    reading = asyncio.create_task(_read(wire, handler, inbox))
     try:
         await link.start()
     except Exception as err:  # noqa: BLE001 - the station shows it and raises it
         log.exception("the %s link did not start", backend)
+        reading.cancel()
         wire.send("started", f"{type(err).__name__}: {err}")
         await writer.drain()
         return 1
+    # its status first: the station knows the link's port and state once start() returns
+    shown = (link.status(), link.ready(), link.line_state())
+    wire.send("status", *shown)
     wire.send("started", None)
-    reporter = asyncio.create_task(_report(wire, link))
+    reporter = asyncio.create_task(_report(wire, link, shown))
     try:
-        while (message := await wire.read()) is not None:
+        while (message := await inbox.get()) is not None:
             kind = message[0]
-            if kind == "reply":
-                handler.answered(*message[1:])
-            elif kind == "result":
+            if kind == "result":
                 handler.tell(ResultEvent.from_json(message[1]))
             elif kind == "alarm":
                 link.alarm_changed(AlarmNotice.from_dict(message[1]))
@@ -530,17 +567,28 @@ async def _child(sock: socket.socket) -> int:
                 break
     finally:
         reporter.cancel()
+        reading.cancel()
         handler.gone()
         await link.stop()
         wire.close()
     return 0
 
 
-async def _report(wire: _Wire, link: Link) -> None:
-    """Send the link's status and readiness whenever they changed."""
-    last: Any = None
+async def _read(wire: _Wire, handler: RemoteHandler,
+                inbox: asyncio.Queue[tuple[Any, ...] | None]) -> None:
+    """Answer the handler's calls from the station's replies; queue its other messages."""
+    while (message := await wire.read()) is not None:
+        if message[0] == "reply":
+            handler.answered(*message[1:])
+        else:
+            inbox.put_nowait(message)
+    inbox.put_nowait(None)
+
+
+async def _report(wire: _Wire, link: Link, last: Any) -> None:
+    """Send the link's status, readiness and line state whenever they changed from ``last``."""
     while True:
-        now = (link.status(), link.ready())
+        now = (link.status(), link.ready(), link.line_state())
         if now != last:
             wire.send("status", *now)
             last = now

@@ -111,6 +111,25 @@ def test_the_opcua_link_process_runs_normal_and_ends_with_the_station(tmp_path: 
     assert not Path(f"/proc/{child}").exists()
 
 
+def test_the_modbus_link_process_runs_at_the_trigger_priority(tmp_path: Path) -> None:
+    """The Modbus link's process (drivers.links.REALTIME) is the station's child at the trigger
+    path's FIFO priority: the PLC's polls and its handshake do not wait for normal tasks. It
+    ends with the station."""
+    proc, client = _start(tmp_path, "--trigger-priority", "12")
+    try:
+        deadline = time.monotonic() + START_S
+        while not (link := client.status().links["modbus"]).get("running"):
+            assert time.monotonic() < deadline, link
+            time.sleep(0.1)
+        child = link["pid"]
+        assert int((Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split())[1]) \
+            == proc.pid
+        assert {(t["policy"], t["priority"]) for t in _threads(child)} == {(os.SCHED_FIFO, 12)}
+    finally:
+        _stop(proc)
+    assert not Path(f"/proc/{child}").exists()
+
+
 @pytest.mark.parametrize("value", ["100", "-1", "high"])
 def test_a_bad_priority_is_a_one_line_start_up_error(tmp_path: Path, value: str) -> None:
     path = station_file(tmp_path, "station1", relaxed_deadline)

@@ -22,6 +22,7 @@ from mvpose_core.reasons import Reason
 from server.loopback import move_part, running_server, running_station, trigger
 from server.store.schemas import MeasurementFilter
 from tests.drivers import profinet_peer
+from tests.waiting import until
 
 SLACK_S = 0.5  # what a loaded machine may add to a deadline; tells "at the deadline" from "hung"
 
@@ -138,9 +139,10 @@ async def test_the_station_files_allowlist_refuses_other_plcs(tmp_path: Path) ->
             answer = b""
         assert answer == b""  # closed without an answer
         writer.close()
-        st = rs.runtime.status()
-        assert st["plc"]["rejected_connections"] >= 1
-        assert st["teach_armed"] is False
+        # the link runs in a child process: its counts come with the child's status reports
+        await until(lambda: rs.runtime.status()["plc"]["rejected_connections"] >= 1,
+                    "the refused connection counted")
+        assert rs.runtime.status()["teach_armed"] is False
 
 
 @pytest.mark.slow

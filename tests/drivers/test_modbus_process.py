@@ -1,0 +1,53 @@
+"""The Modbus/TCP link in a process of its own (drivers.links.process; docs/modbus.md, "Its own
+process"): the PLC twin polls the child, a trigger crosses to the station's handler and its
+answer comes back, the initial recipe is selected through the station while the child starts,
+and the handshake's state reaches the station with the child's status. The handler is the
+tests' own; the peer is the project's PLC twin over Modbus/TCP.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+
+import pytest_asyncio
+from opcua_handler import RecordingHandler
+from waiting import until
+
+from drivers.links import open_links
+from drivers.links.layout import Status
+from drivers.links.modbus.settings import ModbusLinkConfig
+from drivers.links.process import ProcessLink
+from server.loopback import attach_twin, detach_twin
+
+START_S = 60.0  # a child imports pymodbus before it listens (seconds on a loaded machine)
+
+
+@pytest_asyncio.fixture
+async def hosted() -> AsyncIterator[tuple[ProcessLink, RecordingHandler]]:
+    handler = RecordingHandler()
+    (link,) = open_links({"modbus": ModbusLinkConfig(port=0)}, handler)
+    assert isinstance(link, ProcessLink) and link.name == "modbus"
+    await link.start()
+    try:
+        await until(link.started.is_set, "the child's server listens", START_S)
+        yield link, handler
+    finally:
+        await link.stop()
+
+
+async def test_a_trigger_crosses_to_the_station_and_its_answer_back(
+        hosted: tuple[ProcessLink, RecordingHandler]) -> None:
+    link, handler = hosted
+    # READY needs a recipe: the child selected the station's (a call answered while it started)
+    twin, beat = await attach_twin(link.port, 0.001)
+    try:
+        answer = await twin.cycle(7, 0, timeout=10.0)
+        assert answer.trigger_id == 7 and answer.has(Status.RESULT_VALID)
+        assert answer.result_code == 0 and answer.has(Status.RESULT_OK)
+        ((request, outcome),) = handler.records
+        assert (request.link, request.trigger_id, request.recipe) == ("modbus", 7, 1)
+        assert answer.result_id == outcome.result_id == 101
+        await until(lambda: link.line_state() == "READY", "the line state from the child")
+    finally:
+        await detach_twin(twin, beat)
+
