@@ -28,7 +28,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any, ClassVar, Protocol, TypeVar
+from typing import Any, ClassVar, Protocol, TypeVar, runtime_checkable
 
 from mvpose_core.transforms import RobotConvention
 
@@ -261,6 +261,19 @@ class StationHandler(Protocol):
         """Call ``listen(event)`` after every recorded answer, whichever link or client caused
         it, a few milliseconds after the answer (on the station's own thread: hand it over to
         your own loop)."""
+        ...
+
+
+@runtime_checkable
+class AnswersEarly(Protocol):
+    """A StationHandler that can also tell a trigger's outcome on the thread that recorded it,
+    before its awaitable ends on the link's loop (a link in a process of its own sends it on
+    from there: drivers/links/process.py)."""
+
+    def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                      ) -> Awaitable[LinkOutcome]:
+        """:meth:`StationHandler.measure`, and ``answered(outcome)`` called once with the same
+        outcome as soon as it is recorded, on the recording thread (it must not block)."""
         ...
 
 

@@ -16,6 +16,9 @@ Listed in ``drivers.links.OWN_PROCESS``, it runs in a child process instead:
   :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
   without a call (the selected recipe, its robot convention) comes with every reply and with each
   recipe change.
+- A trigger's outcome, from a handler that is :class:`~drivers.links.base.AnswersEarly` (the
+  station), is posted to the child by the thread that recorded it, right after the append, on a
+  second socket (:class:`_AnswerPost`): the PLC's answer does not wait for the station loop.
 
 The child is started with ``posix_spawn`` under the normal scheduling policy: a station whose
 threads run under SCHED_FIFO does not pass its real-time priority on, unless the backend is in
@@ -48,6 +51,7 @@ from typing import Any, ClassVar
 
 from .base import (
     AlarmNotice,
+    AnswersEarly,
     HandEyeOutcome,
     Link,
     LinkOutcome,
@@ -60,6 +64,7 @@ from .result import ResultEvent
 log = logging.getLogger(__name__)
 
 CHILD_FD = 3  # the socket's descriptor in the child
+ANSWER_FD = 4  # the answers' socket's descriptor in the child (see _AnswerPost)
 STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this often
 RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
 START_S = 25.0  # a child whose link has not started this long after its spawn is killed
@@ -143,6 +148,7 @@ class ProcessLink(Link):
         self._listening = False
         self.backlog_limit = BACKLOG_BYTES
         self._killed_why = ""  # why this link killed its child, for last_exit
+        self._post = _AnswerPost()
 
     # ------------------------------------------------------------------ Link
     async def start(self) -> None:
@@ -192,19 +198,26 @@ class ProcessLink(Link):
     # ------------------------------------------------------------------ the child
     async def _spawn(self) -> None:
         ours, theirs = socket.socketpair()
+        post, posted = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         root = str(Path(__file__).resolve().parents[2])
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
         argv = [sys.executable, "-m", "drivers.links.process", self.backend]
-        actions = [(os.POSIX_SPAWN_DUP2, theirs.fileno(), CHILD_FD)]
+        actions = [(os.POSIX_SPAWN_DUP2, theirs.fileno(), CHILD_FD),
+                   (os.POSIX_SPAWN_DUP2, posted.fileno(), ANSWER_FD)]
         try:
             if self.realtime:  # the policy of this thread: the station loop's
                 pid = os.posix_spawn(sys.executable, argv, env, file_actions=actions)
             else:
                 pid = os.posix_spawn(sys.executable, argv, env, file_actions=actions,
                                      scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+        except BaseException:
+            post.close()
+            raise
         finally:
             theirs.close()
+            posted.close()
+        self._post.open(post)
         self.pid, self.starts = pid, self.starts + 1
         self._pidfd = os.pidfd_open(pid)
         reader, writer = await asyncio.open_unix_connection(sock=ours)
@@ -225,6 +238,7 @@ class ProcessLink(Link):
                 why = "the process ended before its link started"
             self._wire = None
             wire.close()
+            self._post.close()
             await self._reap(0.0 if hung else STOP_S)
             self._status = {"running": False, "starting": False, "error": why}
             raise RuntimeError(f"the {self.name} link (process {pid}) did not start: {why}")
@@ -238,6 +252,7 @@ class ProcessLink(Link):
             assert self._wire is not None
             await self._serve(self._wire)
             self._wire = None
+            self._post.close()
             self.started.clear()
             self._line_state = None
             how = await self._reap(STOP_S)
@@ -291,8 +306,16 @@ class ProcessLink(Link):
             self._send(wire, "reply", call_id, False,
                        ValueError(f"no handler call {method!r}"), self._snapshot())
             return
+        posted = threading.Event()  # the outcome went out from the thread that recorded it
         try:
-            call = asyncio.ensure_future(getattr(self.handler, method)(*args))
+            if method == "measure" and isinstance(self.handler, AnswersEarly):
+                def answered(outcome: LinkOutcome) -> None:
+                    if self._post.send(("reply", call_id, True, outcome, None)):
+                        posted.set()
+
+                call = asyncio.ensure_future(self.handler.measure_early(args[0], answered))
+            else:
+                call = asyncio.ensure_future(getattr(self.handler, method)(*args))
         except Exception as err:  # noqa: BLE001 - the child's caller gets it
             self._send(wire, "reply", call_id, False, _portable(err), self._snapshot())
             return
@@ -300,7 +323,7 @@ class ProcessLink(Link):
 
         def done(f: asyncio.Future[Any]) -> None:
             self._calls.discard(f)
-            if f.cancelled():
+            if f.cancelled() or posted.is_set():
                 return
             err = f.exception()
             try:
@@ -345,6 +368,7 @@ class ProcessLink(Link):
         wire, self._wire = self._wire, None
         self.started.clear()
         self._line_state = None
+        self._post.close()
         deadline = time.monotonic() + STOP_S  # reading "stop" and ending, together
         if wire is not None:
             wire.send("stop")
@@ -387,6 +411,43 @@ class ProcessLink(Link):
         return f"exit {os.waitstatus_to_exitcode(status)}"
 
 
+class _AnswerPost:
+    """The station's side of the answers' socket: a trigger's outcome goes to the child from
+    the thread that recorded it (the trigger thread), without waiting for the station loop to
+    hear of it first. A SOCK_SEQPACKET socketpair: each send is one whole message or nothing,
+    never blocking; a send that fails (the child is not reading: frozen, or gone) leaves the
+    reply to the wire, whose backlog rule then deals with the child."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._sock: socket.socket | None = None
+
+    def open(self, sock: socket.socket) -> None:
+        sock.setblocking(False)
+        with self._lock:
+            self._sock = sock
+
+    def send(self, message: tuple[Any, ...]) -> bool:
+        try:
+            data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception:  # noqa: BLE001 - the wire's path reports what cannot cross
+            return False
+        with self._lock:
+            if self._sock is None:
+                return False
+            try:
+                self._sock.send(data)
+            except OSError:
+                return False
+        return True
+
+    def close(self) -> None:
+        with self._lock:
+            sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+
+
 _HOSTED: dict[str, type[ProcessLink]] = {}
 
 
@@ -425,8 +486,12 @@ class RemoteHandler:
         self._wire.send("call", call_id, method, args)
         return future
 
-    def answered(self, call_id: int, ok: bool, value: Any, snapshot: tuple[int, Any]) -> None:
-        self.snapshot(snapshot)
+    def answered(self, call_id: int, ok: bool, value: Any,
+                 snapshot: tuple[int, Any] | None) -> None:
+        """A call's answer; ``snapshot`` None: one posted from a station thread, which carries
+        none (it could be older than a recipe change the wire brought)."""
+        if snapshot is not None:
+            self.snapshot(snapshot)
         future = self._pending.pop(call_id, None)
         if future is None or future.done():
             return  # its caller gave up (a timeout, a client gone)
@@ -521,7 +586,7 @@ class RemoteHandler:
         self._listeners.append(listen)
 
 
-async def _child(sock: socket.socket) -> int:
+async def _child(sock: socket.socket, answers: socket.socket) -> int:
     from . import link_class
 
     reader, writer = await asyncio.open_unix_connection(sock=sock)
@@ -540,11 +605,13 @@ async def _child(sock: socket.socket) -> int:
     # order until the link has started. None: the station has gone.
     inbox: asyncio.Queue[tuple[Any, ...] | None] = asyncio.Queue()
     reading = asyncio.create_task(_read(wire, handler, inbox))
+    posted = asyncio.create_task(_read_posted(answers, handler))
     try:
         await link.start()
     except Exception as err:  # noqa: BLE001 - the station shows it and raises it
         log.exception("the %s link did not start", backend)
         reading.cancel()
+        posted.cancel()
         wire.send("started", f"{type(err).__name__}: {err}")
         await writer.drain()
         return 1
@@ -568,6 +635,7 @@ async def _child(sock: socket.socket) -> int:
     finally:
         reporter.cancel()
         reading.cancel()
+        posted.cancel()
         handler.gone()
         await link.stop()
         wire.close()
@@ -585,6 +653,14 @@ async def _read(wire: _Wire, handler: RemoteHandler,
     inbox.put_nowait(None)
 
 
+async def _read_posted(answers: socket.socket, handler: RemoteHandler) -> None:
+    """The outcomes the station's threads post (see _AnswerPost), one message per packet."""
+    loop = asyncio.get_running_loop()
+    while data := await loop.sock_recv(answers, 1 << 16):
+        _, call_id, ok, value, snapshot = pickle.loads(data)
+        handler.answered(call_id, ok, value, snapshot)
+
+
 async def _report(wire: _Wire, link: Link, last: Any) -> None:
     """Send the link's status, readiness and line state whenever they changed from ``last``."""
     while True:
@@ -600,7 +676,9 @@ def main() -> int:
     # (a "stop" message, or its socket closing), in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     sock = socket.socket(fileno=CHILD_FD)
-    return asyncio.run(_child(sock))
+    answers = socket.socket(fileno=ANSWER_FD)
+    answers.setblocking(False)
+    return asyncio.run(_child(sock, answers))
 
 
 if __name__ == "__main__":

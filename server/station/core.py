@@ -233,6 +233,10 @@ class Station:
     def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
         return self.triggers.measure(request)
 
+    def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                      ) -> asyncio.Future[LinkOutcome]:
+        return self.triggers.measure(request, answered)
+
     def measure_answer(self, request: LinkRequest) -> asyncio.Future[Answer]:
         """:meth:`measure` with the record and the message (the control channel's trigger)."""
         return self.triggers.measure_answer(request)

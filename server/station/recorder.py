@@ -122,8 +122,10 @@ class Recorder:
 
     # ------------------------------------------------------------------ appends
     def append(self, record: MeasurementRecord, message: str, t0: float,
-               link: str = "") -> Answer:
-        """Make ``record`` durable, then build the link's outcome from it (the same code)."""
+               link: str = "", answered: Callable[[LinkOutcome], None] | None = None) -> Answer:
+        """Make ``record`` durable, then build the link's outcome from it (the same code);
+        ``answered(outcome)`` is called with it at once, on this thread, before anything else
+        here wakes another thread (a link in a process of its own posts it to its child)."""
         assert self.sink is not None
         t = time.monotonic()
         try:
@@ -134,11 +136,13 @@ class Recorder:
                 self.counts["store_failed"] += 1
                 self.store_error = f"{type(err).__name__}: {str(err)[:200]}"
             code = int(Reason.STORE_FAILED)
-            return Answer(LinkOutcome(code, 0, processing_ms=(time.monotonic() - t0) * 1e3),
-                          None, f"the record could not be stored: {err}")
+            failed = LinkOutcome(code, 0, processing_ms=(time.monotonic() - t0) * 1e3)
+            tell_early(answered, failed)
+            return Answer(failed, None, f"the record could not be stored: {err}")
         self._note_append_ms((time.monotonic() - t) * 1e3)
         event = record_event(record, done.result_id)
         outcome = LinkOutcome.from_event(event, processing_ms=(time.monotonic() - t0) * 1e3)
+        tell_early(answered, outcome)
         with self._lock:
             self.counts["ok" if event.ok else "nok"] += 1
             self.last = {  # the status page's last result: the event, and how it was answered
@@ -210,3 +214,14 @@ class Recorder:
             self.services.images.write(measurement_id, rec.images, rec.result == "OK", frames)
         except Exception:
             log.exception("measurement %d: archiving its frames failed", measurement_id)
+
+
+def tell_early(answered: Callable[[LinkOutcome], None] | None, outcome: LinkOutcome) -> None:
+    """Call ``answered(outcome)``, if given; a failure is logged (the answer still goes out
+    through the link's loop)."""
+    if answered is None:
+        return
+    try:
+        answered(outcome)
+    except Exception:
+        log.exception("telling a link its answer early failed")

@@ -29,7 +29,7 @@ from mvpose_core.reasons import Reason
 from server.state import Services
 from server.station.measuring import Measuring
 from server.station.options import StationOptions
-from server.station.recorder import Answer, Recorder
+from server.station.recorder import Answer, Recorder, tell_early
 from server.station.records import failure_record, result_record
 from server.station.sequence import Step
 from server.store.schemas import ImageRef
@@ -96,21 +96,27 @@ class Triggers:
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     # ------------------------------------------------------------------ on the station loop
-    def measure(self, request: LinkRequest) -> asyncio.Future[LinkOutcome]:
+    def measure(self, request: LinkRequest,
+                answered: Callable[[LinkOutcome], None] | None = None
+                ) -> asyncio.Future[LinkOutcome]:
         """Start one trigger on the trigger thread now (on the station loop); the future holds
-        its outcome, recorded, within the deadline + answer_margin_s."""
+        its outcome, recorded, within the deadline + answer_margin_s. ``answered(outcome)`` is
+        called with it on the thread that recorded it, just after the append (before the loop
+        hears of it)."""
         out: asyncio.Future[LinkOutcome] = asyncio.get_running_loop().create_future()
-        relay(self.measure_answer(request), out, lambda answer: answer.outcome)
+        relay(self.measure_answer(request, answered), out, lambda answer: answer.outcome)
         return out
 
-    def measure_answer(self, request: LinkRequest) -> asyncio.Future[Answer]:
+    def measure_answer(self, request: LinkRequest,
+                       answered: Callable[[LinkOutcome], None] | None = None
+                       ) -> asyncio.Future[Answer]:
         """:meth:`measure` with the record and the message (the control channel's trigger)."""
         t0 = time.monotonic()
         at = datetime.now(UTC)
         loop = asyncio.get_running_loop()
         ticket = _Ticket()
         out: asyncio.Future[Answer] = loop.create_future()
-        work = loop.run_in_executor(self.executor, self._run, request, t0, at, ticket)
+        work = loop.run_in_executor(self.executor, self._run, request, t0, at, ticket, answered)
         self.running += 1
         work.add_done_callback(lambda _: self._done())
         margin_s = self.options.answer_margin_s
@@ -126,7 +132,7 @@ class Triggers:
             log.warning("trigger %d: %s", request.trigger_id, text)
             rec = loop.run_in_executor(self._record_exec, self._record_failure, request,
                                        int(Reason.TIMEOUT), text, (time.monotonic() - t0) * 1e3,
-                                       at)
+                                       at, answered)
             relay(rec, out, lambda answer: answer)
 
         limit_s = self.measuring.station.deadline_ms / 1000.0 + margin_s
@@ -147,8 +153,8 @@ class Triggers:
         return answer.outcome.result_id
 
     # ------------------------------------------------------------------ the trigger thread
-    def _run(self, req: LinkRequest, t0: float, at: datetime,
-             ticket: _Ticket) -> Answer | None:
+    def _run(self, req: LinkRequest, t0: float, at: datetime, ticket: _Ticket,
+             answered: Callable[[LinkOutcome], None] | None = None) -> Answer | None:
         m = self.measuring
         assert m.sequence is not None and m.provenance is not None
         self.recorder.count("triggers")
@@ -161,9 +167,11 @@ class Triggers:
                                         f"{type(err).__name__}: {err}")
         if step is not None and not step.final:
             self.recorder.count("views")
-            return Answer(LinkOutcome(0, 0, views_done=step.views_done, final=False,
+            view = Answer(LinkOutcome(0, 0, views_done=step.views_done, final=False,
                                       processing_ms=(time.monotonic() - t0) * 1e3),
                           None, "view done")
+            tell_early(answered, view.outcome)
+            return view
         with ticket.lock:
             if ticket.state == "expired":
                 log.warning("trigger %d: its result came after the watchdog's TIMEOUT and is "
@@ -187,7 +195,7 @@ class Triggers:
                                     trigger_id=req.trigger_id, part_id=req.part_id or None,
                                     triggered_at=at, recipe=recipe,
                                     total_ms=(time.monotonic() - t0) * 1e3)
-        answer = self.recorder.append(record, message, t0, req.link)
+        answer = self.recorder.append(record, message, t0, req.link, answered)
         archiving = False
         if step is not None and step.result is not None and answer.record is not None:
             archiving = self._after(step, answer)
@@ -196,7 +204,8 @@ class Triggers:
         return answer
 
     def _record_failure(self, req: LinkRequest, code: int, message: str, total_ms: float,
-                        at: datetime) -> Answer:
+                        at: datetime, answered: Callable[[LinkOutcome], None] | None = None
+                        ) -> Answer:
         m = self.measuring
         assert m.provenance is not None
         m.clear_sequence()  # a failed trigger ends any multi-view sequence
@@ -204,7 +213,7 @@ class Triggers:
                                 trigger_id=req.trigger_id, part_id=req.part_id or None,
                                 triggered_at=at, recipe=m.any_recipe(), total_ms=total_ms)
         return self.recorder.append(record, message, time.monotonic() - total_ms / 1e3,
-                                    req.link)
+                                    req.link, answered)
 
     def _after(self, step: Step, answer: Answer) -> bool:
         """Teach if armed; hand the record's planned frames to the archive (True if it has)."""
@@ -213,3 +222,4 @@ class Triggers:
         if self.measuring.teach_if_armed(step.recipe, rec, answer.outcome.result_id):
             self._recipe_changed()
         return self.recorder.archive(answer, step.result.frames)
+

@@ -7,13 +7,16 @@ tests' own; the peer is the project's PLC twin over Modbus/TCP.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import asyncio
+import threading
+from collections.abc import AsyncIterator, Callable
 
 import pytest_asyncio
 from opcua_handler import RecordingHandler
 from waiting import until
 
-from drivers.links import open_links
+from drivers.links import LinkOutcome, LinkRequest, open_links
+from drivers.links.base import AnswersEarly
 from drivers.links.layout import Status
 from drivers.links.modbus.settings import ModbusLinkConfig
 from drivers.links.process import ProcessLink
@@ -51,3 +54,48 @@ async def test_a_trigger_crosses_to_the_station_and_its_answer_back(
     finally:
         await detach_twin(twin, beat)
 
+
+
+class EarlyHandler(RecordingHandler):
+    """A station that tells each outcome from a thread of its own (as the trigger thread does
+    just after the append) and ends the awaitable only when the test says so."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = asyncio.Event()  # ends the awaitables: the loop's way of answering
+
+    def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                      ) -> asyncio.Future[LinkOutcome]:
+        out = LinkOutcome(0, 0, offset=(1.0, 2.0, 3.0, 0.1, 0.2, 0.3), sigma_trans_mm=0.05,
+                          sigma_rot_deg=0.01, processing_ms=5.0)
+        recorded = self.record(request, out, "OK")
+        threading.Thread(target=answered, args=(recorded,)).start()
+
+        async def later() -> LinkOutcome:
+            await self.release.wait()
+            return recorded
+
+        return asyncio.ensure_future(later())
+
+
+async def test_an_outcome_posted_from_the_recording_thread_reaches_the_plc_first() -> None:
+    """The station's trigger thread posts the outcome to the child at once (AnswersEarly); the
+    PLC has it while the station loop has not heard of it yet, and gets it once."""
+    handler = EarlyHandler()
+    (link,) = open_links({"modbus": ModbusLinkConfig(port=0)}, handler)
+    assert isinstance(handler, AnswersEarly)
+    await link.start()
+    try:
+        twin, beat = await attach_twin(link.port, 0.001)
+        try:
+            answer = await twin.cycle(8, 0, timeout=10.0)
+            assert answer.trigger_id == 8 and answer.has(Status.RESULT_VALID)
+            assert answer.result_id == 101 and not handler.release.is_set()
+            handler.release.set()  # the loop's reply comes now and is not sent again
+            answer = await twin.cycle(9, 0, timeout=10.0)
+            assert (answer.trigger_id, answer.result_id) == (9, 102)
+        finally:
+            await detach_twin(twin, beat)
+    finally:
+        handler.release.set()
+        await link.stop()
