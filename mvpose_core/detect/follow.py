@@ -66,12 +66,21 @@ def pose_from_blobs(
                 best[k] = (d, c.ellipse.centre)
         obs += [Observation(cam.view, cam.camera_id, preds[k].mark.mark_id, uv)
                 for k, (_, uv) in best.items()]
+    return pose_from_observations(obs, [c for c, _, _ in blobs], recipe, T_prior, start)
+
+
+def pose_from_observations(
+    obs: Sequence[Observation], cameras: Sequence[ViewCamera], recipe: RecipeConfig,
+    T_prior: Array, start: Array | None = None,
+) -> Array | None:
+    """``T_rf_from_pf`` from image points of three or more distinct marks, or None: the
+    refinement of :func:`pose_from_blobs` with its outlier rule and its checks."""
     if len({o.mark_id for o in obs}) < 3:
         return None
     marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
     T_start = T_prior if start is None else start
     try:
-        pk = build_problem(obs, [c for c, _, _ in blobs], marks_pf, 1.0).pk
+        pk = build_problem(obs, list(cameras), marks_pf, 1.0).pk
         lm = _refine(pk, T_start[:3, :3], T_start[:3, 3])
         # The estimator's outlier rule: the blob farthest from its projection beyond AGREE_PX
         # is dropped and the pose refined again, never below three marks. The residuals and

@@ -30,6 +30,7 @@ from mvpose_core.detect.geometry import (
     predict_marks_cached_many,
 )
 from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
+from mvpose_core.detect.settle import SETTLE_PX, moved_px, settled
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -82,6 +83,8 @@ def detect_marks_many(
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
+    moved = [0.0] * len(checked)  # per image: its found mark farthest from its prediction (px)
+    followed = False  # whether the images were searched around the blobs' pose
     todo = list(range(len(checked)))
     tol = recipe.tolerances
     first = options.first_reach(tol.max_offset_mm, tol.max_offset_deg)
@@ -103,8 +106,8 @@ def detect_marks_many(
             # other images'.
             wider = [k for k in todo if _unfound(searches[k], options)]
             if wider:
-                wider = _follow(checked, recipe, T_rf_from_pf_prior, start, options, reach,
-                                map_fn, searches)
+                wider, followed = _follow(checked, recipe, T_rf_from_pf_prior, start, options,
+                                          reach, map_fn, searches)
             if wider:
                 search = partial(_search_image, checked, recipe, T_rf_from_pf_prior, options,
                                  reaches[-1])
@@ -115,10 +118,19 @@ def detect_marks_many(
                                           [checked[k][0] for k in todo], recipe, options),
                            strict=True):
             out[k] = dets
+            # corrected at the blobs' pose, the marks need no other (the server seldom measures
+            # twice, docs/detection.md)
+            moved[k] = (0.0 if followed and n == 0 and k not in wider
+                        else moved_px(searches[k].live, dets))
         todo = [k for k in todo if k not in wider
                 and any(not d.found and d.reason != FACES_AWAY for d in out[k])]
         if not todo:
             break
+    if options.correct_perspective and max(moved, default=0.0) > SETTLE_PX:
+        # The marks lie away from the pose their corrections were taken at: corrected at the
+        # pose of their centres, the server measures the pose once (settle.py).
+        out = settled([(cam, dets) for (_, cam), dets in zip(checked, out, strict=True)],
+                      recipe, T_rf_from_pf_prior, start)
     return out
 
 
@@ -126,16 +138,16 @@ def _follow(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     start: Array, options: DetectOptions, reach: float,
     map_fn: Callable[..., Iterable[_Search]], searches: dict[int, _Search],
-) -> list[int]:
+) -> tuple[list[int], bool]:
     """Search every image in the small windows around the pose of the blobs found so far
     (``searches``, made around ``start``, is updated); the images that still lack a blob for
     a facing mark, to be searched over the whole tolerance (all the unfound ones when there is
-    no pose)."""
+    no pose), and whether there was a pose."""
     keys = list(searches)
     T = pose_from_blobs([(checked[k][1], searches[k].live, searches[k].cands) for k in keys],
                         recipe, T_prior, start)
     if T is None:
-        return [k for k in keys if _unfound(searches[k], options)]
+        return [k for k in keys if _unfound(searches[k], options)], False
     # the windows around the pose are new at every trigger: predicted in every camera at once
     predict_marks_cached_many([checked[k][1] for k in keys], recipe, T, options.size_tolerance,
                               options.shape_slack_deg, reach)
@@ -154,7 +166,7 @@ def _follow(
     for k in keys:
         v = kept[k]
         searches[k] = found[k] if v is None else _joined(v[0], found.get(k))
-    return [k for k in keys if _unfound(searches[k], options)]
+    return [k for k in keys if _unfound(searches[k], options)], True
 
 
 _Boxes = dict[str, tuple[int, int, int, int]]
