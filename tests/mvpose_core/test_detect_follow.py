@@ -215,3 +215,34 @@ def test_blobs_beyond_their_gates_send_the_search_to_the_blobs_pose(  # type: ig
     followed = detect_marks_many(frames, recipe, T0, opts)
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
     _same_as_whole(cams, recipe, T, followed, whole, once=True)
+
+
+# A part within the first reach but away from the reference (the station bench's place 0): all
+# its marks are found in the first windows, which carry the correction at the reference (the
+# server would measure the pose twice). They are corrected at the pose of their centres instead,
+# so the server measures it once: the same ellipse centres as the whole tolerance's search, and
+# corrections within recorrect_px of those at the part's pose.
+@pytest.mark.parametrize("clutter", [False, True])
+def test_marks_away_from_their_first_windows_pose_are_corrected_at_their_own(  # type: ignore[no-untyped-def]
+    station1, clutter: bool
+) -> None:
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    rng = np.random.default_rng(28)  # bench/moving_part.py's first place (0.31 of the tolerance)
+    T = displaced(recipe, float(rng.uniform(0.0, 0.9)), rng.normal(size=3), rng.normal(size=3))
+    frames = _frames(cams, recipe, T, clutter)
+    first = detect_marks_many(frames, recipe, T0, DetectOptions())
+    whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
+    _, at_prior = recorrect(list(zip(cams, first, strict=True)), recipe, T0)
+    assert at_prior > 0.01  # the reference's corrections: the server would measure twice
+    _same_as_whole(cams, recipe, T, first, whole)
+
+
+# A part at the reference keeps the reference's corrections (no pose is computed for it).
+def test_marks_at_their_predictions_keep_the_first_windows_corrections(station1) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    found = detect_marks_many(_frames(cams, recipe, T0, False), recipe, T0, DetectOptions())
+    assert sum(d.found for dets in found for d in dets) == 8
+    _, moved = recorrect(list(zip(cams, found, strict=True)), recipe, T0)
+    assert moved < 1e-9  # the reference's own (at a pose of the centres: ~1e-4 px from them)

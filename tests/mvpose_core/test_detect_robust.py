@@ -217,7 +217,10 @@ def test_several_images_detected_in_one_batch_agree_with_one_at_a_time(lab) -> N
         assert any(d.found for d in dets), cam.key
         for a, b in zip(dets, alone, strict=True):
             if a.found:  # a blob's measurement depends on that blob and its image only
-                assert np.abs(a.uv - b.uv).max() < 1e-9, (cam.key, a.mark_id)
+                assert np.abs(a.uv_ellipse - b.uv_ellipse).max() < 1e-9, (cam.key, a.mark_id)
+                # a part off its prior is corrected at the pose of the centres found (settle.py):
+                # those of all images, or of this one alone
+                assert np.abs(a.uv - b.uv).max() < 1e-3, (cam.key, a.mark_id)
 
 
 # Images whose largest marks differ in size get their own count of fine rays (80 and 96 here)
