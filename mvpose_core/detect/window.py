@@ -10,26 +10,27 @@ hold give the part's pose (follow.py) and every image is searched in the small w
 that pose (but a mark whose first window held it near there, unclipped, keeps those blobs); an
 image where a mark is still not found is searched over the whole tolerance. Accepted candidates
 from all windows are assigned to marks jointly (least total distance to the predictions), so two
-marks never take the same blob.
+marks never take the same blob. Marks found far from the pose their windows' corrections were
+taken at are corrected at the pose of their centres (settle.py).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from mvpose_core.detect.assign import Search, gate_px, measure_all
 from mvpose_core.detect.follow import AGREE_PX, held_predictions, pose_from_blobs
 from mvpose_core.detect.geometry import (
     MarkPrediction,
     predict_marks_cached,
     predict_marks_cached_many,
 )
-from mvpose_core.detect.refine import Candidate, Measurement, find_candidates, measure_in
+from mvpose_core.detect.refine import Candidate, find_candidates
 from mvpose_core.detect.settle import SETTLE_PX, moved_px, settled
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
@@ -55,7 +56,7 @@ def detect_marks_many(
     recipe: RecipeConfig,
     T_rf_from_pf_prior: Array,
     options: DetectOptions = DetectOptions(),  # noqa: B008 - frozen, immutable default
-    map_fn: Callable[..., Iterable[_Search]] = map,
+    map_fn: Callable[..., Iterable[Search]] = map,
     near: Array | None = None,
 ) -> list[list[MarkDetection]]:
     """:func:`detect_marks` for the images of several cameras of one part, in their order.
@@ -80,6 +81,11 @@ def detect_marks_many(
     ``near`` (the pose where the last part was, :func:`~mvpose_core.detect.follow.next_near`)
     puts the first search's small windows there instead of at the prior, held to what the
     whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
+
+    When a found mark that was not searched around the blobs' pose lies more than
+    :data:`~mvpose_core.detect.settle.SETTLE_PX` from its prediction, every found mark is
+    corrected at the pose of the found centres (:func:`~mvpose_core.detect.settle.settled`):
+    the same blobs and ellipse centres, the correction nearer the one at the estimate.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
@@ -114,7 +120,7 @@ def detect_marks_many(
                 searches.update(zip(wider, map_fn(search, wider), strict=True))
         else:
             wider = []
-        for k, dets in zip(todo, _measure([searches[k] for k in todo],
+        for k, dets in zip(todo, measure_all([searches[k] for k in todo],
                                           [checked[k][0] for k in todo], recipe, options),
                            strict=True):
             out[k] = dets
@@ -137,7 +143,7 @@ def detect_marks_many(
 def _follow(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     start: Array, options: DetectOptions, reach: float,
-    map_fn: Callable[..., Iterable[_Search]], searches: dict[int, _Search],
+    map_fn: Callable[..., Iterable[Search]], searches: dict[int, Search],
 ) -> tuple[list[int], bool]:
     """Search every image in the small windows around the pose of the blobs found so far
     (``searches``, made around ``start``, is updated); the images that still lack a blob for
@@ -155,7 +161,7 @@ def _follow(
     # those blobs; only the other marks' windows around the pose are searched (an image whose
     # marks are laid out otherwise there: all of them).
     ats = {k: _at_pose(checked[k], recipe, T_prior, T, options, reach) for k in keys}
-    kept: dict[int, tuple[_Search, frozenset[str]] | None] = {
+    kept: dict[int, tuple[Search, frozenset[str]] | None] = {
         k: _kept_at(searches[k], checked[k], recipe, T_prior, T, options, reach, ats[k])
         for k in keys}
     only = {k: None if v is None else v[1] for k, v in kept.items()}
@@ -184,10 +190,10 @@ def _at_pose(frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior
 
 
 def _kept_at(
-    s: _Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
+    s: Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
     at: tuple[list[MarkPrediction], _Boxes] | None = None,
-) -> tuple[_Search, frozenset[str]] | None:
+) -> tuple[Search, frozenset[str]] | None:
     """The first search's blobs as the small windows around ``T`` would judge them, and the
     marks whose windows there are still to be searched; None: search every window.
 
@@ -228,10 +234,10 @@ def _kept_at(
     preds = predict_marks_cached(cam, recipe, T, options.size_tolerance,
                                  options.shape_slack_deg, reach)
     rest = frozenset(p.mark.mark_id for p, k in zip(live, keep, strict=True) if not k)
-    return _Search(list(preds), results, live, cands, scales), rest
+    return Search(list(preds), results, live, cands, scales), rest
 
 
-def _joined(kept: _Search, found: _Search | None) -> _Search:
+def _joined(kept: Search, found: Search | None) -> Search:
     """The kept blobs with those found in the other marks' windows (None: no other), less a
     blob found again (within half its radius of a kept one)."""
     if found is None:
@@ -251,7 +257,7 @@ def _search_followed(
     T: Array, options: DetectOptions, reach: float,
     only: dict[int, frozenset[str] | None] | None, k: int, *,
     ats: dict[int, tuple[list[MarkPrediction], _Boxes]] | None = None,
-) -> _Search:
+) -> Search:
     """The small windows around the pose ``T`` (those of the marks ``only[k]``; None: all),
     held to what the whole tolerance's search at the prior accepts: only blobs inside the
     mark's whole window, sizes and shapes within its ranges. The perspective correction is the
@@ -277,22 +283,23 @@ def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options:
                                           options.shape_slack_deg, 1.0)}
 
 
-def _unfound(s: _Search, options: DetectOptions) -> bool:
+def _unfound(s: Search, options: DetectOptions) -> bool:
     """Whether a mark that faces the camera has no blob it could be given (or no window in the
     image): it cannot be found in this search.
 
     A blob can be given to a mark only within the mark's gate (its possible shift and
-    ``window_extra_px`` from its prediction, :func:`_assign`); a window is wider than that by
-    the mark's largest radius, so a blob of a part beyond the window's reach may lie in it
-    and still never be the mark's. Such a blob counts from a little beyond the gate (its
-    coarse centre is within a few coarse pixels of the measured one)."""
+    ``window_extra_px`` from its prediction, :func:`~mvpose_core.detect.assign.assign`); a
+    window is wider than that by the mark's largest radius, so a blob of a part beyond the
+    window's reach may lie in it and still never be the mark's. Such a blob counts from a
+    little beyond the gate (its coarse centre is within a few coarse pixels of the measured
+    one)."""
     if len(s.live) < sum(p.facing for p in s.preds):
         return True
     held = set()
     for _, c in s.cands:
         u, v = c.ellipse.centre
         for j, p in enumerate(s.live):
-            if math.hypot(u - p.uv[0], v - p.uv[1]) <= _gate(p, options) + _COARSE_SLACK_PX:
+            if math.hypot(u - p.uv[0], v - p.uv[1]) <= gate_px(p, options) + _COARSE_SLACK_PX:
                 held.add(j)
     return len(held) < len(s.live)
 
@@ -301,64 +308,14 @@ def _unfound(s: _Search, options: DetectOptions) -> bool:
 _COARSE_SLACK_PX = 8.0
 
 
-def _gate(p: MarkPrediction, options: DetectOptions) -> float:
-    """How far from its prediction (px) a mark may be given a blob (:func:`_assign`)."""
-    return p.max_shift_px + options.window_extra_px
-
-
 FACES_AWAY = "mark faces away from the camera"
 
 
 def _search_image(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     options: DetectOptions, reach: float, k: int,
-) -> _Search:
+) -> Search:
     return _search(checked[k][0], checked[k][1], recipe, T_prior, options, reach)
-
-
-def _measure(
-    searches: list[_Search], images: list[np.ndarray], recipe: RecipeConfig,
-    options: DetectOptions,
-) -> list[list[MarkDetection]]:
-    """Measure the candidates of every search in one batch and conclude each image."""
-    owner = np.array([k for k, s in enumerate(searches) for _ in s.cands], dtype=np.intp)
-    measured: list[Measurement] = []
-    if len(owner):
-        # An image's blobs have their rims looked for within the image's finest coarse pixel
-        # and a tenth of its largest blob's radius.
-        reach_px = [
-            2.0 + min(s.scales) + 0.1 * max(c.ellipse.radius for _, c in s.cands)
-            if s.cands else 0.0
-            for s in searches
-        ]
-        measured = measure_in(
-            images,
-            owner,
-            [c.ellipse for s in searches for _, c in s.cands],
-            np.array([s.live[k].dark for s in searches for k, _ in s.cands], dtype=bool),
-            options.min_contrast,
-            options.max_fit_residual_px,
-            options.min_edge_fraction,
-            search_px=np.array([reach_px[k] for k in owner.tolist()]),
-        )
-    out = []
-    first = 0
-    for s in searches:
-        n = len(s.cands)
-        out.append(_conclude(s, measured[first : first + n], options))
-        first += n
-    return out
-
-
-@dataclass
-class _Search:
-    """One image's windows and the candidate blobs found in them, before measurement."""
-
-    preds: list[MarkPrediction]
-    results: dict[str, MarkDetection]  # per mark: missing (with the reason) until accepted
-    live: list[MarkPrediction]  # the predictions whose window lies in the image
-    cands: list[tuple[int, Candidate]]  # (index in live, blob): one entry per distinct blob
-    scales: list[int]  # per blob: the reduction its window was searched at
 
 
 def _search(
@@ -369,7 +326,7 @@ def _search(
     options: DetectOptions,
     reach: float = 1.0,
     only: frozenset[str] | None = None,
-) -> _Search:
+) -> Search:
     """One image's windows (those of the marks ``only``; None: all) and their blobs."""
     preds = predict_marks_cached(
         cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
@@ -418,31 +375,7 @@ def _search(
                 k = min(inside, key=lambda j: math.hypot(cu - live[j].uv[0], cv - live[j].uv[1]))
                 cands.append((k, c))
                 scales.append(s)
-    return _Search(list(preds), results, live, cands, scales)
-
-
-def _conclude(
-    s: _Search, measured: list[Measurement], options: DetectOptions
-) -> list[MarkDetection]:
-    """Accept the measured blobs that look like their marks and give each mark at most one."""
-    results = s.results
-    accepted: list[MarkDetection] = []
-    nearest = np.full(len(s.live), np.inf)  # a missing mark reports its nearest blob's fault
-    for (k, c), m in zip(s.cands, measured, strict=True):
-        p = s.live[k]
-        det, why = _check(m, p)
-        if det is not None:
-            accepted.append(det)
-        elif (dist := float(np.hypot(*(c.ellipse.centre - p.uv)))) < nearest[k]:
-            nearest[k] = dist
-            results[p.mark.mark_id] = MarkDetection.missing(
-                p.mark.mark_id,
-                f"{why} (blob at {dist:.0f} px from prediction)",
-                contrast=m.contrast,
-                fit_residual_px=m.fit_residual_px,
-            )
-    _assign(s.live, accepted, results, options)
-    return [results[p.mark.mark_id] for p in s.preds]
+    return Search(list(preds), results, live, cands, scales)
 
 
 def _box(p: MarkPrediction, options: DetectOptions, W: int, H: int) -> tuple[int, int, int, int]:
@@ -497,54 +430,3 @@ def coarse_scale(min_radius_px: float) -> int:
         scale *= 2
     return scale
 
-
-def _check(m: Measurement, pred: MarkPrediction) -> tuple[MarkDetection | None, str | None]:
-    """An unnamed detection if the measured blob looks like the predicted mark, else the reason."""
-    if m.ellipse is None:
-        return None, m.reason
-    e = m.ellipse
-    lo, hi = pred.radius_range
-    if not lo <= e.radius <= hi:
-        return None, f"size {e.radius:.1f} px outside [{lo:.1f}, {hi:.1f}]"
-    rlo, rhi = pred.ratio_range
-    if not rlo <= e.axis_ratio <= rhi:
-        return None, f"shape: axis ratio {e.axis_ratio:.2f} outside [{rlo:.2f}, {rhi:.2f}]"
-    det = MarkDetection.unnamed(
-        e.centre, e.radius, e.axis_ratio, m.contrast, m.fit_residual_px, m.edge_points
-    )
-    return det, None
-
-
-def _assign(
-    preds: list[MarkPrediction],
-    pool: list[MarkDetection],
-    results: dict[str, MarkDetection],
-    options: DetectOptions,
-) -> None:
-    """Give each predicted mark at most one accepted blob, minimising the total distance."""
-    if not preds or not pool:
-        return
-    uv = np.array([d.uv_ellipse for d in pool])
-    pred_uv = np.array([p.uv for p in preds])
-    dist = np.linalg.norm(pred_uv[:, None, :] - uv[None, :, :], axis=2)
-    gate = np.array([_gate(p, options) for p in preds])
-    cost = np.where(dist <= gate[:, None], dist, 1e9)
-    rows, cols = linear_sum_assignment(cost)
-    taken = {int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
-    for r, c in zip(rows, cols, strict=True):
-        if cost[r, c] >= 1e9:
-            continue
-        p = preds[r]
-        det = pool[c]
-        corr = p.correction if options.correct_perspective else np.zeros(2)
-        # The mark's next candidates: accepted blobs within its gate that no mark took, nearest
-        # first; the estimator tries them when this one disagrees with the rest (engine.md).
-        others = [j for j in np.argsort(dist[r]).tolist()
-                  if j not in taken and cost[r, j] < 1e9][: options.max_alternates]
-        results[p.mark.mark_id] = replace(
-            det,
-            mark_id=p.mark.mark_id,
-            uv=det.uv_ellipse + corr,
-            correction=corr.copy(),
-            alternates=tuple((float(uv[j, 0]), float(uv[j, 1])) for j in others),
-        )
