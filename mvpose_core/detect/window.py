@@ -31,7 +31,7 @@ from mvpose_core.detect.geometry import (
     predict_marks_cached_many,
 )
 from mvpose_core.detect.refine import Candidate, find_candidates
-from mvpose_core.detect.settle import SETTLE_PX, moved_px, settled
+from mvpose_core.detect.settle import SETTLE_PX, needed, offsets_px, settled
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -89,7 +89,7 @@ def detect_marks_many(
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
-    moved = [0.0] * len(checked)  # per image: its found mark farthest from its prediction (px)
+    offsets: dict[int, dict[str, Array]] = {}  # per image: its found marks' offsets (px)
     followed = False  # whether the images were searched around the blobs' pose
     todo = list(range(len(checked)))
     tol = recipe.tolerances
@@ -124,17 +124,18 @@ def detect_marks_many(
                                           [checked[k][0] for k in todo], recipe, options),
                            strict=True):
             out[k] = dets
-            # corrected at the blobs' pose, the marks need no other (the server seldom measures
-            # twice, docs/detection.md)
-            moved[k] = (0.0 if followed and n == 0 and k not in wider
-                        else moved_px(searches[k].live, dets))
+            if n == 0 and not followed:  # found around ``start``, with its correction
+                offsets[k] = offsets_px(searches[k].live, dets)
         todo = [k for k in todo if k not in wider
                 and any(not d.found and d.reason != FACES_AWAY for d in out[k])]
         if not todo:
             break
-    if options.correct_perspective and max(moved, default=0.0) > SETTLE_PX:
-        # The marks lie away from the pose their corrections were taken at: corrected at the
-        # pose of their centres, the server measures the pose once (settle.py).
+    far = any(float(np.hypot(*du)) > SETTLE_PX for o in offsets.values() for du in o.values())
+    if options.correct_perspective and far and needed(
+            [(checked[k][1], o) for k, o in offsets.items()], recipe, start):
+        # The marks lie away from the pose their corrections were taken at, in a direction
+        # the correction feels: corrected at the pose of their centres, the server measures
+        # the pose once (settle.py).
         out = settled([(cam, dets) for (_, cam), dets in zip(checked, out, strict=True)],
                       recipe, T_rf_from_pf_prior, start)
     return out

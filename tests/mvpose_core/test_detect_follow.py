@@ -246,3 +246,18 @@ def test_marks_at_their_predictions_keep_the_first_windows_corrections(station1)
     assert sum(d.found for dets in found for d in dets) == 8
     _, moved = recorrect(list(zip(cams, found, strict=True)), recipe, T0)
     assert moved < 1e-9  # the reference's own (at a pose of the centres: ~1e-4 px from them)
+
+
+# A part off the reference in a direction the correction hardly feels (0.2 of the tolerance
+# along the default direction: it moves by 0.006 px): its marks keep the first windows'
+# correction, already within recorrect_px of the one at its pose (no pose computed for it).
+def test_marks_off_in_a_direction_the_correction_hardly_feels_keep_theirs(station1) -> None:  # type: ignore[no-untyped-def]
+    cams, recipe = station1
+    T0 = recipe.T_rf_from_pf0.matrix
+    T = displaced(recipe, 0.2)
+    found = detect_marks_many(_frames(cams, recipe, T, False), recipe, T0, DetectOptions())
+    assert sum(d.found for dets in found for d in dets) == 8
+    _, at_prior = recorrect(list(zip(cams, found, strict=True)), recipe, T0)
+    assert at_prior < 1e-9
+    _, at_pose = recorrect(list(zip(cams, found, strict=True)), recipe, T)
+    assert 0.001 < at_pose <= 0.01
