@@ -10,8 +10,8 @@ hold give the part's pose (follow.py) and every image is searched in the small w
 that pose (but a mark whose first window held it near there, unclipped, keeps those blobs); an
 image where a mark is still not found is searched over the whole tolerance. Accepted candidates
 from all windows are assigned to marks jointly (least total distance to the predictions), so two
-marks never take the same blob. Marks found far from the pose their windows' corrections were
-taken at are corrected at the pose of their centres (settle.py).
+marks never take the same blob. Marks found off the pose their windows' corrections were taken
+at, in a direction the correction feels, are corrected at the pose of their centres (settle.py).
 """
 
 from __future__ import annotations
@@ -82,10 +82,12 @@ def detect_marks_many(
     puts the first search's small windows there instead of at the prior, held to what the
     whole tolerance's search at the prior accepts; it is ignored for a recipe with one reach.
 
-    When a found mark that was not searched around the blobs' pose lies more than
-    :data:`~mvpose_core.detect.settle.SETTLE_PX` from its prediction, every found mark is
-    corrected at the pose of the found centres (:func:`~mvpose_core.detect.settle.settled`):
-    the same blobs and ellipse centres, the correction nearer the one at the estimate.
+    When a mark found in the first windows lies more than
+    :data:`~mvpose_core.detect.settle.SETTLE_PX` from its prediction, and the correction at
+    the marks' pose would move by more than 0.01 px (:func:`~mvpose_core.detect.settle.
+    needed`), every found mark is corrected at the pose of the found centres
+    (:func:`~mvpose_core.detect.settle.settled`): the same blobs and ellipse centres, the
+    correction the one at the estimate within far below 0.01 px.
     """
     checked = [(check_image(img, cam.model, f"camera {cam.key!r}"), cam) for img, cam in frames]
     out: list[list[MarkDetection]] = [[] for _ in checked]
