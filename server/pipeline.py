@@ -46,6 +46,7 @@ from mvpose_core.detect import (
     detect_marks_many,
 )
 from mvpose_core.detect.follow import next_near
+from mvpose_core.detect.settle import sensitivities
 from mvpose_core.estimate import EstimateOptions, Observation, PoseInputError
 from mvpose_core.measure import Measurement, measure
 from mvpose_core.reasons import Reason
@@ -176,6 +177,9 @@ class Pipeline:
                     image = np.zeros((vc.model.height, vc.model.width), np.uint8)
                 frames.append((image, vc))
         cams = [vc for _, vc in frames]
+        # how the marks' images and corrections move with the pose at the reference (a part
+        # found off it in the first windows is corrected at its own pose when that matters)
+        sensitivities(cams, recipe, prior)
         for _ in range(passes):
             found = detect_marks_many(frames, recipe, prior, self.options.detect,
                                       map_fn=self._map)

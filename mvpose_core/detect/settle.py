@@ -20,6 +20,7 @@ were: the server's second measurement still follows.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 
@@ -75,68 +76,100 @@ def needed(
     :data:`SETTLE_CORR_PX` from the one at ``T`` their windows carry: per camera, each found
     mark's offset from its prediction at ``T`` (px). To first order: the pose step that
     explains the offsets best (least squares through the marks' image shifts per step of the
-    pose, :func:`_sensitivity`) moves each correction by its own sensitivity times that step.
-    A few tens of µs (the sensitivity is computed once per camera and pose), against the
-    ~0.6 ms of :func:`settled` and the ~1 ms of the server's second measurement; a part that
-    moved mostly in a direction the correction does not feel is measured once without it."""
+    pose, :func:`sensitivities`) moves each correction by its own sensitivity times that step.
+    ~70 µs once the sensitivities are known, against the ~0.6 ms of :func:`settled` and the
+    ~1 ms of the server's second measurement; a part that moved mostly in a direction the
+    correction does not feel is measured once without it."""
+    sens = sensitivities([cam for cam, _ in offsets], recipe, T)
     B: list[Array] = []
     A: list[Array] = []
     d: list[Array] = []
-    for cam, off in offsets:
-        sens = _sensitivity(cam, recipe, T)
+    for (_, off), per in zip(offsets, sens, strict=True):
         for mid, du in off.items():
-            if mid in sens:
-                B.append(sens[mid][0])
-                A.append(sens[mid][1])
+            if mid in per:
+                B.append(per[mid][0])
+                A.append(per[mid][1])
                 d.append(du)
     if len(d) < 3:
-        return True  # too few marks to tell: as without the gate
+        return True  # too few marks to tell: as without the check
     step = np.linalg.lstsq(np.concatenate(B), np.concatenate(d), rcond=None)[0]
     moved = np.stack(A) @ step
     return bool(np.sqrt(np.einsum("ni,ni->n", moved, moved).max()) > SETTLE_CORR_PX)
 
 
-_SENSITIVITY: IdentityCache[dict[str, tuple[Array, Array]]] = IdentityCache(64)
+_Sensitivity = dict[str, tuple[Array, Array]]
+_SENSITIVITY: IdentityCache[_Sensitivity] = IdentityCache(64)
 
 
-def _sensitivity(cam: ViewCamera, recipe: RecipeConfig, T: Array) -> dict[str, tuple[Array, Array]]:
-    """Per mark facing ``cam`` at ``T``: how its image ``[2, 6]`` and its correction ``[2, 6]``
-    move per step of the pose (mm along, radians about the part's axes at the marks'
-    centroid), by central differences; remembered per camera and pose."""
+def sensitivities(cams: Sequence[ViewCamera], recipe: RecipeConfig, T: Array,
+                  ) -> list[_Sensitivity]:
+    """Per camera, per mark facing it at ``T``: how its image ``[2, 6]`` and its correction
+    ``[2, 6]`` move per step of the pose (mm along, radians about the part's axes at the
+    marks' centroid), by central differences. Remembered per camera place (view, camera, rig,
+    lens: a camera re-posed by a robot's flange pose, a few mm off its taught one, uses its
+    place's) and pose; those not known are computed together (~3 ms for station 1's four
+    cameras; the server's warm-up computes them at the reference)."""
     T = np.asarray(T, dtype=float)
+    key = T.tobytes()
+    out: list[_Sensitivity | None] = [
+        _SENSITIVITY.peek((recipe,), (_place(c), key)) for c in cams]
+    todo = [k for k, v in enumerate(out) if v is None]
+    if todo:
+        made = _differences([cams[k] for k in todo], recipe, T)
+        for k, v in zip(todo, made, strict=True):
+            out[k] = _SENSITIVITY.get((recipe,), (_place(cams[k]), key), partial(_same, v))
+    return [v for v in out if v is not None]
 
-    def make() -> dict[str, tuple[Array, Array]]:
-        ids = [m.id for m in recipe.marks]
-        pos = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
-        c = np.asarray(recipe.mark_centroid(), dtype=float)
-        looks: list[tuple[dict[str, Array], dict[str, Array]]] = []
-        for j in range(6):
-            for sign in (1.0, -1.0):
-                D = np.eye(4)
-                if j < 3:
-                    D[j, 3] = sign * _STEP_MM
-                else:
-                    R = rotvec_to_matrix(sign * _STEP_RAD * np.eye(3)[j - 3])
-                    D[:3, :3] = R
-                    D[:3, 3] = c - R @ c
-                Tp = T @ D
-                corr = perspective_corrections([(cam, ids)], recipe, Tp)[0]
-                uv = {}
-                for mid in corr:
-                    p = Tp[:3, :3] @ pos[mid] + Tp[:3, 3]
-                    p_cf = np.linalg.solve(cam.T_rf_from_cf, np.append(p, 1.0))[:3]
-                    uv[mid] = cam.model.project(p_cf[None])[0]
-                looks.append((uv, corr))
-        out = {}
-        for mid in ids:
-            if all(mid in corr for _, corr in looks):
-                h = np.array([_STEP_MM] * 3 + [_STEP_RAD] * 3)
-                B = np.stack([(looks[2 * j][0][mid] - looks[2 * j + 1][0][mid]) / (2 * h[j])
-                              for j in range(6)], axis=1)
-                A = np.stack([(looks[2 * j][1][mid] - looks[2 * j + 1][1][mid]) / (2 * h[j])
-                              for j in range(6)], axis=1)
-                out[mid] = (B, A)
-        return out
 
-    return _SENSITIVITY.get((cam, recipe), T.tobytes(), make)
+def _differences(cams: Sequence[ViewCamera], recipe: RecipeConfig, T: Array,
+                 ) -> list[_Sensitivity]:
+    ids = [m.id for m in recipe.marks]
+    pos = np.array([m.position for m in recipe.marks], dtype=float)
+    c = np.asarray(recipe.mark_centroid(), dtype=float)
+    h = np.array([_STEP_MM] * 3 + [_STEP_RAD] * 3)
+    # per pose step (+, −) of each axis: every camera's images and corrections
+    looks: list[tuple[list[Array], list[dict[str, Array]]]] = []
+    for j in range(6):
+        for sign in (1.0, -1.0):
+            D = np.eye(4)
+            if j < 3:
+                D[j, 3] = sign * _STEP_MM
+            else:
+                R = rotvec_to_matrix(sign * _STEP_RAD * np.eye(3)[j - 3])
+                D[:3, :3] = R
+                D[:3, 3] = c - R @ c
+            Tp = T @ D
+            corr = perspective_corrections([(cam, ids) for cam in cams], recipe, Tp)
+            p_rf = pos @ Tp[:3, :3].T + Tp[:3, 3]
+            uv = []
+            for cam in cams:
+                Tc = cam.T_rf_from_cf
+                p_cf = (p_rf - Tc[:3, 3]) @ Tc[:3, :3]
+                ok = p_cf[:, 2] > 1.0
+                u = np.full((len(ids), 2), np.nan)
+                u[ok] = cam.model.project(p_cf[ok])
+                uv.append(u)
+            looks.append((uv, corr))
+    out: list[_Sensitivity] = []
+    for n in range(len(cams)):
+        per: _Sensitivity = {}
+        for m, mid in enumerate(ids):
+            if not all(mid in corr[n] for _, corr in looks):
+                continue
+            B = np.stack([(looks[2 * j][0][n][m] - looks[2 * j + 1][0][n][m]) / (2 * h[j])
+                          for j in range(6)], axis=1)
+            A = np.stack([(looks[2 * j][1][n][mid] - looks[2 * j + 1][1][n][mid]) / (2 * h[j])
+                          for j in range(6)], axis=1)
+            per[mid] = (B, A)
+        out.append(per)
+    return out
+
+
+def _place(cam: ViewCamera) -> tuple[object, ...]:
+    """A camera place: its view, camera, rig and lens (by value), whatever its pose."""
+    return (cam.view, cam.camera_id, cam.rig_id, cam.rig_position, cam.model)
+
+
+def _same(v: _Sensitivity) -> _Sensitivity:
+    return v
 

@@ -133,7 +133,9 @@ def detect_marks_many(
         if not todo:
             break
     far = any(float(np.hypot(*du)) > SETTLE_PX for o in offsets.values() for du in o.values())
-    if options.correct_perspective and far and needed(
+    # Only for windows at the prior (whose sensitivities are known; around the last part, the
+    # marks lie within millimetres of it).
+    if options.correct_perspective and far and start is T_rf_from_pf_prior and needed(
             [(checked[k][1], o) for k, o in offsets.items()], recipe, start):
         # The marks lie away from the pose their corrections were taken at, in a direction
         # the correction feels: corrected at the pose of their centres, the server measures
