@@ -12,6 +12,7 @@ import threading
 from collections.abc import AsyncIterator, Callable
 
 import pytest_asyncio
+from child_links import hosted_link
 from opcua_handler import RecordingHandler
 from waiting import until
 
@@ -27,15 +28,8 @@ START_S = 60.0  # a child imports pymodbus before it listens (seconds on a loade
 
 @pytest_asyncio.fixture
 async def hosted() -> AsyncIterator[tuple[ProcessLink, RecordingHandler]]:
-    handler = RecordingHandler()
-    (link,) = open_links({"modbus": ModbusLinkConfig(port=0)}, handler)
-    assert isinstance(link, ProcessLink) and link.name == "modbus"
-    await link.start()
-    try:
-        await until(link.started.is_set, "the child's server listens", START_S)
-        yield link, handler
-    finally:
-        await link.stop()
+    async with hosted_link({"modbus": ModbusLinkConfig(port=0)}, START_S) as link_and_handler:
+        yield link_and_handler
 
 
 async def test_a_trigger_crosses_to_the_station_and_its_answer_back(

@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 import pytest_asyncio
 from asyncua import Client, ua
+from child_links import hosted_link
 from opcua_events import Events
 from opcua_handler import PASSWORDS, RecordingHandler, link_config
 from waiting import until
@@ -32,16 +33,9 @@ START_S = 120.0  # importing the Machine Vision NodeSet takes seconds on a loade
 
 @pytest_asyncio.fixture
 async def hosted(tmp_path: Path) -> AsyncIterator[tuple[ProcessLink, RecordingHandler]]:
-    handler = RecordingHandler()
     config = link_config(tmp_path / "pki", security=["None"], allow_anonymous=True)
-    (link,) = open_links({"opcua": config}, handler)
-    assert isinstance(link, ProcessLink) and link.name == "opcua"
-    await link.start()
-    try:
-        await until(link.started.is_set, "the child's server listens", START_S)
-        yield link, handler
-    finally:
-        await link.stop()
+    async with hosted_link({"opcua": config}, START_S) as link_and_handler:
+        yield link_and_handler
 
 
 class Session:
