@@ -268,7 +268,7 @@ class StationHandler(Protocol):
 class AnswersEarly(Protocol):
     """A StationHandler that can also tell a trigger's outcome on the thread that recorded it,
     before its awaitable ends on the link's loop (a link in a process of its own sends it on
-    from there: drivers/links/process.py)."""
+    from there: drivers/links/process/)."""
 
     def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
                       ) -> Awaitable[LinkOutcome]:
