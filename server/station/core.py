@@ -45,6 +45,7 @@ from server.drift import VerifyReport
 from server.pipeline import Pipeline
 from server.recipes import ActiveRecipe, RecipeBook
 from server.state import Services
+from server.station import heap
 from server.station.camera_view import CameraView
 from server.station.handeye import HandEye
 from server.station.links import LinkHost
@@ -112,6 +113,7 @@ class Station:
         if m.book.recipes:
             self.recorder.rehearse(m.provenance, m.any_recipe())
         self.recorder.settle(self.options.store_settle_s, self.station.name)
+        heap.freeze()  # before the links start: no collection of it ever stalls a trigger
         self.host.start(self.station, self, self.options.answer_margin_s,
                         services.settings.data_dir, {"recipe-versions": self._watch_versions})
 
@@ -123,6 +125,7 @@ class Station:
         self.recorder.stop_archive()
         self.measuring.close()
         self.recorder.close()
+        heap.thaw()
 
     def run_on_loop(self, coro: Any, timeout: float | None = None) -> Any:
         """Run a coroutine on the station loop from another thread and wait for its result."""

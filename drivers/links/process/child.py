@@ -5,6 +5,7 @@ calls cross the socket, and reports the link's status to the station."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import itertools
 import logging
 import pickle
@@ -179,6 +180,10 @@ async def _child(sock: socket.socket, answers: socket.socket) -> int:
         wire.send("started", f"{type(err).__name__}: {err}")
         await writer.drain()
         return 1
+    # The link's start-up objects out of the garbage collector's oldest generation: its
+    # collection traverses them all while the PLC waits (server/station/heap.py says why).
+    gc.collect()
+    gc.freeze()
     # its status first: the station knows the link's port and state once start() returns
     shown = (link.status(), link.ready(), link.line_state())
     wire.send("status", *shown)
