@@ -131,6 +131,7 @@ class Run:
     cpu_station: float
     stop_s: float
     backlog_ok: bool
+    slow: list[dict[str, float]]  # the idle blocks' triggers over the p99 target, split
 
 
 def station_file(name: str, tmp: Path) -> Path:
@@ -253,6 +254,10 @@ def _measure(name: str, serve: Serve, alone: Any, poses: list[PartPose]) -> Run:
         per["modbus side"] = [rt - c.server[tid] for rt, tid in zip(
             c.roundtrip, c.server, strict=True)]
         stages[c.rate] = per
+    target = TARGET_P99.get(name, 15.0)
+    idle = conds[0]
+    slow = [{"id": tid, "roundtrip": rt, "server": idle.server[tid], **records.get(tid, {})}
+            for rt, tid in zip(idle.roundtrip, idle.server, strict=True) if rt > target]
     first_rec = dict(records.get(1, {}))
     first_rec["append+record"] = first["server_ms"][0] - first_rec.get("total", np.nan)
     first_rec["modbus side"] = first["roundtrip_ms"][0] - first["server_ms"][0]
@@ -268,7 +273,7 @@ def _measure(name: str, serve: Serve, alone: Any, poses: list[PartPose]) -> Run:
                **{f"stage {k}": float(first_rec.get(k, np.nan))
                   for k in (*STAGE_KEYS, "modbus side")}},
         ready_s=serve.ready_s, rss_kb=(rss0, rss1), cpu_station=cpu1 - cpu0, stop_s=stop_s,
-        backlog_ok=stop_s <= 5.0)
+        backlog_ok=stop_s <= 5.0, slow=slow)
 
 
 def _rest_triggers(base_url: str, n: int) -> None:
@@ -344,6 +349,7 @@ def report(name: str, runs: list[Run]) -> bool:
     noks = sum(c.nok for r in runs for c in r.conditions)
     print(f"    NOK answers: {noks} of {sum(len(c.roundtrip) for r in runs for c in r.conditions)}")
     ok &= noks == 0
+    _slow(runs, target)
     worst = max(idle_p99)
     ok &= _check(f"{name}: p99 idle, worst of {len(runs)} runs", worst, target, "ms")
     for rate, rs in ratios.items():
@@ -418,6 +424,21 @@ def report(name: str, runs: list[Run]) -> bool:
     ok &= _check(f"{name}: SIGTERM -> exit with a backlog, worst", max(r.stop_s for r in runs),
                  5.0, "s")
     return ok
+
+
+def _slow(runs: list[Run], target: float) -> None:
+    """Where each idle trigger over the target spent its time: the station's stages, its append
+    and record, and the Modbus side (roundtrip minus the processing the server published)."""
+    rows = [(k, s) for k, r in enumerate(runs, 1) for s in r.slow]
+    print(f"    idle triggers over {target:g} ms: {len(rows)} of "
+          f"{sum(len(r.conditions[0].roundtrip) for r in runs)}"
+          + (" (ms: roundtrip = stages + append+record + modbus side)" if rows else ""))
+    for k, s in rows:
+        stages = " ".join(f"{key} {s[key]:.1f}" for key in STAGE_KEYS[:-2] if key in s)
+        total = s.get("total", float("nan"))
+        print(f"      run {k} trigger {s['id']:.0f}: {s['roundtrip']:.1f} = {stages}; "
+              f"append+record {s['server'] - total:.1f}; modbus side "
+              f"{s['roundtrip'] - s['server']:.1f}")
 
 
 def _check(label: str, value: float, target: float, unit: str) -> bool:
