@@ -11,8 +11,8 @@ from collections.abc import Callable
 import pytest
 
 from drivers.links import layout
+from drivers.links.profinet import cyclic, im
 from drivers.links.profinet import frames as fr
-from drivers.links.profinet import im
 from drivers.links.profinet import modules as mod
 from drivers.links.profinet.controller import Controller
 from drivers.links.profinet.device import Device, Identity, Out
@@ -128,7 +128,7 @@ def test_the_device_sends_its_input_frame_half_a_cycle_after_the_controllers_out
     wire.run(lambda: ctl.input_image == dev.input_image, step=0.00025)
     assert len(wire.sends[False]) == before + 1
     # one late output frame does not move the phase; eight in a row do
-    dev._phase(dev.ar, wire.now + 0.002)
+    cyclic.keep_phase(dev.ar, wire.now + 0.002, dev.input_phase_s)
     assert dev.ar.realigned == 1
 
 

@@ -12,7 +12,7 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from drivers.links import layout
-from drivers.links.profinet import blocks, gsdml, rpc
+from drivers.links.profinet import blocks, cyclic, gsdml, rpc
 from drivers.links.profinet import frames as fr
 from drivers.links.profinet import modules as mod
 from drivers.links.profinet.device import Device, Identity, valid_station_name
@@ -203,7 +203,7 @@ def test_connect_prm_end_application_ready_and_cyclic_data() -> None:
     # the input frame carries the input image at the result's offset, big-endian
     dev.input_image = bytes(range(layout.INPUT_SIZE))
     assert dev.ar is not None
-    frame = fr.Ethernet.unpack(dev._input_frame(dev.ar))
+    frame = fr.Ethernet.unpack(cyclic.input_frame(dev.ar, dev.input_image, dev.identity.mac))
     assert frame.dst == PLC_MAC and frame.vlan_tci == 0xC000
     rt = fr.RtFrame.unpack(frame.payload, dev.ar.input_cr.data_length)
     obj = next(o for o in dev.ar.input_cr.data if o.slot == mod.RESULT.slot)

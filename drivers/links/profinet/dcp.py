@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Final
 from . import frames as fr
 
 if TYPE_CHECKING:
-    from .device import Out
+    from .state import Out
 
 ROLE_IO_DEVICE: Final = 0x01
 
