@@ -271,5 +271,5 @@ def _system_state(link: OpcUaLink) -> int:
     """SystemState's State as the server holds it now (its address space, no session)."""
     assert link.server is not None
     value = link.server.iserver.aspace.read_attribute_value(
-        link._nodes["system_state"].nodeid, ua.AttributeIds.Value).Value
+        link.model.nodes["system_state"].nodeid, ua.AttributeIds.Value).Value
     return int(value.Value.State) if value is not None else 0

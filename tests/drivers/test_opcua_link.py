@@ -731,13 +731,13 @@ async def test_continuous_mode_measures_back_to_back_until_stop(served: Served) 
         stop = asyncio.ensure_future(p["auto"].call_method(
             f"{mv}:Stop", ua.Variant(0, ua.VariantType.Int32),
             ua.Variant("", ua.VariantType.String)))
-        await until(lambda: served.link._stop_requested)
+        await until(lambda: served.link.machine.stop_requested)
         assert not stop.done()  # Stop waits for the running job
         h.permits.put_nowait(None)
         assert await asyncio.wait_for(stop, 10) == 0
         assert len(await _wait_records(h, "VIN-C", 6)) == 6
         assert (await p["auto_state"].read_value()).Text == "Ready"
-        assert served.link._continuous is None and not served.link.jobs
+        assert served.link.machine.continuous is None and not served.link.machine.jobs
         assert (await events.next()).PartId.Id == "VIN-C"  # the sixth's event
         assert len([1 for req, _ in h.records if req.part_id == "VIN-C"]) == 6  # no seventh
         assert await p["auto"].call_method(
@@ -771,7 +771,7 @@ async def test_abort_is_ready_at_once_and_the_running_job_keeps_its_record(
         outs = await _wait_records(h, "VIN-A", 2)  # the aborted job's record still comes
         assert outs[1].result_code == 0
         assert (await p["auto_state"].read_value()).Text == "Ready"
-        assert served.link._continuous is None
+        assert served.link.machine.continuous is None
     finally:
         h.permits = None
         await client.disconnect()
@@ -791,7 +791,7 @@ async def test_halt_ends_continuous_mode(served: Served) -> None:
         assert await sm.call_method(f"{mv}:Halt", ua.Variant(0, ua.VariantType.Int32),
                                     ua.Variant("", ua.VariantType.String)) == 0
         assert (await (await sm.get_child("0:CurrentState")).read_value()).Text == "Halted"
-        assert served.link._continuous is None
+        assert served.link.machine.continuous is None
         h.permits.put_nowait(None)  # the job waiting inside the station ends with its record
         done = await _wait_records(h, "VIN-HC", 3)
         assert len(done) == 3
@@ -848,7 +848,7 @@ async def test_continuous_mode_ends_when_the_station_gives_no_answer(served: Ser
     try:
         p = await _parts(client)
         assert (await _start_continuous(p, "", "VIN-F"))[1] == 0
-        await until(lambda: served.link._continuous is None)
+        await until(lambda: served.link.machine.continuous is None)
         outs = await _wait_records(h, "VIN-F", 1)
         assert [o.result_code for o in outs] == [int(Reason.HANDLER_FAILED)]  # not a storm
         assert "continuous mode ended" in served.link.last_errors[-1]

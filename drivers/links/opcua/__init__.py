@@ -2,9 +2,15 @@
 
 - :mod:`.nodesets`: the OPC Foundation's NodeSet2 files (npm, pinned, hash-checked);
 - :mod:`.access`: users and roles; channels of unlisted security (None) kept to discovery;
-- :mod:`.link`: :class:`OpcUaLink`, the server with the station's ``VisionSystem`` object, its
-  state machines, triggers (single and continuous) and result events;
+- :mod:`.link`: :class:`OpcUaLink`, the server's life cycle and status, wiring the rooms below;
+- :mod:`.endpoint`: the endpoint and its security policies, identity tokens, client certificates;
+- :mod:`.model`: the address space: the ``VisionSystem`` object, its methods linked, mvpose's
+  own nodes and result event type;
+- :mod:`.machine`: the state machines, triggers (single and continuous), Measure and Verify;
+- :mod:`.results`: the last result's variables and the result events;
 - :mod:`.management`: result, recipe and configuration management methods;
+- :mod:`.conditions`: the station's alarms as condition events;
+- :mod:`.handeye`: the hand-eye methods; :mod:`.certificates`: the server's certificate;
 - :mod:`.events`: OfType event filters that match subtypes (OPC 10000-4);
 - :mod:`.arguments`: Call arguments checked against each method's InputArguments;
 - :mod:`.values`: conversions between OPC UA values and the station's terms, the result
@@ -23,7 +29,7 @@ import importlib
 from typing import Any
 
 _NAMES = {
-    "POLICIES": ".link", "OpcUaLink": ".link",
+    "POLICIES": ".endpoint", "OpcUaLink": ".link",
     "MACHINE_VISION": ".nodesets", "MV_URI": ".nodesets", "MVPOSE_URI": ".nodesets",
     "NodeSetError": ".nodesets", "import_order": ".nodesets", "load_times": ".nodesets",
     "nodeset_path": ".nodesets", "required_models": ".nodesets",
