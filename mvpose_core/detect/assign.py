@@ -10,13 +10,14 @@ at most one each, by least total distance to the predictions within each mark's 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mvpose_core.detect.candidates import Candidate
 from mvpose_core.detect.geometry import MarkPrediction
-from mvpose_core.detect.refine import Candidate, Measurement, measure_in
+from mvpose_core.detect.refine import Measurement, measure_in
 from mvpose_core.detect.types import DetectOptions, MarkDetection
 from mvpose_core.station import RecipeConfig
 
@@ -133,11 +134,11 @@ def assign(
         # first; the estimator tries them when this one disagrees with the rest (engine.md).
         others = [j for j in np.argsort(dist[r]).tolist()
                   if j not in taken and cost[r, j] < 1e9][: options.max_alternates]
-        results[p.mark.mark_id] = replace(
-            det,
-            mark_id=p.mark.mark_id,
-            uv=det.uv_ellipse + corr,
-            correction=corr.copy(),
+        results[p.mark.mark_id] = MarkDetection(
+            mark_id=p.mark.mark_id, found=True, uv=det.uv_ellipse + corr, contrast=det.contrast,
+            fit_residual_px=det.fit_residual_px, axis_ratio=det.axis_ratio,
+            radius_px=det.radius_px, uv_ellipse=det.uv_ellipse, correction=corr.copy(),
+            edge_points=det.edge_points,
             alternates=tuple((float(uv[j, 0]), float(uv[j, 1])) for j in others),
         )
 

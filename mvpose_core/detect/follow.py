@@ -26,8 +26,8 @@ from dataclasses import replace
 import numpy as np
 
 from mvpose_core.cache import IdentityCache
+from mvpose_core.detect.candidates import Candidate
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks_cached
-from mvpose_core.detect.refine import Candidate
 from mvpose_core.detect.types import DetectOptions
 from mvpose_core.problem import Observation, PoseInputError, build_problem
 from mvpose_core.refine import LMResult, Packed, levenberg_marquardt

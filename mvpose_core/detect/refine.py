@@ -1,9 +1,7 @@
-"""Find mark candidates in an image region and measure each one to sub-pixel accuracy.
+"""Measure candidate blobs to sub-pixel accuracy (the candidates themselves: candidates.py).
 
-Candidates: a morphological top-hat (flattens illumination and panel edges) thresholded by Otsu,
-external contours, area and rough-shape filters, on a reduced image.
-Measurement: rays from the candidate's centre cross the mark's rim; on each ray the edge point is
-where the grey profile crosses the middle between the ray's own inner and outer levels (so an
+Rays from the candidate's centre cross the mark's rim; on each ray the edge point is where the
+grey profile crosses the middle between the ray's own inner and outer levels (so an
 illumination gradient does not pull the edge), and an ellipse is fitted to the edge points.
 """
 
@@ -19,17 +17,8 @@ import numpy as np
 from mvpose_core.detect.ellipse import Ellipse, Ellipses, fit_ellipses
 
 _STEP = 0.5  # px between samples along a ray
-_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _LEVEL_SAMPLES = 3  # samples at each end of a ray that give its inner and outer grey levels
 _FINE_RAYS = 96  # most rays of the final edge points (for a radius of 24 px and more)
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """A blob that may be a mark: a rough ellipse from its contour (full-resolution pixels)."""
-
-    ellipse: Ellipse
-    area_px: float
 
 
 @dataclass(frozen=True)
@@ -41,80 +30,6 @@ class Measurement:
     contrast: float
     fit_residual_px: float
     edge_points: int
-
-
-def find_candidates(
-    image: np.ndarray,
-    box: tuple[int, int, int, int],
-    dark: bool,
-    radius_range: tuple[float, float],
-    min_contrast: float,
-    scale: int,
-    max_candidates: int,
-) -> list[Candidate]:
-    """Blobs of the right polarity and roughly the right size inside ``box`` = (u0, v0, u1, v1)."""
-    u0, v0, u1, v1 = box
-    roi = image[v0:v1, u0:u1]
-    if scale > 1:
-        w, h = (u1 - u0) // scale, (v1 - v0) // scale
-        if w < 8 or h < 8:
-            return []
-        # Every scale-th pixel, no averaging: only candidates are looked for here (the blobs
-        # keep a radius of at least 2.5 coarse px) and the measurement uses full-resolution
-        # pixels; area or linear resampling of these large windows costs 4-10x more.
-        first = scale // 2
-        roi = np.ascontiguousarray(roi[first : h * scale : scale, first : w * scale : scale])
-    r_lo, r_hi = radius_range[0] / scale, radius_range[1] / scale
-    # Black (white) top-hat: closing with a square too big to fit inside a mark erases the marks
-    # and keeps what is larger (panel edges, illumination, big holes); the difference is the marks.
-    side = int(np.ceil(2.0 * r_hi)) + 3
-    if side >= min(roi.shape):
-        return []
-    kernel = _square(side)
-    hat = cv2.morphologyEx(roi, cv2.MORPH_BLACKHAT if dark else cv2.MORPH_TOPHAT, kernel)
-    otsu, binary = cv2.threshold(hat, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    level = max(0.5 * min_contrast, otsu)
-    if cv2.minMaxLoc(hat)[1] <= level:
-        return []
-    if level != otsu:
-        _, binary = cv2.threshold(hat, level, 255, cv2.THRESH_BINARY)
-    # Peel one pixel so that a mark touching clutter (a hole a few px away merges at reduced
-    # scale) still comes out as its own blob; the pixel is given back to the ellipse below.
-    binary = cv2.erode(binary, _CROSS)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    # Coarse pixels and blur blunt the contour: be lenient on area here, strict after measuring.
-    a_lo = np.pi * (0.5 * r_lo) ** 2
-    a_hi = np.pi * (1.3 * r_hi + 1.0) ** 2
-    out: list[Candidate] = []
-    for c in contours:
-        if len(c) < 5:
-            continue
-        area = cv2.contourArea(c)
-        if not a_lo <= area <= a_hi:
-            continue
-        (cx, cy), (d1, d2), ang = cv2.fitEllipse(c)
-        if min(d1, d2) <= 0 or min(d1, d2) / max(d1, d2) < 0.2:
-            continue
-        a, b, angle = 0.5 * d1, 0.5 * d2, np.deg2rad(ang)
-        if b > a:
-            a, b, angle = b, a, angle + 0.5 * np.pi
-        # The blob must fill its ellipse: rejects rings, crescents, and branched shapes.
-        if area < 0.7 * np.pi * a * b:
-            continue
-        a, b = a + 1.0, b + 1.0  # the peeled pixel
-        centre = np.array([cx * scale + scale // 2 + u0, cy * scale + scale // 2 + v0])
-        out.append(
-            Candidate(Ellipse(centre, a * scale, b * scale, float(angle)), area * scale * scale)
-        )
-        if len(out) >= max_candidates:
-            break
-    return out
-
-
-@lru_cache(maxsize=64)
-def _square(side: int) -> np.ndarray:
-    """The square structuring element of the top-hat (cached: one per mark size)."""
-    return cv2.getStructuringElement(cv2.MORPH_RECT, (side, side))
 
 
 @lru_cache(maxsize=64)
@@ -197,13 +112,10 @@ def _rays(
         prof = _remap(images[0], u.reshape(C * R, S), v.reshape(C * R, S)).reshape(C, R, S)
     else:
         prof = np.empty((C, R, S), dtype=np.uint8)
-        for k, image in enumerate(images):
-            rows = np.flatnonzero(owner == k)
-            if rows.size:
-                n = rows.size * R
-                prof[rows] = _remap(image, u[rows].reshape(n, S), v[rows].reshape(n, S)).reshape(
-                    rows.size, R, S
-                )
+        for k, rows in _image_rows(owner, len(images)):
+            n = _count(rows) * R
+            prof[rows] = _remap(images[k], u[rows].reshape(n, S),
+                                v[rows].reshape(n, S)).reshape(-1, R, S)
     out = prof.astype(np.float32)
     # Negated profiles let the same code find light marks on a dark surface (per candidate).
     if isinstance(dark, np.ndarray):
@@ -212,6 +124,21 @@ def _rays(
     elif not dark:
         out = -out
     return out, radii, phi, inside
+
+
+def _image_rows(owner: np.ndarray, n_images: int) -> list[tuple[int, slice | np.ndarray]]:
+    """Each image that has candidates, with its candidates' rows: a slice when ``owner`` is in
+    image order (as :func:`~mvpose_core.detect.assign.measure_all` gives it: views, no
+    copies), else their indices."""
+    if owner.size and bool((owner[1:] >= owner[:-1]).all()):
+        bounds = np.searchsorted(owner, np.arange(n_images + 1)).tolist()
+        return [(k, slice(bounds[k], bounds[k + 1])) for k in range(n_images)
+                if bounds[k + 1] > bounds[k]]
+    return [(k, rows) for k in range(n_images) if (rows := np.flatnonzero(owner == k)).size]
+
+
+def _count(rows: slice | np.ndarray) -> int:
+    return rows.stop - rows.start if isinstance(rows, slice) else int(rows.size)
 
 
 def _remap(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -318,9 +245,9 @@ def measure_in(
     if len(images) == 1:
         n_fine = np.full(C, _fine_rays(float(radius.max())))
     else:
-        n_image = {k: _fine_rays(float(radius[owner == k].max()))
-                   for k in np.unique(owner).tolist()}
-        n_fine = np.array([n_image[k] for k in owner.tolist()])
+        n_fine = np.empty(C, dtype=int)
+        for _, rows in _image_rows(owner, len(images)):
+            n_fine[rows] = _fine_rays(float(radius[rows].max()))
     ell, failed, *_ = _pass(images, owner, ell, failed, 16, _STEP * float(steps.max()), span,
                             dark, min_contrast, min_edge_fraction)
     # One pass for every candidate, each image with its own ray count (usually one for all:

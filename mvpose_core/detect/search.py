@@ -13,8 +13,9 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from mvpose_core.detect.candidates import find_candidates
 from mvpose_core.detect.geometry import MarkPrediction, predict_marks
-from mvpose_core.detect.refine import find_candidates, measure_many
+from mvpose_core.detect.refine import measure_many
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig

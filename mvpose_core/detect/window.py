@@ -30,7 +30,15 @@ from mvpose_core.detect.geometry import (
     predict_marks_cached,
     predict_marks_cached_many,
 )
-from mvpose_core.detect.refine import Candidate, find_candidates
+from mvpose_core.detect.layout import (
+    FACES_AWAY,
+    Box,
+    Boxes,
+    holds,
+    search_windows,
+    whole_boxes,
+    window_box,
+)
 from mvpose_core.detect.settle import SETTLE_PX, needed, offsets_px, settled
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
 from mvpose_core.scene import ViewCamera
@@ -180,24 +188,21 @@ def _follow(
     return [k for k in keys if _unfound(searches[k], options)], True
 
 
-_Boxes = dict[str, tuple[int, int, int, int]]
-
-
 def _at_pose(frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
              T: Array, options: DetectOptions, reach: float) -> tuple[list[MarkPrediction],
-                                                                     _Boxes]:
+                                                                     Boxes]:
     """An image's predictions at ``T`` held to the whole tolerance's ranges, and the whole
     tolerance's windows at the prior: what :func:`_kept_at` and :func:`_search_followed` judge
     its blobs by."""
     H, W = frame[0].shape
     return (held_predictions(frame[1], recipe, T_prior, T, options, reach),
-            _whole_boxes(frame[1], recipe, T_prior, options, W, H))
+            whole_boxes(frame[1], recipe, T_prior, options, W, H))
 
 
 def _kept_at(
     s: Search, frame: tuple[np.ndarray, ViewCamera], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
-    at: tuple[list[MarkPrediction], _Boxes] | None = None,
+    at: tuple[list[MarkPrediction], Boxes] | None = None,
 ) -> tuple[Search, frozenset[str]] | None:
     """The first search's blobs as the small windows around ``T`` would judge them, and the
     marks whose windows there are still to be searched; None: search every window.
@@ -213,14 +218,17 @@ def _kept_at(
     H, W = image.shape
     at_T, whole = _at_pose(frame, recipe, T_prior, T, options, reach) if at is None else at
     live = [p for p in at_T if p.facing]
-    boxes = [_box(p, options, W, H) for p in live]
+    boxes = [window_box(p, options, W, H) for p in live]
     if (any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes)
             or [p.mark.mark_id for p in live] != [p.mark.mark_id for p in s.live]):
         return None
     near = [False] * len(live)
     clipped = [False] * len(live)
+    first: dict[int, Box] = {}  # the first windows, as needed
     for k, c in s.cands:
-        b = _box(s.live[k], options, W, H)
+        b = first.get(k)
+        if b is None:
+            b = first[k] = window_box(s.live[k], options, W, H)
         (u, v), r = c.ellipse.centre, c.ellipse.a + 2.0 * max(s.scales) + 2.0
         if not (b[0] < u - r and u + r < b[2] - 1 and b[1] < v - r and v + r < b[3] - 1):
             clipped[k] = True
@@ -230,7 +238,7 @@ def _kept_at(
     cands, scales = [], []
     for (k, c), sc in zip(s.cands, s.scales, strict=True):
         u, v = c.ellipse.centre
-        if keep[k] and _holds(boxes[k], u, v) and _holds(whole[live[k].mark.mark_id], u, v):
+        if keep[k] and holds(boxes[k], u, v) and holds(whole[live[k].mark.mark_id], u, v):
             cands.append((k, c))
             scales.append(sc)
     results = {p.mark.mark_id: MarkDetection.missing(
@@ -261,7 +269,7 @@ def _search_followed(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     T: Array, options: DetectOptions, reach: float,
     only: dict[int, frozenset[str] | None] | None, k: int, *,
-    ats: dict[int, tuple[list[MarkPrediction], _Boxes]] | None = None,
+    ats: dict[int, tuple[list[MarkPrediction], Boxes]] | None = None,
 ) -> Search:
     """The small windows around the pose ``T`` (those of the marks ``only[k]``; None: all),
     held to what the whole tolerance's search at the prior accepts: only blobs inside the
@@ -270,22 +278,15 @@ def _search_followed(
     second time, docs/detection.md; ``ats``: :func:`_at_pose`'s per image, computed when
     None)."""
     image, cam = checked[k]
-    s = _search(image, cam, recipe, T, options, reach, None if only is None else only[k])
+    s = search_windows(image, cam, recipe, T, options, reach, None if only is None else only[k])
     at_T, whole = (_at_pose(checked[k], recipe, T_prior, T, options, reach) if ats is None
                    else ats[k])
     held = {p.mark.mark_id: p for p in at_T}
     live = [held[p.mark.mark_id] for p in s.live]
     kept = [(j, (k_, c)) for j, (k_, c) in enumerate(s.cands)
-            if _holds(whole[live[k_].mark.mark_id], *c.ellipse.centre)]
+            if holds(whole[live[k_].mark.mark_id], *c.ellipse.centre)]
     return replace(s, live=live, cands=[kc for _, kc in kept],
                    scales=[s.scales[j] for j, _ in kept])
-
-
-def _whole_boxes(cam: ViewCamera, recipe: RecipeConfig, T_prior: Array, options: DetectOptions,
-                 W: int, H: int) -> _Boxes:
-    return {p.mark.mark_id: _box(p, options, W, H)
-            for p in predict_marks_cached(cam, recipe, T_prior, options.size_tolerance,
-                                          options.shape_slack_deg, 1.0)}
 
 
 def _unfound(s: Search, options: DetectOptions) -> bool:
@@ -313,125 +314,8 @@ def _unfound(s: Search, options: DetectOptions) -> bool:
 _COARSE_SLACK_PX = 8.0
 
 
-FACES_AWAY = "mark faces away from the camera"
-
-
 def _search_image(
     checked: list[tuple[np.ndarray, ViewCamera]], recipe: RecipeConfig, T_prior: Array,
     options: DetectOptions, reach: float, k: int,
 ) -> Search:
-    return _search(checked[k][0], checked[k][1], recipe, T_prior, options, reach)
-
-
-def _search(
-    image: np.ndarray,
-    cam: ViewCamera,
-    recipe: RecipeConfig,
-    T_rf_from_pf_prior: Array,
-    options: DetectOptions,
-    reach: float = 1.0,
-    only: frozenset[str] | None = None,
-) -> Search:
-    """One image's windows (those of the marks ``only``; None: all) and their blobs."""
-    preds = predict_marks_cached(
-        cam, recipe, T_rf_from_pf_prior, options.size_tolerance, options.shape_slack_deg, reach
-    )
-    H, W = image.shape
-    results: dict[str, MarkDetection] = {}
-    live: list[MarkPrediction] = []
-    boxes: list[tuple[int, int, int, int]] = []
-    for p in preds:
-        mid = p.mark.mark_id
-        if not p.facing:
-            results[mid] = MarkDetection.missing(mid, FACES_AWAY)
-            continue
-        box = _box(p, options, W, H)
-        if box[2] - box[0] < 8 or box[3] - box[1] < 8:
-            results[mid] = MarkDetection.missing(mid, "outside image")
-            continue
-        results[mid] = MarkDetection.missing(mid, "nothing mark-like in window")
-        live.append(p)
-        boxes.append(box)
-    cands: list[tuple[int, Candidate]] = []
-    scales: list[int] = []
-    idx = [k for k, p in enumerate(live) if only is None or p.mark.mark_id in only]
-    for group, region in _merge_windows([boxes[k] for k in idx], [live[k].dark for k in idx]):
-        members = [idx[m] for m in group]
-        # Large tolerances make the windows of one camera's marks overlap almost entirely:
-        # search their union once instead of the same pixels once per mark.
-        dark = live[members[0]].dark
-        lo = min(live[k].radius_range[0] for k in members)
-        hi = max(live[k].radius_range[1] for k in members)
-        s = coarse_scale(lo)
-        found = find_candidates(
-            image,
-            region,
-            dark,
-            (lo, hi),
-            options.min_contrast,
-            s,
-            options.max_candidates * len(members),
-        )
-        for c in found:
-            cu, cv = float(c.ellipse.centre[0]), float(c.ellipse.centre[1])
-            # The blob belongs to the nearest mark whose own window holds it.
-            inside = [k for k in members if _holds(boxes[k], cu, cv)]
-            if inside:
-                k = min(inside, key=lambda j: math.hypot(cu - live[j].uv[0], cv - live[j].uv[1]))
-                cands.append((k, c))
-                scales.append(s)
-    return Search(list(preds), results, live, cands, scales)
-
-
-def _box(p: MarkPrediction, options: DetectOptions, W: int, H: int) -> tuple[int, int, int, int]:
-    """A mark's window: its predicted position widened by its possible shift, its largest
-    radius and the margin, within the image."""
-    half = p.max_shift_px + p.radius_range[1] + options.window_extra_px
-    pu, pv = float(p.uv[0]), float(p.uv[1])
-    u0, v0 = math.floor(pu - half), math.floor(pv - half)
-    u1, v1 = math.ceil(pu + half) + 1, math.ceil(pv + half) + 1
-    return (max(u0, 0), max(v0, 0), min(u1, W), min(v1, H))
-
-
-def _holds(box: tuple[int, int, int, int], u: float, v: float) -> bool:
-    return box[0] <= u < box[2] and box[1] <= v < box[3]
-
-
-def _merge_windows(
-    boxes: list[tuple[int, int, int, int]], dark: list[bool] | None = None,
-    min_overlap: float = 0.5,
-) -> list[tuple[list[int], tuple[int, int, int, int]]]:
-    """Groups of windows to search together, each with the bounding box of its members.
-
-    Two windows join a group when their marks have the same polarity (``dark``) and their
-    intersection covers at least ``min_overlap`` of the smaller one, so merging never searches
-    much more area than the windows themselves.
-    """
-    groups: list[tuple[list[int], tuple[int, int, int, int]]] = []
-    for k, b in enumerate(boxes):
-        area_b = (b[2] - b[0]) * (b[3] - b[1])
-        for members, g in groups:
-            if dark is not None and dark[members[0]] != dark[k]:
-                continue
-            iw = min(b[2], g[2]) - max(b[0], g[0])
-            ih = min(b[3], g[3]) - max(b[1], g[1])
-            area_g = (g[2] - g[0]) * (g[3] - g[1])
-            if iw > 0 and ih > 0 and iw * ih >= min_overlap * min(area_b, area_g):
-                members.append(k)
-                groups[groups.index((members, g))] = (
-                    members,
-                    (min(b[0], g[0]), min(b[1], g[1]), max(b[2], g[2]), max(b[3], g[3])),
-                )
-                break
-        else:
-            groups.append(([k], b))
-    return groups
-
-
-def coarse_scale(min_radius_px: float) -> int:
-    """Largest reduction (1, 2, 4, 8) at which the smallest accepted mark keeps a 2.5 px radius."""
-    scale = 1
-    while scale < 8 and min_radius_px / (2 * scale) >= 2.5:
-        scale *= 2
-    return scale
-
+    return search_windows(checked[k][0], checked[k][1], recipe, T_prior, options, reach)

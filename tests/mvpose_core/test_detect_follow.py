@@ -10,7 +10,8 @@ import pytest
 
 from mvpose_core.detect import DetectOptions, detect_marks_many, recorrect
 from mvpose_core.detect.follow import next_near, pose_from_blobs
-from mvpose_core.detect.window import _box, _kept_at, _search, _unfound
+from mvpose_core.detect.layout import search_windows, window_box
+from mvpose_core.detect.window import _kept_at, _unfound
 from mvpose_core.render import RenderOptions, render_view
 from mvpose_core.scene import view_cameras
 from mvpose_core.station import load_station
@@ -86,7 +87,8 @@ def test_windows_near_the_last_part_give_the_whole_tolerance_result(  # type: ig
     whole = detect_marks_many(frames, recipe, T0, DetectOptions(first_reach_mm=None))
     _same_as_whole(cams, recipe, T, followed, whole, once=abs(share - last) < 0.1)
     if abs(share - last) < 0.1:  # the part within the first windows around the last one
-        first = [_search(img, cam, recipe, near, DetectOptions(), 0.25) for img, cam in frames]
+        first = [search_windows(img, cam, recipe, near, DetectOptions(), 0.25)
+                 for img, cam in frames]
         assert not any(_unfound(s, DetectOptions()) for s in first)
 
 
@@ -126,7 +128,7 @@ def test_the_blobs_of_the_small_windows_give_the_pose(  # type: ignore[no-untype
     T0 = recipe.T_rf_from_pf0.matrix
     T = displaced(recipe, share)
     frames = _frames(cams, recipe, T, clutter=False)
-    first = [_search(img, cam, recipe, T0, DetectOptions(), 0.25) for img, cam in frames]
+    first = [search_windows(img, cam, recipe, T0, DetectOptions(), 0.25) for img, cam in frames]
     assert any(_unfound(s, DetectOptions()) for s in first)  # the part is beyond the first reach
     est = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
                                                                        strict=True)],
@@ -145,7 +147,7 @@ def test_too_few_marks_for_a_pose_fall_back_to_the_whole_tolerance(  # type: ign
     cams, recipe = station1
     T0 = recipe.T_rf_from_pf0.matrix
     frames = _frames(cams[:1], recipe, displaced(recipe, 0.5), clutter=False)
-    first = _search(frames[0][0], cams[0], recipe, T0, DetectOptions(), 0.25)
+    first = search_windows(frames[0][0], cams[0], recipe, T0, DetectOptions(), 0.25)
     assert _unfound(first, DetectOptions())
     assert pose_from_blobs([(cams[0], first.live, first.cands)], recipe, T0) is None
     one = detect_marks_many(frames, recipe, T0, DetectOptions())
@@ -165,7 +167,7 @@ def test_marks_whose_first_windows_held_them_keep_their_blobs(  # type: ignore[n
     T0 = recipe.T_rf_from_pf0.matrix
     opts = DetectOptions()
     frames = _frames(cams, recipe, displaced(recipe, 0.5), clutter=False)
-    first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
+    first = [search_windows(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
     T = pose_from_blobs([(cam, s.live, s.cands) for (_, cam), s in zip(frames, first,
                                                                      strict=True)], recipe, T0)
     assert T is not None
@@ -184,7 +186,7 @@ def test_marks_whose_first_windows_held_them_keep_their_blobs(  # type: ignore[n
     # searched again, though its centre is where it was.
     s = first[1]
     j, c = s.cands[0]
-    u0 = _box(s.live[j], opts, *frames[1][0].shape[::-1])[0]
+    u0 = window_box(s.live[j], opts, *frames[1][0].shape[::-1])[0]
     edge = replace(c, ellipse=replace(c.ellipse, a=float(c.ellipse.centre[0]) - u0))
     clipped = _kept_at(replace(s, cands=[(j, edge)] + s.cands[1:]), frames[1], recipe, T0, T,
                        opts, 0.25)
@@ -206,7 +208,7 @@ def test_blobs_beyond_their_gates_send_the_search_to_the_blobs_pose(  # type: ig
     opts = DetectOptions()
     T = displaced(recipe, 0.43, np.array([0.41, 0.36, 0.84]), np.array([-0.37, 0.01, -0.93]))
     frames = _frames(cams, recipe, T, clutter)
-    first = [_search(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
+    first = [search_windows(img, cam, recipe, T0, opts, 0.25) for img, cam in frames]
     assert all({k for k, _ in s.cands} == set(range(len(s.live))) for s in first)
     assert sum(_unfound(s, opts) for s in first) >= 2
     gate = [[p.max_shift_px + opts.window_extra_px for p in s.live] for s in first]

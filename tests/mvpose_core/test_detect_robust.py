@@ -334,13 +334,15 @@ def test_a_displaced_part_is_found_where_the_whole_tolerance_finds_it(  # type: 
 
 
 def test_an_image_with_a_blobless_window_is_sent_to_the_whole_tolerance(lab) -> None:  # type: ignore[no-untyped-def]
-    from mvpose_core.detect.window import _search, _unfound
+    from mvpose_core.detect.layout import search_windows
+    from mvpose_core.detect.window import _unfound
 
     cams, recipe = lab
     T0 = recipe.T_rf_from_pf0.matrix
     near = render_view(cams[0], recipe, T0, np.random.default_rng(5)).image
     far = render_view(cams[0], recipe, T0 @ xyzwpr_to_matrix([50.0, -50.0, 25.0, 5.0, -5.0, 2.5]),
                       np.random.default_rng(5)).image
-    assert not _unfound(_search(near, cams[0], recipe, T0, DetectOptions(), 0.25), DetectOptions())
-    assert _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 0.25), DetectOptions())
-    assert not _unfound(_search(far, cams[0], recipe, T0, DetectOptions(), 1.0), DetectOptions())
+    opts = DetectOptions()
+    assert not _unfound(search_windows(near, cams[0], recipe, T0, opts, 0.25), opts)
+    assert _unfound(search_windows(far, cams[0], recipe, T0, opts, 0.25), opts)
+    assert not _unfound(search_windows(far, cams[0], recipe, T0, opts, 1.0), opts)
