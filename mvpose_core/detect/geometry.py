@@ -41,7 +41,8 @@ class MarkPrediction:
 
 
 def displacement_mm(recipe: RecipeConfig, reach: float = 1.0) -> Array:
-    """Bound ``["M"]`` on each mark's 3D motion for any allowed part displacement.
+    """Bound ``["M"]`` on each mark's 3D motion for any allowed part displacement (read-only,
+    remembered per recipe and reach).
 
     The allowed displacement is a rigid motion bounded at the part, not at the part frame's
     origin: a rotation of at most ``reach · max_offset_deg`` about the marks' centroid ``c``
@@ -50,12 +51,35 @@ def displacement_mm(recipe: RecipeConfig, reach: float = 1.0) -> Array:
     pose puts it; ``p_i − c`` is the same in every part frame, so the bound (and every window
     and size range built from it) does not depend on where the part frame is.
     """
-    tol = recipe.tolerances
-    P = recipe.mark_positions()
-    lever = np.linalg.norm(P - P.mean(axis=0), axis=1)
-    return reach * tol.max_offset_mm + 2.0 * lever * np.sin(
-        np.deg2rad(reach * tol.max_offset_deg) / 2.0
-    )
+
+    def make() -> Array:
+        tol = recipe.tolerances
+        P = recipe.mark_positions()
+        lever = np.linalg.norm(P - P.mean(axis=0), axis=1)
+        D = reach * tol.max_offset_mm + 2.0 * lever * np.sin(
+            np.deg2rad(reach * tol.max_offset_deg) / 2.0
+        )
+        D.flags.writeable = False
+        return D
+
+    return _DISPLACEMENT.get((recipe,), float(reach), make)
+
+
+#: the displacement bounds of recent (recipe, reach), read-only: a part's pose from its blobs
+#: is new at every trigger, its recipe and reach are not
+_DISPLACEMENT: IdentityCache[Array] = IdentityCache(16)
+_CF_FROM_RF: IdentityCache[Array] = IdentityCache(64)
+
+
+def _cf_from_rf(cam: ViewCamera) -> Array:
+    """``T_cf_from_rf`` of a camera (remembered per camera object, read-only)."""
+
+    def make() -> Array:
+        T = invert(cam.T_rf_from_cf)
+        T.flags.writeable = False
+        return T
+
+    return _CF_FROM_RF.get((cam,), None, make)
 
 
 # Directions in which a mark's displacement is tried: the 6 axes and the 8 cube diagonals.
@@ -275,7 +299,7 @@ def predict_marks_many(
     ks_all = [k for _, ks in used for k in ks]
     posed = []
     for cam, ks in used:
-        T = compose(invert(cam.T_rf_from_cf), T_pf)
+        T = compose(_cf_from_rf(cam), T_pf)
         R, t = T[:3, :3], T[:3, 3]
         posed.append((positions[ks] @ R.T + t, normals[ks] @ R.T))
     p_cf = np.concatenate([p for p, _ in posed])
