@@ -102,6 +102,14 @@ def _layout(preds: list[MarkPrediction], options: DetectOptions, W: int, H: int)
     return _LAYOUTS.get((preds,), (options.window_extra_px, W, H), make)
 
 
+def windows_of(preds: list[MarkPrediction], options: DetectOptions, W: int, H: int,
+               ) -> tuple[tuple[MarkPrediction, ...], tuple[Box, ...], dict[str, MarkDetection]]:
+    """The predictions whose window lies in the image, their windows, and every mark's
+    reason while it is not found (a new dict), remembered per prediction list."""
+    lay = _layout(preds, options, W, H)
+    return lay.live, lay.boxes, dict(lay.results)
+
+
 def search_windows(
     image: np.ndarray,
     cam: ViewCamera,

@@ -38,6 +38,7 @@ from mvpose_core.detect.layout import (
     search_windows,
     whole_boxes,
     window_box,
+    windows_of,
 )
 from mvpose_core.detect.settle import SETTLE_PX, needed, offsets_px, settled
 from mvpose_core.detect.types import DetectOptions, MarkDetection, check_image
@@ -217,9 +218,9 @@ def _kept_at(
     image, cam = frame
     H, W = image.shape
     at_T, whole = _at_pose(frame, recipe, T_prior, T, options, reach) if at is None else at
-    live = [p for p in at_T if p.facing]
-    boxes = [window_box(p, options, W, H) for p in live]
-    if (any(b[2] - b[0] < 8 or b[3] - b[1] < 8 for b in boxes)
+    inside, boxes, results = windows_of(at_T, options, W, H)
+    live = list(inside)
+    if (len(live) < sum(p.facing for p in at_T)  # a window outside the image
             or [p.mark.mark_id for p in live] != [p.mark.mark_id for p in s.live]):
         return None
     near = [False] * len(live)
@@ -241,9 +242,6 @@ def _kept_at(
         if keep[k] and holds(boxes[k], u, v) and holds(whole[live[k].mark.mark_id], u, v):
             cands.append((k, c))
             scales.append(sc)
-    results = {p.mark.mark_id: MarkDetection.missing(
-        p.mark.mark_id, "nothing mark-like in window" if p.facing else FACES_AWAY)
-        for p in at_T}
     preds = predict_marks_cached(cam, recipe, T, options.size_tolerance,
                                  options.shape_slack_deg, reach)
     rest = frozenset(p.mark.mark_id for p, k in zip(live, keep, strict=True) if not k)

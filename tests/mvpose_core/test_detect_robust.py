@@ -243,6 +243,12 @@ def test_images_with_different_ray_counts_measure_as_alone() -> None:
         assert np.abs(both[k].ellipse.centre - alone.ellipse.centre).max() < 1e-9
         assert abs(both[k].contrast - alone.contrast) < 1e-9
     assert both[0].edge_points <= 80 < both[1].edge_points
+    # candidates out of their images' order are read by index, not as slices: the same results
+    swapped = measure_in(images, np.array([1, 0]), starts[::-1], True, *args, search_px=4.0)
+    for a, b in zip(swapped[::-1], both, strict=True):
+        assert a.ellipse is not None and b.ellipse is not None
+        assert a.edge_points == b.edge_points
+        assert np.abs(a.ellipse.centre - b.ellipse.centre).max() < 1e-9
 
 
 def test_a_bad_image_in_a_batch_names_its_camera(lab) -> None:  # type: ignore[no-untyped-def]
