@@ -12,6 +12,8 @@ image where a mark is still not found is searched over the whole tolerance. Acce
 from all windows are assigned to marks jointly (least total distance to the predictions), so two
 marks never take the same blob. Marks found off the pose their windows' corrections were taken
 at, in a direction the correction feels, are corrected at the pose of their centres (settle.py).
+An image's windows and the blobs they hold are layout.py's; measuring and assigning the blobs,
+assign.py's.
 """
 
 from __future__ import annotations
