@@ -77,7 +77,7 @@ def pose_from_observations(
     refinement of :func:`pose_from_blobs` with its outlier rule and its checks."""
     if len({o.mark_id for o in obs}) < 3:
         return None
-    marks_pf = {m.id: np.asarray(m.position, dtype=float) for m in recipe.marks}
+    marks_pf, _ = _marks_of(recipe)
     T_start = T_prior if start is None else start
     try:
         pk = build_problem(obs, list(cameras), marks_pf, 1.0).pk
@@ -185,7 +185,25 @@ def _within(T: Array, T_ref: Array, recipe: RecipeConfig, mm: float, deg: float)
     """Whether ``T`` is within ``mm`` / ``deg`` of ``T_ref`` (the marks' centroid moved no more
     than ``mm``, the rotation no more than ``deg``)."""
     D = np.linalg.solve(T_ref, T)
-    c = np.asarray(recipe.mark_centroid(), dtype=float)
+    c = _marks_of(recipe)[1]
     moved = float(np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c))
     cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return moved <= mm and float(np.degrees(np.arccos(cos))) <= deg
+
+
+_MARKS: IdentityCache[tuple[dict[str, Array], Array]] = IdentityCache(16)
+
+
+def _marks_of(recipe: RecipeConfig) -> tuple[dict[str, Array], Array]:
+    """The recipe's mark positions by id and their centroid (PF, mm), remembered per recipe
+    (the blobs' pose and its checks run at every trigger of a part beyond the first reach);
+    not to be changed."""
+
+    def make() -> tuple[dict[str, Array], Array]:
+        pf = {m.id: np.array(m.position, dtype=float) for m in recipe.marks}
+        c = np.array(recipe.mark_centroid(), dtype=float)
+        for a in (*pf.values(), c):
+            a.flags.writeable = False
+        return pf, c
+
+    return _MARKS.get((recipe,), None, make)
