@@ -21,7 +21,7 @@ import numpy as np
 
 from mvpose_core.cache import IdentityCache
 from mvpose_core.detect.ellipse import fit_ellipses, rims
-from mvpose_core.detect.geometry import _mark_geometry
+from mvpose_core.detect.marks import mark_geometry
 from mvpose_core.detect.types import MarkDetection
 from mvpose_core.scene import ViewCamera
 from mvpose_core.station import RecipeConfig
@@ -51,7 +51,7 @@ def perspective_corrections(
     marks posed once in RF, one projection of every centre and rim per distinct lens, and one
     ellipse fit for all.
     """
-    positions, normals = _mark_geometry(recipe)
+    positions, normals = mark_geometry(recipe)
     index = _mark_index(recipe)
     T = np.asarray(T_rf_from_pf, dtype=float)
     # Every (camera, mark) as a row: its mark, its camera's pose; one transform for all rows.

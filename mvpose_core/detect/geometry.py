@@ -16,9 +16,10 @@ import numpy as np
 
 from mvpose_core.cache import IdentityCache
 from mvpose_core.detect.ellipse import Ellipse, fit_ellipses, rims
+from mvpose_core.detect.marks import cf_from_rf, displacement_mm, mark_geometry, mark_looks
 from mvpose_core.scene import ProjectedMark, ViewCamera, sighted_marks
 from mvpose_core.station import RecipeConfig
-from mvpose_core.transforms import Array, compose, invert
+from mvpose_core.transforms import Array, compose
 
 
 @dataclass(frozen=True)
@@ -38,48 +39,6 @@ class MarkPrediction:
     @property
     def uv(self) -> Array:
         return self.mark.uv
-
-
-def displacement_mm(recipe: RecipeConfig, reach: float = 1.0) -> Array:
-    """Bound ``["M"]`` on each mark's 3D motion for any allowed part displacement (read-only,
-    remembered per recipe and reach).
-
-    The allowed displacement is a rigid motion bounded at the part, not at the part frame's
-    origin: a rotation of at most ``reach · max_offset_deg`` about the marks' centroid ``c``
-    followed by a translation of at most ``reach · max_offset_mm``. Mark ``i`` then stays within
-    ``reach · max_offset_mm + 2 |p_i − c| sin(reach · max_offset_deg / 2)`` of where the prior
-    pose puts it; ``p_i − c`` is the same in every part frame, so the bound (and every window
-    and size range built from it) does not depend on where the part frame is.
-    """
-
-    def make() -> Array:
-        tol = recipe.tolerances
-        P = recipe.mark_positions()
-        lever = np.linalg.norm(P - P.mean(axis=0), axis=1)
-        D = reach * tol.max_offset_mm + 2.0 * lever * np.sin(
-            np.deg2rad(reach * tol.max_offset_deg) / 2.0
-        )
-        D.flags.writeable = False
-        return D
-
-    return _DISPLACEMENT.get((recipe,), float(reach), make)
-
-
-#: the displacement bounds of recent (recipe, reach), read-only: a part's pose from its blobs
-#: is new at every trigger, its recipe and reach are not
-_DISPLACEMENT: IdentityCache[Array] = IdentityCache(16)
-_CF_FROM_RF: IdentityCache[Array] = IdentityCache(64)
-
-
-def _cf_from_rf(cam: ViewCamera) -> Array:
-    """``T_cf_from_rf`` of a camera (remembered per camera object, read-only)."""
-
-    def make() -> Array:
-        T = invert(cam.T_rf_from_cf)
-        T.flags.writeable = False
-        return T
-
-    return _CF_FROM_RF.get((cam,), None, make)
 
 
 # Directions in which a mark's displacement is tried: the 6 axes and the 8 cube diagonals.
@@ -288,8 +247,8 @@ def predict_marks_many(
     pose from its first blobs is new at every trigger, and its windows are predicted in every
     camera at once).
     """
-    positions, normals = _mark_geometry(recipe)
-    diameters, darks = _mark_looks(recipe)
+    positions, normals = mark_geometry(recipe)
+    diameters, darks = mark_looks(recipe)
     index = {m.id: k for k, m in enumerate(recipe.marks)}
     cams = [(cam, [index[i] for i in ids]) for cam, ids in cameras]
     used = [(cam, ks) for cam, ks in cams if ks]
@@ -299,7 +258,7 @@ def predict_marks_many(
     ks_all = [k for _, ks in used for k in ks]
     posed = []
     for cam, ks in used:
-        T = compose(_cf_from_rf(cam), T_pf)
+        T = compose(cf_from_rf(cam), T_pf)
         R, t = T[:3, :3], T[:3, 3]
         posed.append((positions[ks] @ R.T + t, normals[ks] @ R.T))
     p_cf = np.concatenate([p for p, _ in posed])
@@ -380,33 +339,3 @@ def predict_marks_many(
         out.append(preds[first : first + len(ks)])
         first += len(ks)
     return out
-
-
-_GEOMETRY: IdentityCache[tuple[Array, Array]] = IdentityCache(16)
-
-
-def _mark_geometry(recipe: RecipeConfig) -> tuple[Array, Array]:
-    """The recipe's mark positions ``["M", 3]`` and unit normals (part frame), read-only."""
-
-    def make() -> tuple[Array, Array]:
-        p = np.array([m.position for m in recipe.marks], dtype=float)
-        n = np.array([m.normal for m in recipe.marks], dtype=float)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        p.flags.writeable = n.flags.writeable = False
-        return p, n
-
-    return _GEOMETRY.get((recipe,), None, make)
-
-
-_LOOKS: IdentityCache[tuple[Array, Array]] = IdentityCache(16)
-
-
-def _mark_looks(recipe: RecipeConfig) -> tuple[Array, Array]:
-    """Each mark's diameter ``["M"]`` (mm) and polarity (dark on light), read-only."""
-
-    def make() -> tuple[Array, Array]:
-        d, dark = recipe.mark_diameters(), recipe.mark_dark()
-        d.flags.writeable = dark.flags.writeable = False
-        return d, dark
-
-    return _LOOKS.get((recipe,), None, make)

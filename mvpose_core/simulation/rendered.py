@@ -1,7 +1,7 @@
 """Rendered-image studies of a whole station: render, detect, measure, and compare with the truth.
 
 Each trial displaces the part about its marks' centroid (the displacement the recipe's
-tolerances describe, see :func:`mvpose_core.detect.geometry.displacement_mm`), renders every
+tolerances describe, see :func:`mvpose_core.detect.marks.displacement_mm`), renders every
 camera of every view with :func:`mvpose_core.render.render_view` (per-camera options: a mark
 hidden or a decoy painted in one camera only), detects the marks in windows predicted from the
 taught pose, and measures with :func:`mvpose_core.measure.measure` (robust rule included).

@@ -14,7 +14,7 @@ import pytest
 from real_stations import bonnet, floor
 
 from mvpose_core.detect import detect_marks_many, predict_marks
-from mvpose_core.detect.geometry import displacement_mm
+from mvpose_core.detect.marks import displacement_mm
 from mvpose_core.estimate import Observation
 from mvpose_core.measure import measure
 from mvpose_core.render import RenderOptions, render_view
