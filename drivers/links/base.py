@@ -24,6 +24,7 @@ controller and the store never disagree.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -274,6 +275,13 @@ class AnswersEarly(Protocol):
                       ) -> Awaitable[LinkOutcome]:
         """:meth:`StationHandler.measure`, and ``answered(outcome)`` called once with the same
         outcome as soon as it is recorded, on the recording thread (it must not block)."""
+        ...
+
+    def measure_posted(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                       ) -> concurrent.futures.Future[LinkOutcome]:
+        """:meth:`measure_early` called from any thread (a link's reader of its process's
+        trigger requests): the trigger starts without waiting for the station's loop; the
+        future ends with the same outcome, or the error, on the thread that decided it."""
         ...
 
 

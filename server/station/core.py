@@ -21,6 +21,7 @@ inside drivers.cameras.CaptureGroup.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import os
@@ -73,7 +74,7 @@ class Station:
         self.recorder = Recorder(self.options.observer_delay_s, self.measuring.note_append_ms,
                                  lambda: self.host.loop)
         self.triggers = Triggers(self.measuring, self.recorder, self.options,
-                                 self._recipe_changed)
+                                 self._recipe_changed, lambda: self.host.loop)
         self.camera_view = CameraView(self.measuring, lambda: self.triggers.running > 0)
         self.queries: StationQueries | None = None
         self.handeye = HandEye(self)
@@ -239,6 +240,22 @@ class Station:
     def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
                       ) -> asyncio.Future[LinkOutcome]:
         return self.triggers.measure(request, answered)
+
+    def measure_posted(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                       ) -> concurrent.futures.Future[LinkOutcome]:
+        out: concurrent.futures.Future[LinkOutcome] = concurrent.futures.Future()
+        answer = self.triggers.begin(request, answered)
+
+        def done(f: concurrent.futures.Future[Answer]) -> None:
+            if f.cancelled():
+                out.cancel()
+            elif (err := f.exception()) is not None:
+                out.set_exception(err)
+            else:
+                out.set_result(f.result().outcome)
+
+        answer.add_done_callback(done)
+        return out
 
     def measure_answer(self, request: LinkRequest) -> asyncio.Future[Answer]:
         """:meth:`measure` with the record and the message (the control channel's trigger)."""

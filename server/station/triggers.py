@@ -16,6 +16,7 @@ disagree.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import threading
 import time
@@ -52,15 +53,18 @@ class Triggers:
     """Runs triggers on the trigger thread and answers each one, recorded, in time."""
 
     def __init__(self, measuring: Measuring, recorder: Recorder, options: StationOptions,
-                 recipe_changed: Callable[[], None]) -> None:
+                 recipe_changed: Callable[[], None],
+                 loop_of: Callable[[], asyncio.AbstractEventLoop | None]) -> None:
         self.measuring = measuring
         self.recorder = recorder
         self.options = options
         self._recipe_changed = recipe_changed  # a taught reference: the links show it
+        self._loop_of = loop_of  # the station loop: the watchdog's timers run on it
         self.services: Services | None = None
         self.executor: ThreadPoolExecutor | None = None  # the trigger thread
         self._record_exec: ThreadPoolExecutor | None = None
-        self.running = 0  # triggers started and not yet done (changed on the station loop)
+        self.running = 0  # triggers started and not yet done
+        self._running_lock = threading.Lock()
 
     # ------------------------------------------------------------------ life cycle
     def start(self, services: Services) -> None:
@@ -95,7 +99,7 @@ class Triggers:
         """:meth:`between` from a coroutine on the station loop."""
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
-    # ------------------------------------------------------------------ on the station loop
+    # ------------------------------------------------------------------ starting a trigger
     def measure(self, request: LinkRequest,
                 answered: Callable[[LinkOutcome], None] | None = None
                 ) -> asyncio.Future[LinkOutcome]:
@@ -111,38 +115,66 @@ class Triggers:
                        answered: Callable[[LinkOutcome], None] | None = None
                        ) -> asyncio.Future[Answer]:
         """:meth:`measure` with the record and the message (the control channel's trigger)."""
+        return asyncio.wrap_future(self.begin(request, answered))
+
+    def begin(self, request: LinkRequest,
+              answered: Callable[[LinkOutcome], None] | None = None
+              ) -> concurrent.futures.Future[Answer]:
+        """Start one trigger on the trigger thread now, from any thread (the station loop, or a
+        link's reader of its process's trigger requests); the future holds its answer,
+        recorded, within the deadline + answer_margin_s (the watchdog's timer runs on the
+        station loop). ``answered`` as for :meth:`measure`."""
         t0 = time.monotonic()
         at = datetime.now(UTC)
-        loop = asyncio.get_running_loop()
+        loop = self._loop_of()
+        if self.executor is None or loop is None:
+            raise RuntimeError("the station is not running")
         ticket = _Ticket()
-        out: asyncio.Future[Answer] = loop.create_future()
-        work = loop.run_in_executor(self.executor, self._run, request, t0, at, ticket, answered)
-        self.running += 1
-        work.add_done_callback(lambda _: self._done())
+        out: concurrent.futures.Future[Answer] = concurrent.futures.Future()
+        with self._running_lock:
+            self.running += 1
+        work = self.executor.submit(self._run, request, t0, at, ticket, answered)
         margin_s = self.options.answer_margin_s
+        limit_s = self.measuring.station.deadline_ms / 1000.0 + margin_s
 
-        def expire() -> None:
+        def done(f: concurrent.futures.Future[Answer | None]) -> None:  # on the trigger thread
+            with self._running_lock:
+                self.running -= 1
+            with ticket.lock:  # a view answered, or a result recorded: nothing to expire
+                if ticket.state == "running":
+                    ticket.state = "done"
+            _settle(out, f)  # None: the watchdog has answered
+
+        def expire() -> None:  # on the station loop
             with ticket.lock:
                 if ticket.state != "running":
-                    return  # being recorded: the append never takes long
+                    return  # answered, or being recorded: the append never takes long
                 ticket.state = "expired"
-            limit = self.measuring.station.deadline_ms / 1000.0 + margin_s
-            text = (f"no result within {limit * 1e3:.0f} ms (the deadline plus "
+            text = (f"no result within {limit_s * 1e3:.0f} ms (the deadline plus "
                     f"{margin_s * 1e3:.0f} ms): the trigger thread is stuck")
             log.warning("trigger %d: %s", request.trigger_id, text)
-            rec = loop.run_in_executor(self._record_exec, self._record_failure, request,
-                                       int(Reason.TIMEOUT), text, (time.monotonic() - t0) * 1e3,
-                                       at, answered)
-            relay(rec, out, lambda answer: answer)
+            record = self._record_exec
+            if record is None:  # the station stopped meanwhile
+                out.cancel()
+                return
+            rec = record.submit(self._record_failure, request, int(Reason.TIMEOUT), text,
+                                (time.monotonic() - t0) * 1e3, at, answered)
+            rec.add_done_callback(lambda f: _settle(out, f))
 
-        limit_s = self.measuring.station.deadline_ms / 1000.0 + margin_s
-        watchdog = loop.call_later(limit_s, expire)
-        work.add_done_callback(lambda _: watchdog.cancel())
-        relay(work, out, lambda answer: answer)  # None: the watchdog has answered
+        def arm() -> None:  # on the station loop; a timer left behind finds the ticket done
+            if not work.done():
+                loop.call_later(max(0.0, t0 + limit_s - time.monotonic()), expire)
+
+        work.add_done_callback(done)
+        try:
+            here: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        if here is loop:
+            arm()
+        else:
+            loop.call_soon_threadsafe(arm)
         return out
-
-    def _done(self) -> None:
-        self.running -= 1
 
     async def record_failure(self, request: LinkRequest, code: int, message: str,
                              processing_ms: float) -> int:
@@ -223,3 +255,19 @@ class Triggers:
             self._recipe_changed()
         return self.recorder.archive(answer, step.result.frames)
 
+
+
+def _settle(out: concurrent.futures.Future[Answer],
+            src: concurrent.futures.Future[Answer | None] | concurrent.futures.Future[Answer]
+            ) -> None:
+    """End ``out`` as ``src`` ended (a result of None leaves it to the watchdog's record),
+    unless it has ended already."""
+    try:
+        if src.cancelled():
+            out.cancel()
+        elif (err := src.exception()) is not None:
+            out.set_exception(err)
+        elif (answer := src.result()) is not None:
+            out.set_result(answer)
+    except concurrent.futures.InvalidStateError:
+        pass  # the other side (trigger thread or watchdog) decided first

@@ -8,6 +8,7 @@ tests' own; the peer is the project's PLC twin over Modbus/TCP.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import threading
 from collections.abc import AsyncIterator, Callable
 
@@ -57,6 +58,8 @@ class EarlyHandler(RecordingHandler):
     def __init__(self) -> None:
         super().__init__()
         self.release = asyncio.Event()  # ends the awaitables: the loop's way of answering
+        self.posted_on: list[str] = []  # the threads measure_posted was called on
+        self.unreleased: list[tuple[concurrent.futures.Future[LinkOutcome], LinkOutcome]] = []
 
     def measure_early(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
                       ) -> asyncio.Future[LinkOutcome]:
@@ -71,10 +74,26 @@ class EarlyHandler(RecordingHandler):
 
         return asyncio.ensure_future(later())
 
+    def measure_posted(self, request: LinkRequest, answered: Callable[[LinkOutcome], None]
+                       ) -> concurrent.futures.Future[LinkOutcome]:
+        """Called on the link's thread that reads the child's trigger requests (not the
+        loop): the outcome is posted from a thread of its own; the future ends only when the
+        test says so (then nothing more goes to the child)."""
+        assert threading.current_thread() is not threading.main_thread()
+        self.posted_on.append(threading.current_thread().name)
+        out = LinkOutcome(0, 0, offset=(1.0, 2.0, 3.0, 0.1, 0.2, 0.3), sigma_trans_mm=0.05,
+                          sigma_rot_deg=0.01, processing_ms=5.0)
+        recorded = self.record(request, out, "OK")
+        threading.Thread(target=answered, args=(recorded,)).start()
+        done: concurrent.futures.Future[LinkOutcome] = concurrent.futures.Future()
+        self.unreleased.append((done, recorded))
+        return done
 
-async def test_an_outcome_posted_from_the_recording_thread_reaches_the_plc_first() -> None:
-    """The station's trigger thread posts the outcome to the child at once (AnswersEarly); the
-    PLC has it while the station loop has not heard of it yet, and gets it once."""
+
+async def test_a_trigger_starts_off_the_loop_and_its_outcome_reaches_the_plc_first() -> None:
+    """The child posts a trigger to a thread of the station's link, which starts it without the
+    station loop (AnswersEarly.measure_posted); the recording thread posts the outcome back at
+    once: the PLC has it while the station's future has not ended, and gets it once."""
     handler = EarlyHandler()
     (link,) = open_links({"modbus": ModbusLinkConfig(port=0)}, handler)
     assert isinstance(handler, AnswersEarly)
@@ -84,12 +103,19 @@ async def test_an_outcome_posted_from_the_recording_thread_reaches_the_plc_first
         try:
             answer = await twin.cycle(8, 0, timeout=10.0)
             assert answer.trigger_id == 8 and answer.has(Status.RESULT_VALID)
-            assert answer.result_id == 101 and not handler.release.is_set()
-            handler.release.set()  # the loop's reply comes now and is not sent again
+            assert answer.result_id == 101
+            assert handler.posted_on == ["link-triggers"]
+            ((done, recorded),) = handler.unreleased
+            assert not done.done()
+            done.set_result(recorded)  # the station's future ends now: nothing more is sent
             answer = await twin.cycle(9, 0, timeout=10.0)
             assert (answer.trigger_id, answer.result_id) == (9, 102)
+            assert handler.posted_on == ["link-triggers"] * 2
         finally:
             await detach_twin(twin, beat)
     finally:
+        for done, recorded in handler.unreleased:
+            if not done.done():
+                done.set_result(recorded)
         handler.release.set()
         await link.stop()

@@ -32,8 +32,10 @@ log = logging.getLogger(__name__)
 class RemoteHandler:
     """The StationHandler a backend sees in the child: each call crosses the socket."""
 
-    def __init__(self, wire: Wire, snapshot: tuple[int, Any]) -> None:
+    def __init__(self, wire: Wire, snapshot: tuple[int, Any],
+                 post: socket.socket | None = None) -> None:
         self._wire = wire
+        self._post = post  # the triggers' socket (non-blocking): see _ask
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._listeners: list[Callable[[ResultEvent], None]] = []
@@ -46,10 +48,25 @@ class RemoteHandler:
             future.set_exception(ConnectionError("the station has gone"))
             return future
         call_id = next(self._ids)
+        # A trigger goes on the triggers' socket, read by a thread of the station that starts
+        # it at once; only when no call is waiting for its answer, so that it never overtakes
+        # one (a pipeline reset) still on its way through the station loop.
+        posted = method == "measure" and not self._pending and self._posted(call_id, args[0])
         self._pending[call_id] = future
         future.add_done_callback(lambda _: self._pending.pop(call_id, None))
-        self._wire.send("call", call_id, method, args)
+        if not posted:
+            self._wire.send("call", call_id, method, args)
         return future
+
+    def _posted(self, call_id: int, request: LinkRequest) -> bool:
+        if self._post is None:
+            return False
+        try:
+            self._post.send(pickle.dumps(("measure", call_id, request),
+                                         protocol=pickle.HIGHEST_PROTOCOL))
+        except OSError:  # full or gone: the wire takes it (and tells whether the station is)
+            return False
+        return True
 
     def answered(self, call_id: int, ok: bool, value: Any,
                  snapshot: tuple[int, Any] | None) -> None:
@@ -163,20 +180,21 @@ async def _child(sock: socket.socket, answers: socket.socket) -> int:
     logging.basicConfig(level=level, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s [{backend} link] %(name)s: "
                                "%(message)s")
-    handler = RemoteHandler(wire, snapshot)
+    handler = RemoteHandler(wire, snapshot, answers)
     link = link_class(backend)(config, handler)
     # One reader: the station's replies answer the handler's calls at once (the link may ask
     # the station while it starts, e.g. for its initial recipe); its other messages wait in
     # order until the link has started. None: the station has gone.
     inbox: asyncio.Queue[tuple[Any, ...] | None] = asyncio.Queue()
     reading = asyncio.create_task(_read(wire, handler, inbox))
-    posted = asyncio.create_task(_read_posted(answers, handler))
+    loop = asyncio.get_running_loop()
+    loop.add_reader(answers.fileno(), _read_posted, answers, handler, loop)
     try:
         await link.start()
     except Exception as err:  # noqa: BLE001 - the station shows it and raises it
         log.exception("the %s link did not start", backend)
         reading.cancel()
-        posted.cancel()
+        loop.remove_reader(answers.fileno())
         wire.send("started", f"{type(err).__name__}: {err}")
         await writer.drain()
         return 1
@@ -204,7 +222,7 @@ async def _child(sock: socket.socket, answers: socket.socket) -> int:
     finally:
         reporter.cancel()
         reading.cancel()
-        posted.cancel()
+        loop.remove_reader(answers.fileno())
         handler.gone()
         await link.stop()
         wire.close()
@@ -222,10 +240,20 @@ async def _read(wire: Wire, handler: RemoteHandler,
     inbox.put_nowait(None)
 
 
-async def _read_posted(answers: socket.socket, handler: RemoteHandler) -> None:
-    """The outcomes the station's threads post (see _AnswerPost), one message per packet."""
-    loop = asyncio.get_running_loop()
-    while data := await loop.sock_recv(answers, 1 << 16):
+def _read_posted(answers: socket.socket, handler: RemoteHandler,
+                 loop: asyncio.AbstractEventLoop) -> None:
+    """The outcomes the station's threads post (see _AnswerPost), one message per packet,
+    handed to the handler in the loop pass that finds them readable."""
+    while True:
+        try:
+            data = answers.recv(1 << 16)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:  # the station has gone: the wire says so to the handler
+            loop.remove_reader(answers.fileno())
+            return
         _, call_id, ok, value, snapshot = pickle.loads(data)
         handler.answered(call_id, ok, value, snapshot)
 

@@ -4,6 +4,7 @@ the child started, served, watched and started again; the answers posted by the 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import os
@@ -13,6 +14,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -127,11 +129,11 @@ class ProcessLink(Link):
         finally:
             theirs.close()
             posted.close()
-        self._post.open(post)
         self.pid, self.starts = pid, self.starts + 1
         self._pidfd = os.pidfd_open(pid)
         reader, writer = await asyncio.open_unix_connection(sock=ours)
         wire = self._wire = Wire(reader, writer)  # stop() reaches a child that is starting
+        self._post.open(post, lambda message: self._posted(wire, message))
         wire.send("start", self.backend, self.config, logging.getLogger().getEffectiveLevel(),
                   self._snapshot())
         hung = False
@@ -219,11 +221,8 @@ class ProcessLink(Link):
         posted = threading.Event()  # the outcome went out from the thread that recorded it
         try:
             if method == "measure" and isinstance(self.handler, AnswersEarly):
-                def answered(outcome: LinkOutcome) -> None:
-                    if self._post.send(("reply", call_id, True, outcome, None)):
-                        posted.set()
-
-                call = asyncio.ensure_future(self.handler.measure_early(args[0], answered))
+                call = asyncio.ensure_future(self.handler.measure_early(
+                    args[0], self._poster(call_id, posted)))
             else:
                 call = asyncio.ensure_future(getattr(self.handler, method)(*args))
         except Exception as err:  # noqa: BLE001 - the child's caller gets it
@@ -233,19 +232,61 @@ class ProcessLink(Link):
 
         def done(f: asyncio.Future[Any]) -> None:
             self._calls.discard(f)
-            if f.cancelled() or posted.is_set():
-                return
-            err = f.exception()
-            try:
-                if err is None:
-                    self._send(wire, "reply", call_id, True, f.result(), self._snapshot())
-                    return
-            except (pickle.PicklingError, TypeError, AttributeError) as bad:
-                err = RuntimeError(f"{method}: the answer cannot cross to the link's process "
-                                   f"({type(bad).__name__}: {bad})")
-            self._send(wire, "reply", call_id, False, portable(err), self._snapshot())
+            self._reply(wire, call_id, method, f, posted)
 
         call.add_done_callback(done)
+
+    def _posted(self, wire: Wire, message: tuple[Any, ...]) -> None:
+        """A trigger request the child posted (on the answers' socket's reader thread): started
+        from this thread when the handler can (AnswersEarly), else as a call on the loop."""
+        _, call_id, request = message
+        loop = self._loop
+        if loop is None:
+            return
+        if not isinstance(self.handler, AnswersEarly):
+            loop.call_soon_threadsafe(self._call, wire, call_id, "measure", (request,))
+            return
+        posted = threading.Event()
+        work: concurrent.futures.Future[LinkOutcome]
+        try:
+            work = self.handler.measure_posted(request, self._poster(call_id, posted))
+        except Exception as err:  # noqa: BLE001 - the child's caller gets it
+            work = concurrent.futures.Future()
+            work.set_exception(err)
+
+        def done(f: concurrent.futures.Future[LinkOutcome]) -> None:
+            if f.cancelled() or posted.is_set():
+                return  # nothing for the loop to do: the usual case
+            with contextlib.suppress(RuntimeError):  # the loop has closed: the station stops
+                loop.call_soon_threadsafe(self._reply, wire, call_id, "measure", f, posted)
+
+        work.add_done_callback(done)
+
+    def _poster(self, call_id: int, posted: threading.Event) -> Callable[[LinkOutcome], None]:
+        """``answered`` for a trigger: its outcome posted to the child from the recording
+        thread (``posted`` set if it went)."""
+        def answered(outcome: LinkOutcome) -> None:
+            if self._post.send(("reply", call_id, True, outcome, None)):
+                posted.set()
+
+        return answered
+
+    def _reply(self, wire: Wire, call_id: int, method: str,
+               f: asyncio.Future[Any] | concurrent.futures.Future[Any],
+               posted: threading.Event) -> None:
+        """The answer to a call that has ended, on the wire (on the loop), unless the thread
+        that recorded it posted it already."""
+        if f.cancelled() or posted.is_set():
+            return
+        err = f.exception()
+        try:
+            if err is None:
+                self._send(wire, "reply", call_id, True, f.result(), self._snapshot())
+                return
+        except (pickle.PicklingError, TypeError, AttributeError) as bad:
+            err = RuntimeError(f"{method}: the answer cannot cross to the link's process "
+                               f"({type(bad).__name__}: {bad})")
+        self._send(wire, "reply", call_id, False, portable(err), self._snapshot())
 
     def _on_result(self, event: ResultEvent) -> None:
         """The station's listener: hand the result to the child (from any thread)."""
@@ -322,20 +363,27 @@ class ProcessLink(Link):
 
 
 class _AnswerPost:
-    """The station's side of the answers' socket: a trigger's outcome goes to the child from
-    the thread that recorded it (the trigger thread), without waiting for the station loop to
-    hear of it first. A SOCK_SEQPACKET socketpair: each send is one whole message or nothing,
-    never blocking; a send that fails (the child is not reading: frozen, or gone) leaves the
-    reply to the wire, whose backlog rule then deals with the child."""
+    """The station's side of the triggers' socket (SOCK_SEQPACKET: each message whole or not
+    at all). The child posts its trigger requests on it; a thread of the station's own reads
+    them and starts each at once (``on_request``), without the station loop. A trigger's
+    outcome goes back on it from the thread that recorded it (the trigger thread), without
+    waiting for the station loop to hear of it first; a send never blocks, and one that fails
+    (the child is not reading: frozen, or gone) leaves the reply to the wire, whose backlog
+    rule then deals with the child."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._sock: socket.socket | None = None
+        self._reader: threading.Thread | None = None
 
-    def open(self, sock: socket.socket) -> None:
-        sock.setblocking(False)
+    def open(self, sock: socket.socket,
+             on_request: Callable[[tuple[Any, ...]], None]) -> None:
+        sock.setblocking(True)  # the reader waits in recv; sends say MSG_DONTWAIT
+        reader = threading.Thread(target=self._read, args=(sock.dup(), on_request),
+                                  name="link-triggers", daemon=True)
         with self._lock:
-            self._sock = sock
+            self._sock, self._reader = sock, reader
+        reader.start()  # at the priority of the thread that starts it: the station loop's
 
     def send(self, message: tuple[Any, ...]) -> bool:
         try:
@@ -346,16 +394,39 @@ class _AnswerPost:
             if self._sock is None:
                 return False
             try:
-                self._sock.send(data)
+                self._sock.send(data, socket.MSG_DONTWAIT)
             except OSError:
                 return False
         return True
 
+    @staticmethod
+    def _read(sock: socket.socket, on_request: Callable[[tuple[Any, ...]], None]) -> None:
+        with sock:
+            while True:
+                try:
+                    data = sock.recv(1 << 16)
+                except OSError:
+                    return
+                if not data:  # the child has gone, or close() shut the socket
+                    return
+                try:
+                    message = pickle.loads(data)
+                    if message[0] != "measure":
+                        raise ValueError(f"unknown message {message[0]!r}")
+                    on_request(message)
+                except Exception:
+                    log.exception("a trigger request from the link's process failed")
+
     def close(self) -> None:
         with self._lock:
             sock, self._sock = self._sock, None
+            reader, self._reader = self._reader, None
         if sock is not None:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)  # wakes the reader: its recv ends
             sock.close()
+        if reader is not None and reader is not threading.current_thread():
+            reader.join(timeout=STOP_S)
 
 
 _HOSTED: dict[str, type[ProcessLink]] = {}
