@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import threading
 import time
@@ -137,6 +138,8 @@ class Triggers:
         margin_s = self.options.answer_margin_s
         limit_s = self.measuring.station.deadline_ms / 1000.0 + margin_s
 
+        timer: list[asyncio.TimerHandle] = []  # the watchdog's, once armed (on the loop)
+
         def done(f: concurrent.futures.Future[Answer | None]) -> None:  # on the trigger thread
             with self._running_lock:
                 self.running -= 1
@@ -144,6 +147,9 @@ class Triggers:
                 if ticket.state == "running":
                     ticket.state = "done"
             _settle(out, f)  # None: the watchdog has answered
+            # the timer goes now (after the answer), not by waking the loop in a later trigger
+            with contextlib.suppress(RuntimeError):  # the loop has closed: the station stops
+                loop.call_soon_threadsafe(disarm)
 
         def expire() -> None:  # on the station loop
             with ticket.lock:
@@ -161,9 +167,14 @@ class Triggers:
                                 (time.monotonic() - t0) * 1e3, at, answered)
             rec.add_done_callback(lambda f: _settle(out, f))
 
-        def arm() -> None:  # on the station loop; a timer left behind finds the ticket done
+        def arm() -> None:  # on the station loop
             if not work.done():
-                loop.call_later(max(0.0, t0 + limit_s - time.monotonic()), expire)
+                timer.append(loop.call_later(max(0.0, t0 + limit_s - time.monotonic()),
+                                             expire))
+
+        def disarm() -> None:  # on the station loop, after arm
+            while timer:
+                timer.pop().cancel()
 
         work.add_done_callback(done)
         try:

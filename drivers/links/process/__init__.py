@@ -16,9 +16,12 @@ Listed in ``drivers.links.OWN_PROCESS``, it runs in a child process instead:
   :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
   without a call (the selected recipe, its robot convention) comes with every reply and with each
   recipe change.
-- A trigger's outcome, from a handler that is :class:`~drivers.links.base.AnswersEarly` (the
-  station), is posted to the child by the thread that recorded it, right after the append, on a
-  second socket (:class:`_AnswerPost`): the PLC's answer does not wait for the station loop.
+- A trigger takes a second socket (:class:`_AnswerPost`, SOCK_SEQPACKET) both ways: the child
+  posts the request there (when none of its calls waits for an answer, so it never overtakes
+  one); a thread of the station's side reads it and, from a handler that is
+  :class:`~drivers.links.base.AnswersEarly` (the station), starts it at once
+  (``measure_posted``); the outcome is posted back by the thread that recorded it, right after
+  the append. Neither way waits for the station loop.
 
 The child is started with ``posix_spawn`` under the normal scheduling policy: a station whose
 threads run under SCHED_FIFO does not pass its real-time priority on, unless the backend is in

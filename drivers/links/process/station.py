@@ -61,6 +61,8 @@ class ProcessLink(Link):
         self.backlog_limit = BACKLOG_BYTES
         self._killed_why = ""  # why this link killed its child, for last_exit
         self._post = _AnswerPost()
+        # the handler as AnswersEarly, if it is (checked once: a protocol's isinstance is slow)
+        self._early = handler if isinstance(handler, AnswersEarly) else None
 
     # ------------------------------------------------------------------ Link
     async def start(self) -> None:
@@ -243,13 +245,14 @@ class ProcessLink(Link):
         loop = self._loop
         if loop is None:
             return
-        if not isinstance(self.handler, AnswersEarly):
+        early = self._early
+        if early is None:
             loop.call_soon_threadsafe(self._call, wire, call_id, "measure", (request,))
             return
         posted = threading.Event()
         work: concurrent.futures.Future[LinkOutcome]
         try:
-            work = self.handler.measure_posted(request, self._poster(call_id, posted))
+            work = early.measure_posted(request, self._poster(call_id, posted))
         except Exception as err:  # noqa: BLE001 - the child's caller gets it
             work = concurrent.futures.Future()
             work.set_exception(err)
