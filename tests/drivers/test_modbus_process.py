@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import pickle
+import socket
 import threading
 from collections.abc import AsyncIterator, Callable
 
+import pytest
 import pytest_asyncio
 from child_links import hosted_link
 from opcua_handler import RecordingHandler
@@ -22,6 +25,8 @@ from drivers.links.base import AnswersEarly
 from drivers.links.layout import Status
 from drivers.links.modbus.settings import ModbusLinkConfig
 from drivers.links.process import ProcessLink
+from drivers.links.process.child import RemoteHandler
+from drivers.links.process.wire import Wire
 from server.loopback import attach_twin, detach_twin
 
 START_S = 60.0  # a child imports pymodbus before it listens (seconds on a loaded machine)
@@ -119,3 +124,42 @@ async def test_a_trigger_starts_off_the_loop_and_its_outcome_reaches_the_plc_fir
                 done.set_result(recorded)
         handler.release.set()
         await link.stop()
+
+
+async def test_a_trigger_takes_the_wire_while_a_call_waits_for_its_answer() -> None:
+    """The child posts a trigger on the triggers' socket only when none of its calls waits for
+    an answer: one that still does (a pipeline reset on its way through the station loop) is
+    never overtaken, the trigger follows it on the wire."""
+    ours, theirs = socket.socketpair()
+    post, posted = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    post.setblocking(False)
+    posted.setblocking(False)
+    reader, writer = await asyncio.open_unix_connection(sock=ours)
+    station_reader, station_writer = await asyncio.open_unix_connection(sock=theirs)
+    handler = RemoteHandler(Wire(reader, writer), (1, None), post)
+    station = Wire(station_reader, station_writer)
+    try:
+        request = LinkRequest("modbus", 5, 0, None, "", 0)
+        first = handler.measure(request)  # nothing waits: the triggers' socket
+        kind, call_id, sent = pickle.loads(posted.recv(1 << 16))
+        assert (kind, sent) == ("measure", request)
+        handler.answered(call_id, True, LinkOutcome(0, 7), None)
+        assert (await first).result_id == 7
+        reset = asyncio.ensure_future(handler.reset())  # a call that waits for its answer
+        await asyncio.sleep(0)  # one loop pass: the reset's call goes out
+        second = handler.measure(LinkRequest("modbus", 6, 0, None, "", 0))
+        calls = [await station.read(), await station.read()]
+        assert [(c[0], c[2]) for c in calls if c is not None] == [("call", "reset"),
+                                                                  ("call", "measure")]
+        with pytest.raises(BlockingIOError):  # nothing went past the waiting call
+            posted.recv(1 << 16)
+        handler.answered(calls[0][1], True, None, (1, None))
+        handler.answered(calls[1][1], True, LinkOutcome(0, 8), (1, None))
+        await reset
+        assert (await second).result_id == 8
+    finally:
+        handler.gone()
+        station.close()
+        writer.close()
+        post.close()
+        posted.close()
