@@ -16,8 +16,8 @@ Listed in ``drivers.links.OWN_PROCESS``, it runs in a child process instead:
   :class:`RemoteHandler`, a StationHandler whose calls cross the socket. What the handler answers
   without a call (the selected recipe, its robot convention) comes with every reply and with each
   recipe change.
-- A trigger takes a second socket (:class:`_AnswerPost`, SOCK_SEQPACKET) both ways: the child
-  posts the request there (when none of its calls waits for an answer, so it never overtakes
+- A trigger takes a second socket (SOCK_SEQPACKET; :class:`~.post.TriggerPost`) both ways: the
+  child posts the request there (when none of its calls waits for an answer, so it never overtakes
   one); a thread of the station's side reads it and, from a handler that is
   :class:`~drivers.links.base.AnswersEarly` (the station), starts it at once
   (``measure_posted``); the outcome is posted back by the thread that recorded it, right after
@@ -32,7 +32,7 @@ behind. The socket is a private socketpair between the station and its own child
 pickled frames (length, pickle) of this package's tuples and the seam's dataclasses; a result
 event crosses as its own JSON (``ResultEvent.to_json``). This package is the only one that knows
 them: :mod:`.wire` (the socket and its frames), :mod:`.station` (the station's side),
-:mod:`.child` (the child's).
+:mod:`.child` (the child's), :mod:`.post` (the triggers' socket, the station's side).
 """
 
 from .station import ProcessLink, hosted

@@ -242,7 +242,7 @@ async def _read(wire: Wire, handler: RemoteHandler,
 
 def _read_posted(answers: socket.socket, handler: RemoteHandler,
                  loop: asyncio.AbstractEventLoop) -> None:
-    """The outcomes the station's threads post (see _AnswerPost), one message per packet,
+    """The outcomes the station's threads post (see TriggerPost), one message per packet,
     handed to the handler in the loop pass that finds them readable."""
     while True:
         try:

@@ -9,7 +9,7 @@ import struct
 from typing import Any
 
 CHILD_FD = 3  # the socket's descriptor in the child
-ANSWER_FD = 4  # the answers' socket's descriptor in the child (see _AnswerPost)
+ANSWER_FD = 4  # the answers' socket's descriptor in the child (see TriggerPost)
 STATUS_EVERY_S = 0.2  # the child sends its status when it changed, at most this often
 RESTART_S = (1.0, 30.0)  # first and longest wait before a dead child is started again
 START_S = 25.0  # a child whose link has not started this long after its spawn is killed
