@@ -31,7 +31,6 @@ Pure numpy; no I/O, no clock: the caller passes each trigger's time stamp.
 from __future__ import annotations
 
 import math
-from bisect import bisect_left
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
@@ -126,6 +125,95 @@ class Cusum:
         return self.S.max(axis=-1)
 
 
+class History:
+    """The last ``size`` updates of one camera: trigger index and cumulative sums, in a ring.
+
+    Entry ``i`` is the station trigger index of an update and Σ (x − μ, in-fit fraction) ``[3]``
+    up to and including it; ``floor`` holds the sums before the oldest kept entry (those of the
+    last one dropped). Numpy arrays of exactly ``size`` entries: 32 bytes an update, where a list
+    of ints and a list of tuples of floats took ~145. The arrays are allocated at once, zeroed
+    (their pages reach the resident memory as they are first written).
+    """
+
+    def __init__(self, size: int, start: int) -> None:
+        self.idx = np.zeros(size, dtype=np.int64)
+        self.cum = np.zeros((size, 3))
+        self.n = 0  # entries kept (≤ size)
+        self.head = 0  # position of the oldest entry once full; the next written one
+        self.floor_at = start  # trigger index of the floor (the last dropped or the start)
+        self.floor = (0.0, 0.0, 0.0)
+        self.last = (0.0, 0.0, 0.0)  # the newest sums, as floats (fed back each update)
+
+    def append(self, n: int, du: float, dv: float, in_fit: float) -> None:
+        """Keep the update of trigger ``n`` (indices increase), dropping the oldest when full."""
+        size = len(self.idx)
+        a, b, c = self.last
+        self.last = (a + du, b + dv, c + in_fit)
+        if self.n < size:
+            i = self.n
+            self.n += 1
+        else:
+            i = self.head
+            self.floor_at = int(self.idx[i])
+            self.floor = (float(self.cum[i, 0]), float(self.cum[i, 1]), float(self.cum[i, 2]))
+            self.head = (i + 1) % size
+        self.idx[i] = n
+        self.cum[i] = self.last
+
+    def _at(self, j: int) -> int:
+        """The array position of the ``j``-th oldest entry."""
+        return (self.head + j) % len(self.idx)
+
+    def since(self, n0: int) -> Array | None:
+        """Means of ``(x − μ, in-fit fraction)`` ``[3]`` over the updates from trigger ``n0``
+        (over all kept when ``n0`` is older than the oldest kept; None when none is that new)."""
+        if self.n == 0 or self.idx[self._at(self.n - 1)] < n0:
+            return None
+        if self.n < len(self.idx) or self.head == 0:  # one sorted run
+            j = int(np.searchsorted(self.idx[: self.n], n0))
+        else:  # two sorted runs: the oldest from ``head``, then the newest from 0
+            older = self.idx[self.head :]
+            if older[-1] >= n0:
+                j = int(np.searchsorted(older, n0))
+            else:
+                j = len(older) + int(np.searchsorted(self.idx[: self.head], n0))
+        before = np.asarray(self.cum[self._at(j - 1)] if j > 0 else self.floor)
+        return (np.asarray(self.last) - before) / (self.n - j)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.idx.nbytes + self.cum.nbytes)
+
+
+class Stamps:
+    """The time stamps of the last ``size`` triggers (epoch seconds, NaN for none), in a ring."""
+
+    def __init__(self, size: int) -> None:
+        self.t = np.full(size, np.nan)
+        self.n = 0  # triggers stamped so far
+
+    def append(self, stamp: float | None) -> None:
+        self.t[self.n % len(self.t)] = np.nan if stamp is None else stamp
+        self.n += 1
+
+    def get(self, i: int) -> float | None:
+        """Trigger ``i``'s stamp, None when it had none or is no longer kept."""
+        if not self.n - len(self.t) <= i < self.n or i < 0:
+            return None
+        t = float(self.t[i % len(self.t)])
+        return None if math.isnan(t) else t
+
+
+#: bytes a trigger adds to a drift watch's history: a camera's update and the trigger's stamp
+HISTORY_BYTES_PER_CAMERA = 32
+HISTORY_BYTES_PER_TRIGGER = 8
+
+
+def history_bytes(cameras: int, history: int = 20_000) -> int:
+    """The drift watch's history at its cap: ``history`` triggers of ``cameras`` cameras."""
+    return history * (cameras * HISTORY_BYTES_PER_CAMERA + HISTORY_BYTES_PER_TRIGGER)
+
+
 @dataclass
 class _Camera:
     """One camera's learning buffer, baseline, CUSUM and cumulative residual sums."""
@@ -137,12 +225,8 @@ class _Camera:
     # floats: per trigger and camera, numpy's call overhead would cost ~10x the arithmetic.
     S: list[float] | None = None
     count: int = 0  # triggers since the baseline was set
-    # station trigger index of each update since the baseline, and Σ (x − μ, in-fit fraction)
-    # [3] after it; the oldest are dropped past ``DriftOptions.history`` (``floor`` keeps the
-    # last dropped one)
-    idx: list[int] = field(default_factory=list)
-    cum: list[tuple[float, float, float]] = field(default_factory=list)
-    floor: tuple[int, tuple[float, float, float]] = (-1, (0.0, 0.0, 0.0))
+    # the updates since the baseline, the last ``DriftOptions.history`` kept (None while learning)
+    history: History | None = None
     starts: list[int] = field(default_factory=lambda: [0] * 4)  # where each run began
     mean_px: tuple[float, float] | None = None  # μ and σ as the state reports them
     sigma_px: tuple[float, float] | None = None
@@ -200,7 +284,7 @@ class DriftWatch:
     ) -> None:
         self.options = options
         self._cams: dict[CameraKey, _Camera] = {}
-        self._stamps: dict[int, float | None] = {}
+        self._stamps = Stamps(options.history)
         self._n = 0  # triggers seen
         self._response: dict[CameraKey, dict[CameraKey, Array]] = {}
         for moved, row in (response or {}).items():
@@ -236,8 +320,8 @@ class DriftWatch:
         cam.mean_px = (float(cam.mean[0]), float(cam.mean[1]))
         cam.sigma_px = (float(cam.sigma[0]), float(cam.sigma[1]))
         cam.S = [0.0] * 4
-        cam.count, cam.idx, cam.cum = 0, [], []
-        cam.floor = (self._n - 1, (0.0, 0.0, 0.0))
+        cam.count = 0
+        cam.history = History(self.options.history, self._n - 1)
         cam.starts = [self._n] * 4
         cam.warm = []
 
@@ -264,11 +348,8 @@ class DriftWatch:
                     f"[0, 1], got {[u, v]}, {f}"
                 )
             self._feed(self._cams.setdefault(key, _Camera()), n, u, v, f)
-        self._stamps[n] = stamp
+        self._stamps.append(stamp)
         self._n += 1
-        if len(self._stamps) > 2 * self.options.history:
-            keep = n - self.options.history
-            self._stamps = {i: t for i, t in self._stamps.items() if i >= keep}
 
     def statistics(self) -> dict[CameraKey, float]:
         """Each camera's largest one-sided statistic, σ (0 while learning): cheap, per trigger."""
@@ -280,10 +361,11 @@ class DriftWatch:
             if len(cam.warm) >= self.options.warmup:
                 w = np.asarray(cam.warm)
                 self._start(cam, w.mean(axis=0), w.std(axis=0, ddof=1))
-                cam.floor = (n, (0.0, 0.0, 0.0))
+                assert cam.history is not None
+                cam.history.floor_at = n
                 cam.starts = [n + 1] * 4
             return
-        assert cam.mean_px is not None and cam.sigma_px is not None
+        assert cam.mean_px is not None and cam.sigma_px is not None and cam.history is not None
         du, dv = u - cam.mean_px[0], v - cam.mean_px[1]
         zu, zv = du / cam.sigma_px[0], dv / cam.sigma_px[1]
         k, S = self.options.k, cam.S
@@ -293,22 +375,18 @@ class DriftWatch:
                 cam.starts[i] = n  # a run starts here: the change point if it alarms
             S[i] = new
         cam.count += 1
-        cam.idx.append(n)
-        a, b, c = cam.cum[-1] if cam.cum else cam.floor[1]
-        cam.cum.append((a + du, b + dv, c + in_fit))
-        if len(cam.idx) > 2 * self.options.history:
-            cut = len(cam.idx) - self.options.history
-            cam.floor = (cam.idx[cut - 1], cam.cum[cut - 1])
-            del cam.idx[:cut], cam.cum[:cut]
+        cam.history.append(n, du, dv, in_fit)
 
     @staticmethod
     def _since(cam: _Camera, n0: int) -> Array | None:
         """Means of ``(x − μ, in-fit fraction)`` ``[3]`` over the camera's triggers from ``n0``."""
-        if not cam.idx or cam.idx[-1] < n0:
-            return None
-        j = bisect_left(cam.idx, n0)
-        before = np.asarray(cam.cum[j - 1] if j > 0 else cam.floor[1])
-        return (np.asarray(cam.cum[-1]) - before) / (len(cam.idx) - j)
+        return None if cam.history is None else cam.history.since(n0)
+
+    @property
+    def history_nbytes(self) -> int:
+        """Bytes the history holds now (its arrays, allocated at the full ``history``)."""
+        cams = sum(c.history.nbytes for c in self._cams.values() if c.history is not None)
+        return cams + int(self._stamps.t.nbytes)
 
     def _explain(self, key: CameraKey, n0: int, own: Array) -> tuple[CameraKey, Array]:
         """The camera whose move best explains every camera's residual shift since ``n0``.

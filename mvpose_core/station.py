@@ -36,6 +36,7 @@ from pydantic import (
 )
 
 from mvpose_core.camera import CameraModel
+from mvpose_core.drift import DriftOptions
 from mvpose_core.plantconfig import PlantConfig
 from mvpose_core.shifts import DEFAULT_SHIFTS, Shift, check_shifts, time_zone
 from mvpose_core.transforms import (
@@ -459,6 +460,17 @@ PAGE_LANGUAGES = ("en", "de", "zh_Hans", "es")
 IDLE_LOGOUT_S = 900.0
 
 
+class DriftConfig(_Model):
+    """The drift watch's settings (docs/calibration.md, "Drift watch")."""
+
+    history: int = Field(
+        DriftOptions.history, ge=100, le=1_000_000,
+        description="triggers per camera the watch keeps to date a drift and estimate its move "
+                    "(32 bytes a camera and 16 a trigger with the server's record ids: 2.7 MiB for "
+                    "4 cameras at 20,000); a "
+                    "drift that began earlier is measured over the kept ones only")
+
+
 class PageConfig(_Model):
     """The operator page on this station's panel PCs."""
 
@@ -505,6 +517,7 @@ class StationConfig(_Model):
                                               "operator page's times)")
     page: PageConfig = Field(PageConfig(), description="the operator page: idle logout, kiosk, "
                                                        "the plant's language")
+    drift: DriftConfig = Field(DriftConfig(), description="the drift watch's history")
     calibration_max_age_days: float | None = Field(
         None, gt=0, le=3650, description="an alarm when the active calibration is older "
         "(docs/alarms.md); none: no limit")

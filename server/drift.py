@@ -182,7 +182,9 @@ class _Segment:
     watch: DriftWatch
     first_at: datetime
     records: int = 0
-    ids: dict[int, tuple[int, datetime]] = field(default_factory=dict)  # trigger → id, time
+    # the record id of each of the watch's last ``history`` triggers (ring: trigger n at
+    # n % history); their times are the watch's stamps
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     # per camera: (id, triggered_at, du, dv, statistic) of the last triggers
     trend: dict[tuple[int, str], deque[tuple[int, datetime, float, float, float]]] = field(
         default_factory=dict)
@@ -195,14 +197,16 @@ class DriftService:
         self,
         store: Store,
         station: StationConfig | None,
-        options: DriftOptions = DriftOptions(),  # noqa: B008 - frozen, immutable default
+        options: DriftOptions | None = None,
         *,
         window: int = 5_000,
         trend: int = 500,
     ) -> None:
         self.store = store
         self.station = station
-        self.options = options
+        # the station file's drift history, the defaults otherwise
+        self.options = options or DriftOptions(
+            history=station.drift.history if station is not None else DriftOptions.history)
         # Records read at most on the first report (~0.7 ms each to parse): they should span
         # the learning window and the drift of interest.
         self.window = window
@@ -243,13 +247,11 @@ class DriftService:
         seg = self._segments.get(key)
         if seg is None:
             seg = _Segment(rec.recipe, rec.calibration_id, rec.calibration_hash,
-                           DriftWatch(self.options, self._response(rec.recipe)), rec.triggered_at)
+                           DriftWatch(self.options, self._response(rec.recipe)), rec.triggered_at,
+                           ids=np.zeros(self.options.history, dtype=np.int64))
             self._segments[key] = seg
         self._current = seg
-        n = seg.watch.triggers
-        seg.ids[n] = (stored.id, rec.triggered_at)
-        if len(seg.ids) > 2 * self.options.history:
-            seg.ids = {i: v for i, v in seg.ids.items() if i > n - self.options.history}
+        seg.ids[seg.watch.triggers % len(seg.ids)] = stored.id
         means = {(c.view, c.camera_id): c.mean_px for c in rec.camera_residuals}
         in_fit = {(c.view, c.camera_id): c.used / c.count for c in rec.camera_residuals}
         seg.watch.update(means, rec.triggered_at.timestamp(), in_fit)
@@ -321,8 +323,10 @@ class DriftService:
 
     def _camera(self, seg: _Segment, d: CameraDrift) -> CameraDriftReport:
         since_id = since = None
-        if d.since_trigger is not None and d.since_trigger in seg.ids:
-            since_id, since = seg.ids[d.since_trigger]
+        n, i = seg.watch.triggers, d.since_trigger
+        if i is not None and n - len(seg.ids) <= i < n and d.since is not None:
+            # the record's time (stored in UTC) is the watch's stamp: exact to the microsecond
+            since_id, since = int(seg.ids[i % len(seg.ids)]), datetime.fromtimestamp(d.since, UTC)
         return CameraDriftReport(
             view=d.view,
             camera_id=d.camera_id,

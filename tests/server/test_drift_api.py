@@ -21,7 +21,7 @@ from mvpose_core.drift import DriftOptions
 from mvpose_core.measure import measure
 from mvpose_core.reasons import Reason
 from mvpose_core.residuals import shift_response
-from mvpose_core.station import load_station
+from mvpose_core.station import DriftConfig, load_station
 from mvpose_core.synth import synthetic_observations
 from mvpose_core.transforms import xyzwpr_to_matrix
 from server.app import create_app
@@ -186,3 +186,29 @@ async def test_drift_endpoint_and_verify_by_role(tmp_path: Path) -> None:
             "/DriftReport")
         assert "CameraDriftReport" in spec["components"]["schemas"]
         assert {"404", "409"} <= set(spec["paths"][url]["post"]["responses"])
+
+
+def test_service_keeps_the_station_files_history_and_dates_only_within_it(store: Store) -> None:
+    station = load_station(STATION1).model_copy(update={"drift": DriftConfig(history=100)})
+    response = shift_response(station, station.recipes[0])
+    cams = sorted(response)
+    service = DriftService(store, station)
+    assert service.options.history == 100
+    rng = np.random.default_rng(5)
+    n = 1 + DriftOptions().warmup + 20
+    for i in range(1, n):
+        store.measurements.insert(_record(rng, i, cams))
+    assert service.report().status == "ok"
+    moved = (1, "top_right")
+    extra = {seen: response[moved][seen] @ np.array([0.0, 1.0]) for seen in cams}
+    shifted = [store.measurements.insert(_record(rng, i, cams, extra)) for i in range(n, n + 40)]
+    c = next(c for c in service.report().cameras if c.camera_id == "top_right")
+    assert c.status == "alarm" and c.since_id is not None
+    assert abs(c.since_id - shifted[0].id) <= 2
+    assert c.since == store.measurements.get(c.since_id).record.triggered_at
+    for i in range(n + 40, n + 140):  # the change point falls out of the last 100 triggers
+        store.measurements.insert(_record(rng, i, cams, extra))
+    c = next(c for c in service.report().cameras if c.camera_id == "top_right")
+    assert c.status == "alarm" and (c.since_id, c.since) == (None, None)
+    assert c.shift_px == pytest.approx(1.0, abs=0.25)  # measured over the kept triggers
+    assert c.message.startswith("camera top_right moved ~") and "since" not in c.message
