@@ -23,7 +23,14 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field
 
-from mvpose_core.drift import CameraDrift, DriftOptions, DriftWatch, drift_message, siegmund_arl
+from mvpose_core.drift import (
+    CameraDrift,
+    DriftOptions,
+    DriftWatch,
+    drift_message,
+    history_bytes,
+    siegmund_arl,
+)
 from mvpose_core.estimate import Observation
 from mvpose_core.measure import Measurement
 from mvpose_core.offset import frame_offsets
@@ -170,6 +177,16 @@ class VerifyReport(BaseModel):
 
 
 # ----------------------------------------------------------------------------- the service
+
+#: bytes a trigger adds to a segment besides its watch's history: the record id
+RECORD_ID_BYTES = 8
+
+
+def service_history_bytes(cameras: int, history: int) -> int:
+    """A segment's history at its cap: the watch's (:func:`mvpose_core.drift.history_bytes`)
+    and the record ids of its ``history`` triggers."""
+    return history_bytes(cameras, history) + RECORD_ID_BYTES * history
+
 
 
 @dataclass
