@@ -28,9 +28,9 @@ from mvpose_core.drift import (
     DriftOptions,
     DriftWatch,
     drift_message,
-    history_bytes,
     siegmund_arl,
 )
+from mvpose_core.drift_history import history_bytes
 from mvpose_core.estimate import Observation
 from mvpose_core.measure import Measurement
 from mvpose_core.offset import frame_offsets

@@ -15,14 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mvpose_core.drift import (
-    DriftOptions,
-    DriftWatch,
-    History,
-    Stamps,
-    drift_message,
-    history_bytes,
-)
+from mvpose_core.drift import DriftOptions, DriftWatch, drift_message
+from mvpose_core.drift_history import History, Stamps, history_bytes
 from mvpose_core.station import StationFileError, parse_station
 from tests.mvpose_core.drift_lists import ListDriftWatch
 
@@ -131,7 +125,8 @@ def test_history_is_bounded_and_its_size_stated() -> None:
     for _ in range(3 * 500):
         w.update({k: rng.normal(0, 0.1, 2) for k in KEYS}, 1.0)
     assert w.history_nbytes == history_bytes(len(KEYS), 500) == 500 * (4 * 32 + 8)
-    assert history_bytes(4) == pytest.approx(2.6 * 2**20, rel=0.01)  # the default, 20,000
+    # at the default, 20,000
+    assert history_bytes(4, DriftOptions().history) == pytest.approx(2.6 * 2**20, rel=0.01)
 
 
 def test_station_file_sets_the_history_and_a_bad_one_is_named() -> None:
