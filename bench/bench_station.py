@@ -32,7 +32,8 @@ default station1), MVPOSE_BENCH_RUNS (default 3), MVPOSE_BENCH_TRIGGERS (per con
 default 150), MVPOSE_BENCH_RATES (default 0,50,200), MVPOSE_BENCH_TWIN_POLL_MS (default 1),
 MVPOSE_BENCH_MES_NICE (default 0), MVPOSE_BENCH_TWIN_PRIORITY (the PLC twin's SCHED_FIFO
 priority, default 20; 0: normal), MVPOSE_TRIGGER_PRIORITY (the station's own option, default 10),
-MVPOSE_BENCH_PART (moving, the default, or reference).
+MVPOSE_BENCH_PART (moving, the default, or reference), MVPOSE_BENCH_HICCUPS (1: bench/hiccups.py
+runs beside each run and each slow trigger says how long the platform stalled within it).
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ TARGET_LOAD = 1.10
 TARGET_STAGE = 1.1
 TARGET_OVER_ALONE_MS = 2.0  # trigger -> RESULT_VALID p50 over the same work's processing alone
 PART = os.environ.get("MVPOSE_BENCH_PART", "moving")
+HICCUPS = os.environ.get("MVPOSE_BENCH_HICCUPS", "0") == "1"
 TARGET_FIRST = 1.2
 STAGE_KEYS = ("capture", "detect", "measure", "correct", "append+record", "total")
 
@@ -132,6 +134,7 @@ class Run:
     stop_s: float
     backlog_ok: bool
     slow: list[dict[str, float]]  # the idle blocks' triggers over the p99 target, split
+    stalls: int = -1  # the platform's stalls over the run (MVPOSE_BENCH_HICCUPS=1), -1: not run
 
 
 def station_file(name: str, tmp: Path) -> Path:
@@ -164,10 +167,29 @@ def one_run(name: str, k: int, tmp: Path, alone: Any) -> Run:
     data_dir = tmp / f"{name}-run{k}"
     serve = start_serve(path, name, data_dir, extra_env={
         "MVPOSE_IMAGES_OK_EVERY": str(10**6), "MVPOSE_SIM_KEEP_POSES": str(N_POSES)})
+    meter = None
+    if HICCUPS:  # the platform's stalls beside the run (bench/hiccups.py)
+        stalls_file = tmp / f"{name}-run{k}-hiccups.txt"
+        with stalls_file.open("wb") as out:
+            meter = subprocess.Popen([sys.executable, "-m", "bench.hiccups"],  # noqa: S603
+                                     cwd=ROOT, stdout=out)
     try:
-        return _measure(name, serve, alone, part_poses(path))
+        run = _measure(name, serve, alone, part_poses(path))
     finally:
         serve.stop()
+        if meter is not None:
+            meter.terminate()
+            meter.wait(10)
+    if meter is not None:
+        from bench.hiccups import read
+
+        stalls = read(stalls_file)
+        run.stalls = len(stalls)
+        for s in run.slow:  # the stalls within the trigger's time (t0 - 3 ms to its answer)
+            lo, hi = s["at"] - 0.003, s["at"] + s["roundtrip"] / 1e3
+            s["stall"] = max((ms for _, t, ms in stalls if t < hi and t + ms / 1e3 > lo),
+                             default=0.0)
+    return run
 
 
 def _measure(name: str, serve: Serve, alone: Any, poses: list[PartPose]) -> Run:
@@ -300,7 +322,8 @@ def _records(serve: Serve) -> dict[int, dict[str, float]]:
     try:
         out = {}
         for m in store.measurements.iterate(MeasurementFilter()):
-            out[m.record.trigger_id] = dict(m.record.timings_ms)
+            out[m.record.trigger_id] = {**m.record.timings_ms,
+                                        "at": m.record.triggered_at.timestamp()}
         return out
     finally:
         store.close()
@@ -436,9 +459,14 @@ def _slow(runs: list[Run], target: float) -> None:
     for k, s in rows:
         stages = " ".join(f"{key} {s[key]:.1f}" for key in STAGE_KEYS[:-2] if key in s)
         total = s.get("total", float("nan"))
+        stall = f"; the platform stalled {s['stall']:.1f} ms then" if s.get("stall") else ""
         print(f"      run {k} trigger {s['id']:.0f}: {s['roundtrip']:.1f} = {stages}; "
               f"append+record {s['server'] - total:.1f}; modbus side "
-              f"{s['roundtrip'] - s['server']:.1f}")
+              f"{s['roundtrip'] - s['server']:.1f}{stall}")
+    for k, r in enumerate(runs, 1):
+        if r.stalls >= 0:
+            print(f"    run {k}: the platform stalled a real-time thread > 3 ms {r.stalls} times "
+                  "(bench/hiccups.py)")
 
 
 def _check(label: str, value: float, target: float, unit: str) -> bool:
