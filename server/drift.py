@@ -1,10 +1,12 @@
 """Calibration health: the drift watch over the station's records, and the reference-part check.
 
-:class:`DriftService` reads the station's records through the store's repository, newest first
-down to the last id it has seen, feeds each record's per-camera residual means
-(``MeasurementRecord.camera_residuals``) to a :class:`mvpose_core.drift.DriftWatch` oldest
+:class:`DriftService` reads the residuals of the records stored since the last id it has seen
+(one query; only ``MeasurementRecord.camera_residuals`` and what names the watch are parsed),
+feeds each record's per-camera residual means to a :class:`mvpose_core.drift.DriftWatch` oldest
 first, and keeps the watch between calls: a report costs one small query when nothing is new.
-One watch runs per (recipe, calibration): a new calibration starts a new learning window.
+One watch runs per (recipe, calibration): a new calibration starts a new learning window. The
+station's alarm watch asks for the cameras' states only (:meth:`DriftService.cameras`): its
+rounds run in the station process, where any Python holds the GIL the trigger thread needs.
 
 :func:`verify_reference` judges a measurement of the taught reference part: the offset it
 implies against the active recipe's taught pose should be ~zero, within the recipe's grasp
@@ -43,7 +45,7 @@ from server.store.schemas import (
     MeasurementFilter,
     MeasurementRecord,
     Offset,
-    StoredMeasurement,
+    RecordResiduals,
 )
 
 Status = Literal["learning", "ok", "warning", "alarm"]
@@ -224,8 +226,8 @@ class DriftService:
         # the station file's drift history, the defaults otherwise
         self.options = options or DriftOptions(
             history=station.drift.history if station is not None else DriftOptions.history)
-        # Records read at most on the first report (~0.7 ms each to parse): they should span
-        # the learning window and the drift of interest.
+        # Records read at most on the first report (~0.05 ms each, their residuals only): they
+        # should span the learning window and the drift of interest.
         self.window = window
         self.trend = trend
         self._lock = threading.Lock()
@@ -236,28 +238,27 @@ class DriftService:
     def report(self) -> DriftReport:
         """Read the records stored since the last call, run the watch, and report."""
         with self._lock:
-            for stored in self._new_records():
-                self._feed(stored)
+            self._read_new()
             return self._report()
 
-    def _new_records(self) -> list[StoredMeasurement]:
-        repo = self.store.measurements
-        out: list[StoredMeasurement] = []
-        cursor = None
-        limit = 20  # usually a few records are new: parse no more than needed
-        while len(out) < self.window:
-            page, cursor = repo.page(MeasurementFilter(), cursor, limit)
-            limit = min(500, self.window)
-            fresh = [m for m in page if m.id > self._last_id]
-            out += fresh
-            if len(fresh) < len(page) or cursor is None:
-                break
-        out.sort(key=lambda m: m.id)
-        return out[-self.window :]
+    def cameras(self) -> list[CameraDriftReport]:
+        """Read the records stored since the last call, run the watch, and each camera's state
+        without its trend: the station's alarm watch, whose round shares the station process
+        with the trigger thread (a whole report builds ~2,000 trend points)."""
+        with self._lock:
+            self._read_new()
+            seg = self._current
+            return [] if seg is None else [self._camera(seg, d, trend=False)
+                                           for d in seg.watch.states()]
 
-    def _feed(self, stored: StoredMeasurement) -> None:
-        self._last_id = max(self._last_id, stored.id)
-        rec = stored.record
+    def _read_new(self) -> None:
+        """Feed the watch the records with ids above the last one read (at most ``window``, the
+        newest), in one query that parses only their residuals."""
+        for rec in self.store.measurements.residuals_after(self._last_id, self.window):
+            self._feed(rec)
+
+    def _feed(self, rec: RecordResiduals) -> None:
+        self._last_id = max(self._last_id, rec.id)
         if not rec.camera_residuals:
             return
         key = (rec.recipe, rec.calibration_id, rec.calibration_hash)
@@ -268,7 +269,7 @@ class DriftService:
                            ids=np.zeros(self.options.history, dtype=np.int64))
             self._segments[key] = seg
         self._current = seg
-        seg.ids[seg.watch.triggers % len(seg.ids)] = stored.id
+        seg.ids[seg.watch.triggers % len(seg.ids)] = rec.id
         means = {(c.view, c.camera_id): c.mean_px for c in rec.camera_residuals}
         in_fit = {(c.view, c.camera_id): c.used / c.count for c in rec.camera_residuals}
         seg.watch.update(means, rec.triggered_at.timestamp(), in_fit)
@@ -276,7 +277,7 @@ class DriftService:
         seg.records += 1
         for k, (du, dv) in means.items():
             points = seg.trend.setdefault(k, deque(maxlen=self.trend))
-            points.append((stored.id, rec.triggered_at, du, dv, round(stats[k], 4)))
+            points.append((rec.id, rec.triggered_at, du, dv, round(stats[k], 4)))
 
     def _response(self, recipe_name: str) -> Response:
         """How each camera's move shows in every camera's residuals (none without the station)."""
@@ -338,7 +339,8 @@ class DriftService:
         return LastVerify(measurement_id=m.id, result_id=m.seq,
                           triggered_at=m.record.triggered_at, passed=passed, message=message)
 
-    def _camera(self, seg: _Segment, d: CameraDrift) -> CameraDriftReport:
+    def _camera(self, seg: _Segment, d: CameraDrift, trend: bool = True
+                ) -> CameraDriftReport:
         since_id = since = None
         n, i = seg.watch.triggers, d.since_trigger
         if i is not None and n - len(seg.ids) <= i < n and d.since is not None:
@@ -363,7 +365,7 @@ class DriftService:
             baseline_sigma_px=d.sigma_px,
             trend=[DriftPoint.model_construct(id=i, triggered_at=t, du_px=du, dv_px=dv,
                                               statistic=st)
-                   for i, t, du, dv, st in seg.trend.get(d.key, ())],
+                   for i, t, du, dv, st in (seg.trend.get(d.key, ()) if trend else ())],
         )
 
 

@@ -63,12 +63,14 @@ class Condition:
 class AlarmWatchOptions:
     period_s: float = 1.0
     on_delay_s: float = 3.0  # a condition must hold this long before it alarms
-    # the drift watch reads the new records this often (~0.7 ms of Python each: every round,
-    # so that a round stays short enough for the gap between two triggers)
+    # the drift watch reads the new records this often (~0.05 ms of Python each, their
+    # residuals only: every round, so that a round stays short enough for the gap between two
+    # triggers; its Python holds the GIL the trigger thread needs)
     drift_every_s: float = 1.0
     calibration_every_s: float = 300.0
     # records the drift watch reads at its first report, drift_every_s after the start (a
-    # one-off ~0.7 ms each of the station process's CPU: not at start-up, and not many)
+    # one-off ~0.05 ms each of the station process's CPU, and ~20 ms for the estimator's
+    # response: not at start-up)
     drift_window: int = 500
     # a link that has not been ready yet is not down while it starts (the OPC UA link loads the
     # Machine Vision NodeSet in the background for seconds)
@@ -297,9 +299,8 @@ class AlarmWatch:
 
             self._drift = DriftService(services.store, services.station,
                                        window=self.options.drift_window)
-        report = self._drift.report()
         out = []
-        for cam in report.cameras:
+        for cam in self._drift.cameras():
             if cam.status in ("warning", "alarm"):
                 alarm = cam.status == "alarm"
                 code = "DRIFT_ALARM" if alarm else "DRIFT_WARNING"

@@ -26,11 +26,13 @@ from server.store.chain import GENESIS, canonical_json, seal
 from server.store.models import MeasurementRow, OutboxRow
 from server.store.schemas import (
     MAX_ID,
+    CameraResidual,
     ChainReport,
     MeasurementFilter,
     MeasurementRecord,
     MeasurementSummary,
     Offset,
+    RecordResiduals,
     Residuals,
     StoredMeasurement,
     Uncertainty,
@@ -336,6 +338,22 @@ class MeasurementRepository:
         more = len(rows) > limit
         return items, (encode_cursor(items[-1].id) if more and items else None)
 
+    def residuals_after(self, after_id: int, limit: int) -> list[RecordResiduals]:
+        """The per-camera residuals of the newest ``limit`` records with an id above
+        ``after_id``, oldest first: the drift watch's read. Only the fields it needs are built
+        from each body (about a fifth of parsing the whole record); a record without residuals
+        comes with an empty list, so the reader still moves past it."""
+        query = (select(M.c.id, M.c.body).where(M.c.station == self.station, M.c.id > after_id)
+                 .order_by(M.c.id.desc()).limit(limit))
+        with self._engine.connect() as conn:
+            rows = conn.execute(query).all()
+        out = []
+        for r in reversed(rows):
+            rec = _ResidualsEnvelope.model_validate_json(r.body).record
+            out.append(RecordResiduals(r.id, rec.recipe, rec.triggered_at, rec.calibration_id,
+                                       rec.calibration_hash, rec.camera_residuals or []))
+        return out
+
     def iterate(self, filters: MeasurementFilter, batch: int = 500) -> Iterator[StoredMeasurement]:
         """Every matching record, oldest first, fetched in batches (for exports)."""
         for rows in self._batches(filters, batch):
@@ -495,6 +513,20 @@ class _SummaryRecord(BaseModel):
 
 class _SummaryEnvelope(BaseModel):
     record: _SummaryRecord
+
+
+class _ResidualsRecord(BaseModel):
+    model_config = ConfigDict(extra="ignore")  # only what the drift watch reads is built
+
+    recipe: str
+    triggered_at: datetime
+    calibration_id: str | None = None
+    calibration_hash: str | None = None
+    camera_residuals: list[CameraResidual] | None = None
+
+
+class _ResidualsEnvelope(BaseModel):
+    record: _ResidualsRecord
 
 
 def _summary(r: Any) -> MeasurementSummary:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from datetime import datetime
 from enum import IntEnum
 from typing import Annotated, Any, Literal
@@ -112,6 +113,18 @@ class CameraResidual(_Model):
     rms_px: float = Field(ge=0)
     count: int = Field(ge=1, le=65535, description="observations of this camera")
     used: int = Field(ge=0, le=65535, description="of them in the pose fit")
+
+
+@dataclass(frozen=True)
+class RecordResiduals:
+    """What the drift watch reads of one stored record (MeasurementRepository.residuals_after)."""
+
+    id: int
+    recipe: str
+    triggered_at: datetime
+    calibration_id: str | None
+    calibration_hash: str | None
+    camera_residuals: list[CameraResidual]
 
 
 class ImageRef(_Model):

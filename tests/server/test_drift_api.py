@@ -212,3 +212,45 @@ def test_service_keeps_the_station_files_history_and_dates_only_within_it(store:
     assert c.status == "alarm" and (c.since_id, c.since) == (None, None)
     assert c.shift_px == pytest.approx(1.0, abs=0.25)  # measured over the kept triggers
     assert c.message.startswith("camera top_right moved ~") and "since" not in c.message
+
+
+def test_the_watch_reads_only_residuals_above_the_last_id_newest_window_oldest_first(
+        store: Store) -> None:
+    station = load_station(STATION1)
+    cams = sorted(shift_response(station, station.recipes[0]))
+    rng = np.random.default_rng(6)
+    stored = [store.measurements.insert(_record(rng, i, cams if i % 3 else None))
+              for i in range(1, 13)]
+    got = store.measurements.residuals_after(stored[3].id, 5)
+    assert [r.id for r in got] == [s.id for s in stored[-5:]]  # the newest 5, oldest first
+    for r, s in zip(got, stored[-5:], strict=True):
+        assert (r.recipe, r.triggered_at, r.calibration_id, r.calibration_hash) == (
+            s.record.recipe, s.record.triggered_at, s.record.calibration_id,
+            s.record.calibration_hash)
+        assert r.camera_residuals == (s.record.camera_residuals or [])
+    assert [r.id for r in store.measurements.residuals_after(stored[9].id, 5)] == [
+        stored[10].id, stored[11].id]
+    assert store.measurements.residuals_after(stored[-1].id, 5) == []
+
+
+def test_the_alarm_watchs_states_are_the_reports_without_the_trend(store: Store) -> None:
+    station = load_station(STATION1)
+    response = shift_response(station, station.recipes[0])
+    cams = sorted(response)
+    rng = np.random.default_rng(7)
+    n = 1 + DriftOptions().warmup + 20
+    moved = (1, "top_right")
+    extra = {seen: response[moved][seen] @ np.array([0.0, 1.0]) for seen in cams}
+    for i in range(1, n + 40):
+        store.measurements.insert(_record(rng, i, cams, extra if i >= n else None))
+    full, light = DriftService(store, station).report(), DriftService(store, station).cameras()
+    assert full.status == "alarm" and all(len(c.trend) > 0 for c in full.cameras)
+    assert light == [c.model_copy(update={"trend": []}) for c in full.cameras]
+
+
+def test_the_alarm_watch_hears_nothing_before_any_record(tmp_path: Path) -> None:
+    empty = open_store(f"sqlite:///{tmp_path / 'empty.sqlite'}", "station1", "NORMAL")
+    try:
+        assert DriftService(empty, load_station(STATION1)).cameras() == []
+    finally:
+        empty.close()
