@@ -105,6 +105,15 @@ class AlarmWatch:
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> None:
+        active = self.station.active
+        if active is not None and self.station.services is not None:
+            # the active recipe's drift response now, before ready: built on the round after its
+            # first record, its ~20 ms of Python held the GIL the next trigger needed
+            try:
+                self._drift_service().prepare(active.config.name)
+            except Exception as err:  # the drift check's rounds build it then
+                log.warning("station %s: alarm watch: the drift response for recipe %s: %s",
+                            self.repo.station, active.config.name, err)
         self.station.add_listener(self._heard)
         self._thread = threading.Thread(target=self._run, name="alarm-watch", daemon=True)
         self._thread.start()
@@ -291,16 +300,10 @@ class AlarmWatch:
                           {"count": streak, "recipe": active.config.name})]
 
     def _drift_now(self) -> list[Condition]:
-        services = self.station.services
-        if services is None:
+        if self.station.services is None:
             return []
-        if self._drift is None:
-            from server.drift import DriftService
-
-            self._drift = DriftService(services.store, services.station,
-                                       window=self.options.drift_window)
         out = []
-        for cam in self._drift.cameras():
+        for cam in self._drift_service().cameras():
             if cam.status in ("warning", "alarm"):
                 alarm = cam.status == "alarm"
                 code = "DRIFT_ALARM" if alarm else "DRIFT_WARNING"
@@ -309,6 +312,16 @@ class AlarmWatch:
                                      {"camera": cam.camera_id, "view": cam.view,
                                       "shift_px": cam.shift_px}))
         return out
+
+    def _drift_service(self) -> DriftService:
+        if self._drift is None:
+            from server.drift import DriftService
+
+            services = self.station.services
+            assert services is not None
+            self._drift = DriftService(services.store, services.station,
+                                       window=self.options.drift_window)
+        return self._drift
 
     def _calibration_now(self) -> list[Condition]:
         limit = self.station.file_station.calibration_max_age_days

@@ -254,3 +254,22 @@ def test_the_alarm_watch_hears_nothing_before_any_record(tmp_path: Path) -> None
         assert DriftService(empty, load_station(STATION1)).cameras() == []
     finally:
         empty.close()
+
+
+def test_a_prepared_response_attributes_the_move_and_an_unknown_recipe_prepares_none(
+        store: Store) -> None:
+    station = load_station(STATION1)
+    recipe = station.recipes[0].name
+    response = shift_response(station, station.recipes[0])
+    cams = sorted(response)
+    service = DriftService(store, station)
+    service.prepare(recipe)
+    service.prepare("no-such-recipe")  # nothing to attribute with, and no error
+    rng = np.random.default_rng(8)
+    n = 1 + DriftOptions().warmup + 20
+    moved = (1, "back_left")
+    extra = {seen: response[moved][seen] @ np.array([1.0, 0.0]) for seen in cams}
+    for i in range(1, n + 40):
+        store.measurements.insert(_record(rng, i, cams, extra if i >= n else None))
+    flagged = [c for c in service.cameras() if c.status == "alarm"]
+    assert flagged and {(c.moved_view, c.moved_camera) for c in flagged} == {moved}
