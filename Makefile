@@ -50,7 +50,7 @@ bench: $(STAMP) $(MO)
 
 lint: $(STAMP)
 	$(BIN)/ruff check mvpose_core drivers server tests bench
-	$(BIN)/mypy mvpose_core drivers server
+	$(BIN)/mypy mvpose_core drivers server bench
 
 clean:
 	rm -rf $(VENV) var .pytest_cache

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OVERHEAD_TARGET_MS = 1.0
 
 
-def _frames_ok(res: dict[str, object]) -> None:
+def _frames_ok(res: Mapping[str, object]) -> None:
     bad = {k: v for k, v in res.items() if not isinstance(v, Frame)}
     if bad:
         raise RuntimeError(f"benchmark grab failed: {bad}")

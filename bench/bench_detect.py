@@ -29,7 +29,7 @@ CONDITIONS = (
 )
 
 
-def _scene(tilt_deg: float):  # type: ignore[no-untyped-def]
+def _scene(tilt_deg: float):
     """8 marks of 12 mm at 1 m (radius ~17 px) across a 4 MP frame; the part within ±20 mm, ±2°."""
     return plate_scene(
         width=2048,
@@ -54,7 +54,7 @@ def _stats(errors: list[np.ndarray], missed: int) -> str:
     )
 
 
-def _search_and_name(img, cam, recipe, T0):  # type: ignore[no-untyped-def]
+def _search_and_name(img, cam, recipe, T0):
     return identify_marks(search_marks(img, cam, recipe), cam, recipe, T0, 100.0)
 
 
@@ -84,7 +84,8 @@ def main() -> int:
             "paper recipe": partial(paper_detect, preds=preds, dark=True),
         }
         for name, fn in methods.items():
-            errors, missed = [], 0
+            errors: list[np.ndarray] = []
+            missed = 0
             for img, truth in zip(images, truths, strict=True):
                 out = fn(img)
                 found = out if isinstance(out, dict) else {d.mark_id: d.uv for d in out if d.found}

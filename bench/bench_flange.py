@@ -71,17 +71,17 @@ def main() -> int:
     def before(mode: str) -> tuple[float, dict[str, float], int]:
         """The code before re-posing: new cameras built per view, every prediction anew."""
         reposed = geometry._predict_reposed
-        geometry._predict_reposed = (  # type: ignore[assignment]
-            lambda cam, recipe, T, extra, tol, slack, reach:
-            geometry.predict_marks(cam, recipe, T, tol, slack, reach=reach))
+        geometry._predict_reposed = (
+            lambda cam, recipe, T, extra, size_tolerance, shape_slack_deg, reach:
+            geometry.predict_marks(cam, recipe, T, size_tolerance, shape_slack_deg, reach=reach))
         built = Pipeline.view_cameras
-        Pipeline.view_cameras = lambda self, view, flange: (  # type: ignore[method-assign]
-            built(self, view, None) if flange is None else
-            {vc.camera_id: vc for vc in view_cameras(station, {view: flange}, [view])})
+        Pipeline.view_cameras = lambda self, view, flange_pose: (  # type: ignore[method-assign]
+            built(self, view, None) if flange_pose is None else
+            {vc.camera_id: vc for vc in view_cameras(station, {view: flange_pose}, [view])})
         try:
             return part(mode)
         finally:
-            geometry._predict_reposed = reposed  # type: ignore[assignment]
+            geometry._predict_reposed = reposed
             Pipeline.view_cameras = built  # type: ignore[method-assign]
 
     modes = {"taught": lambda: part("taught"), "actual": lambda: part("actual"),

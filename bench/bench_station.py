@@ -265,14 +265,14 @@ def _measure(name: str, serve: Serve, alone: Any, poses: list[PartPose]) -> Run:
     for c in conds:
         per: dict[str, list[float]] = defaultdict(list)
         for tid, srv in c.server.items():
-            t = records.get(tid)
-            if t is None:
+            rec = records.get(tid)
+            if rec is None:
                 continue
             for key in STAGE_KEYS[:-2]:
-                if key in t:
-                    per[key].append(t[key])
-            per["append+record"].append(srv - t["total"])
-            per["total"].append(t["total"])
+                if key in rec:
+                    per[key].append(rec[key])
+            per["append+record"].append(srv - rec["total"])
+            per["total"].append(rec["total"])
         per["modbus side"] = [rt - c.server[tid] for rt, tid in zip(
             c.roundtrip, c.server, strict=True)]
         stages[c.rate] = per
@@ -346,14 +346,14 @@ def report(name: str, runs: list[Run]) -> bool:
         idle = run.conditions[0]
         cells = "   ".join(f"{_pct(c.roundtrip, 50):8.1f} {_pct(c.roundtrip, 99):5.1f}"
                            for c in run.conditions)
-        rs = []
+        cells_x: list[str] = []
         for c in run.conditions[1:]:
             r99 = _pct(c.roundtrip, 99) / _pct(idle.roundtrip, 99)
             ratios[c.rate].append(r99)
             ratios50[c.rate].append(_pct(c.roundtrip, 50) / _pct(idle.roundtrip, 50))
-            rs.append(f"{r99:10.2f}")
+            cells_x.append(f"{r99:10.2f}")
         idle_p99.append(_pct(idle.roundtrip, 99))
-        print(f"    {k:3d}   {cells}   " + "   ".join(rs))
+        print(f"    {k:3d}   {cells}   " + "   ".join(cells_x))
     for c in runs[0].conditions[1:]:
         sent = sum(cc.sent for r in runs for cc in r.conditions if cc.rate == c.rate)
         secs = sum(cc.load_s for r in runs for cc in r.conditions if cc.rate == c.rate)

@@ -55,7 +55,7 @@ def station1_record(rng: np.random.Generator, trigger_id: int) -> MeasurementRec
     )
 
 
-def _inserter(store: Store, metrics: Metrics, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+def _inserter(store: Store, metrics: Metrics, rng: np.random.Generator):
     counter = iter(range(1, 10**9))
 
     def insert() -> None:
@@ -141,8 +141,11 @@ def disk_append(folder: Path, repeat: int) -> Timing:
     line = b"x" * 2600 + b"\n"
     fd = os.open(folder / "disk-append", os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     try:
-        return measure("append + fdatasync of a 2.6 kB line (the disk)",
-                       lambda: (os.write(fd, line), os.fdatasync(fd)), repeat=repeat)
+        def append() -> None:
+            os.write(fd, line)
+            os.fdatasync(fd)
+
+        return measure("append + fdatasync of a 2.6 kB line (the disk)", append, repeat=repeat)
     finally:
         os.close(fd)
 

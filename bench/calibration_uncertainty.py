@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "mvpose_core"))
 
-from calibration_sets import ratios, rms, station_runs, stereo_run  # noqa: E402
+from calibration_sets import Run, ratios, rms, station_runs, stereo_run  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
         f"RMS error {e[0]:.3f} mm / {e[1]:.4f}°"
     )
     ok &= 0.7 <= t <= 1.4 and 0.7 <= r <= 1.4
-    runs = []
+    runs: list[Run] = []
     seed = 2000
     while len(runs) < 2 * args.sets:
         got = station_runs(seed)

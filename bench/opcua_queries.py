@@ -70,11 +70,12 @@ async def client(url: str, gap_s: float) -> None:
     await client.load_data_type_definitions()
     mv = await client.get_namespace_index(MV_URI)
     res = await client.nodes.objects.get_child([f"{mv}:VisionSystem", f"{mv}:ResultManagement"])
+    mvt: Any = ua  # the Machine Vision types exist once load_data_type_definitions made them
     empty: list[Any] = [
-        ua.MeasIdDataType(Id=""), ua.PartIdDataType(Id=""),
-        ua.RecipeIdExternalDataType(Id=""), ua.RecipeIdInternalDataType(Id=""),
-        ua.ConfigurationIdDataType(Id=""), ua.ConfigurationIdDataType(Id=""),
-        ua.ProductIdDataType(Id=""), ua.JobIdDataType(Id="")]
+        mvt.MeasIdDataType(Id=""), mvt.PartIdDataType(Id=""),
+        mvt.RecipeIdExternalDataType(Id=""), mvt.RecipeIdInternalDataType(Id=""),
+        mvt.ConfigurationIdDataType(Id=""), mvt.ConfigurationIdDataType(Id=""),
+        mvt.ProductIdDataType(Id=""), mvt.JobIdDataType(Id="")]
     stop = asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
     calls: list[float] = []
     print("ready", flush=True)

@@ -64,7 +64,7 @@ class TwinProcess:
         assert self.proc.stdin is not None
         self.proc.stdin.write(f"{first_id} {n}\n")
         self.proc.stdin.flush()
-        return json.loads(self._line())  # type: ignore[no-any-return]
+        return json.loads(self._line())
 
     def send(self, first_id: int, n: int) -> None:
         """Start a block without waiting for it (the SIGTERM-with-backlog check)."""
