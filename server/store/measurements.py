@@ -16,26 +16,22 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, cast
 
-from pydantic import BaseModel, ConfigDict
 from sqlalchemy import Connection, Engine, Select, Table, func, insert, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError
 
 from server.errors import ConflictError, InvalidInputError, NotFoundError
+from server.store.bodies import envelope, residuals_of, stored_of, summary_of
 from server.store.chain import GENESIS, canonical_json, seal
 from server.store.models import MeasurementRow, OutboxRow
 from server.store.schemas import (
     MAX_ID,
-    CameraResidual,
     ChainReport,
     MeasurementFilter,
     MeasurementRecord,
     MeasurementSummary,
-    Offset,
     RecordResiduals,
-    Residuals,
     StoredMeasurement,
-    Uncertainty,
 )
 
 M = cast(Table, MeasurementRow.__table__)
@@ -118,7 +114,7 @@ def link_from_body(prev_hash: str, hash_: str, body: str) -> Link:
     """A link read back from its stored text; refuses a body that does not hash to ``hash_``."""
     if seal(prev_hash, body) != hash_:
         raise ValueError(f"body does not hash to {hash_[:12]}… after {prev_hash[:12]}…")
-    env = _Envelope.model_validate_json(body)
+    env = envelope(body)
     return Link(env.station, env.seq, prev_hash, hash_, env.stored_at, body, env.record)
 
 
@@ -309,21 +305,21 @@ class MeasurementRepository:
             raise NotFoundError(
                 f"measurement {measurement_id} does not exist at station {self.station!r}"
             )
-        return _stored(row)
+        return stored_of(row)
 
     def page(
         self, filters: MeasurementFilter, cursor: str | None, limit: int
     ) -> tuple[list[StoredMeasurement], str | None]:
         """Newest first; ``next_cursor`` is None on the last page (keyset paging on id)."""
         rows, next_cursor = self._keyset(filters, cursor, limit)
-        return [_stored(r) for r in rows], next_cursor
+        return [stored_of(r) for r in rows], next_cursor
 
     def summary_page(
         self, filters: MeasurementFilter, cursor: str | None, limit: int
     ) -> tuple[list[MeasurementSummary], str | None]:
         """As :meth:`page`, without detections: about 3x cheaper to read (REST lists)."""
         rows, next_cursor = self._keyset(filters, cursor, limit)
-        return [_summary(r) for r in rows], next_cursor
+        return [summary_of(r) for r in rows], next_cursor
 
     def _keyset(
         self, filters: MeasurementFilter, cursor: str | None, limit: int
@@ -347,24 +343,19 @@ class MeasurementRepository:
                  .order_by(M.c.id.desc()).limit(limit))
         with self._engine.connect() as conn:
             rows = conn.execute(query).all()
-        out = []
-        for r in reversed(rows):
-            rec = _ResidualsEnvelope.model_validate_json(r.body).record
-            out.append(RecordResiduals(r.id, rec.recipe, rec.triggered_at, rec.calibration_id,
-                                       rec.calibration_hash, rec.camera_residuals or []))
-        return out
+        return [residuals_of(r) for r in reversed(rows)]
 
     def iterate(self, filters: MeasurementFilter, batch: int = 500) -> Iterator[StoredMeasurement]:
         """Every matching record, oldest first, fetched in batches (for exports)."""
         for rows in self._batches(filters, batch):
-            yield from (_stored(r) for r in rows)
+            yield from (stored_of(r) for r in rows)
 
     def iterate_summaries(
         self, filters: MeasurementFilter, batch: int = 500
     ) -> Iterator[MeasurementSummary]:
         """Every matching record's summary, oldest first (CSV export)."""
         for rows in self._batches(filters, batch):
-            yield from (_summary(r) for r in rows)
+            yield from (summary_of(r) for r in rows)
 
     def _batches(self, filters: MeasurementFilter, batch: int) -> Iterator[list[Any]]:
         # Keyset batches, each on its own short-lived connection: a slow export client never
@@ -390,7 +381,7 @@ class MeasurementRepository:
         with self._engine.connect() as conn:
             total = int(conn.execute(query.with_only_columns(func.count())).scalar_one())
             rows = list(conn.execute(page).all()) if limit > 0 else []
-        return total, (_summary(r) for r in rows)
+        return total, (summary_of(r) for r in rows)
 
     def count(self, filters: MeasurementFilter | None = None) -> int:
         query = self._filtered(filters or MeasurementFilter()).with_only_columns(func.count())
@@ -487,84 +478,6 @@ def _link_problem(r: Any, prev: str, expected_seq: int, station: str) -> str | N
             f"but the record says {record.triggered_at}"
         )
     return None
-
-
-class _Envelope(BaseModel):
-    """The hashed body: parsed in one pass by pydantic-core (about 3x faster than json.loads +
-    validate, which matters: REST reads share the GIL with the trigger thread)."""
-
-    station: str
-    seq: int
-    stored_at: datetime
-    record: MeasurementRecord
-
-
-class _SummaryRecord(BaseModel):
-    model_config = ConfigDict(extra="ignore")  # detections and images are skipped, not built
-
-    message: str | None = None
-    calibration_id: str | None = None
-    calibration_hash: str | None = None
-    offset: Offset | None = None
-    uncertainty: Uncertainty | None = None
-    residuals: Residuals | None = None
-    timings_ms: dict[str, float] = {}
-
-
-class _SummaryEnvelope(BaseModel):
-    record: _SummaryRecord
-
-
-class _ResidualsRecord(BaseModel):
-    model_config = ConfigDict(extra="ignore")  # only what the drift watch reads is built
-
-    recipe: str
-    triggered_at: datetime
-    calibration_id: str | None = None
-    calibration_hash: str | None = None
-    camera_residuals: list[CameraResidual] | None = None
-
-
-class _ResidualsEnvelope(BaseModel):
-    record: _ResidualsRecord
-
-
-def _summary(r: Any) -> MeasurementSummary:
-    rec = _SummaryEnvelope.model_validate_json(r.body).record
-    return MeasurementSummary.model_construct(
-        id=r.id,
-        seq=r.seq,
-        stored_at=r.stored_at,
-        triggered_at=r.triggered_at,
-        trigger_id=r.trigger_id,
-        part_id=r.part_id,
-        recipe=r.recipe,
-        recipe_version=r.recipe_version,
-        result=r.result,
-        reason_code=r.reason_code,
-        reason=r.reason,
-        message=rec.message,
-        calibration_id=rec.calibration_id,
-        calibration_hash=rec.calibration_hash,
-        offset=rec.offset,
-        uncertainty=rec.uncertainty,
-        residuals=rec.residuals,
-        timings_ms=rec.timings_ms,
-        total_ms=rec.timings_ms.get("total"),
-        hash=r.hash,
-    )
-
-
-def _stored(r: Any) -> StoredMeasurement:
-    env = _Envelope.model_validate_json(r.body)
-    return StoredMeasurement.model_construct(
-        id=r.id,
-        seq=r.seq,
-        stored_at=r.stored_at,
-        prev_hash=r.prev_hash,
-        hash=r.hash,
-        record=env.record,
-    )
 
 
 def _aware(t: datetime, name: str) -> datetime:
