@@ -233,16 +233,22 @@ def test_the_watch_reads_only_residuals_above_the_last_id_newest_window_oldest_f
     assert store.measurements.residuals_after(stored[-1].id, 5) == []
 
 
-def test_the_alarm_watchs_states_are_the_reports_without_the_trend(store: Store) -> None:
-    station = load_station(STATION1)
+def _learn_then_move(store: Store, station: Any, seed: int, moved: tuple[int, str],
+                     move: tuple[float, float]) -> None:
+    """Records through the learning window and 20 more, then 40 with camera ``moved`` shifted
+    by ``move`` px (as the estimator's response shows it in every camera)."""
     response = shift_response(station, station.recipes[0])
     cams = sorted(response)
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     n = 1 + DriftOptions().warmup + 20
-    moved = (1, "top_right")
-    extra = {seen: response[moved][seen] @ np.array([0.0, 1.0]) for seen in cams}
+    extra = {seen: response[moved][seen] @ np.array(move) for seen in cams}
     for i in range(1, n + 40):
         store.measurements.insert(_record(rng, i, cams, extra if i >= n else None))
+
+
+def test_the_alarm_watchs_states_are_the_reports_without_the_trend(store: Store) -> None:
+    station = load_station(STATION1)
+    _learn_then_move(store, station, 7, (1, "top_right"), (0.0, 1.0))
     full, light = DriftService(store, station).report(), DriftService(store, station).cameras()
     assert full.status == "alarm" and all(len(c.trend) > 0 for c in full.cameras)
     assert light == [c.model_copy(update={"trend": []}) for c in full.cameras]
@@ -259,17 +265,10 @@ def test_the_alarm_watch_hears_nothing_before_any_record(tmp_path: Path) -> None
 def test_a_prepared_response_attributes_the_move_and_an_unknown_recipe_prepares_none(
         store: Store) -> None:
     station = load_station(STATION1)
-    recipe = station.recipes[0].name
-    response = shift_response(station, station.recipes[0])
-    cams = sorted(response)
     service = DriftService(store, station)
-    service.prepare(recipe)
+    service.prepare(station.recipes[0].name)
     service.prepare("no-such-recipe")  # nothing to attribute with, and no error
-    rng = np.random.default_rng(8)
-    n = 1 + DriftOptions().warmup + 20
     moved = (1, "back_left")
-    extra = {seen: response[moved][seen] @ np.array([1.0, 0.0]) for seen in cams}
-    for i in range(1, n + 40):
-        store.measurements.insert(_record(rng, i, cams, extra if i >= n else None))
+    _learn_then_move(store, station, 8, moved, (1.0, 0.0))
     flagged = [c for c in service.cameras() if c.status == "alarm"]
     assert flagged and {(c.moved_view, c.moved_camera) for c in flagged} == {moved}
