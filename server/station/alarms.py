@@ -69,8 +69,8 @@ class AlarmWatchOptions:
     drift_every_s: float = 1.0
     calibration_every_s: float = 300.0
     # records the drift watch reads at its first report, drift_every_s after the start (a
-    # one-off ~0.05 ms each of the station process's CPU, and ~20 ms for the estimator's
-    # response: not at start-up)
+    # one-off ~0.05 ms each of the station process's CPU; the recipe's residual response, ~20 ms,
+    # is built in start(), before ready)
     drift_window: int = 500
     # a link that has not been ready yet is not down while it starts (the OPC UA link loads the
     # Machine Vision NodeSet in the background for seconds)
