@@ -17,7 +17,8 @@ The observers, in the bench process and Debian's Chromium:
   live   the operator page's Live view (/, logged in with the token) open in headless Chromium
          (Playwright), its server-sent events connected; each pushed result counted in the page;
   line   the line view (/line, logged in) open in headless Chromium; it polls its fragment
-         every 2 s; each refresh counted;
+         every 2 s, so its block starts just before a refresh is due (each block holds one);
+         each refresh during the blocks counted;
   cameras the live camera view (/cameras, logged in as the bootstrap engineer) open in headless
          Chromium: the API asks the station for a frame set every 0.5 s, the station grabs
          between triggers (preempted by a trigger), downscales and encodes 4 JPEGs; each frame
@@ -72,6 +73,7 @@ import yaml
 from bench.serve_process import cpu_s
 from bench.twin_process import TwinProcess
 from server.station.client import StationClient, StationDownError
+from server.web.line import POLL_S as LINE_POLL_S
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "mvp_bench-observers-token-00000000000000000000"
@@ -89,6 +91,8 @@ LABELS = {"live": "issue 17: an open Live page",
 TARGET_RATIO = 1.10
 TWIN_PERIOD_MS = 0.0  # back to back
 TWIN_POLL_MS = 1.0
+#: a page refreshing on its own timer starts its block this long before its refresh is due
+REFRESH_LEAD_S = 0.2
 
 
 # --------------------------------------------------------------------------- the server
@@ -217,14 +221,21 @@ class Browser:
 
 
 class BrowserView:
-    """One page of the operator page, opened and closed between blocks."""
+    """One page of the operator page, opened and closed between blocks.
+
+    A page that refreshes on a timer of its own (``period_s``: the line view polls every
+    2 s) would mostly sit idle through a block of back-to-back triggers (~0.5 s); its block
+    starts just before its next refresh is due instead, so that each block holds one."""
 
     def __init__(self, browser: Browser, path: str, ready_js: str, count_js: str,
-                 counted_js: str) -> None:
+                 counted_js: str, period_s: float = 0.0) -> None:
         self.b = browser
         self.path, self.ready_js, self.count_js, self.counted_js = (
             path, ready_js, count_js, counted_js)
+        self.period_s = period_s
         self.page: Any = None
+        self._due = 0.0  # when the next refresh is due (time.monotonic)
+        self._before = 0  # updates shown before the block
 
     def open(self) -> None:
         self.page = self.b.context.new_page()
@@ -232,10 +243,24 @@ class BrowserView:
         self.page.goto(self.b.base + self.path)
         self.page.wait_for_function(self.ready_js, timeout=30000)
         self.page.evaluate(self.count_js)
+        self._before = 0
+        if self.period_s:  # its first refresh: the next one comes a period later
+            self.page.wait_for_function(f"({self.counted_js}) >= 1",
+                                        timeout=int(3000 * self.period_s))
+            self._due = time.monotonic() + self.period_s
+
+    def settle(self, default_s: float) -> None:
+        """Wait before the block: ``default_s`` for the page to settle, or until just before
+        its next refresh."""
+        if not self.period_s:
+            time.sleep(default_s)
+            return
+        time.sleep(max(0.0, self._due - REFRESH_LEAD_S - time.monotonic()))
+        self._before = int(self.page.evaluate(self.counted_js))
 
     def close(self) -> int:
-        """Close the page; the updates it showed while open."""
-        n = int(self.page.evaluate(self.counted_js))
+        """Close the page; the updates it showed during the block."""
+        n = int(self.page.evaluate(self.counted_js)) - self._before
         self.page.close()
         self.page = None
         return n
@@ -260,7 +285,7 @@ def line_view(browser: Browser) -> BrowserView:
                        """() => {
         window.__swaps = 0;
         document.body.addEventListener('htmx:afterSwap', () => { window.__swaps += 1; });
-    }""", "window.__swaps")
+    }""", "window.__swaps", period_s=LINE_POLL_S)
 
 
 def camera_view(browser: Browser) -> BrowserView:
@@ -355,7 +380,11 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                 obs = observers.get(cond)
                 if obs is not None:
                     obs.open()
-                time.sleep(0.5)  # the observer's start (page load, subscription) settles
+                # the observer's start (page load, subscription) settles
+                if isinstance(obs, BrowserView):
+                    obs.settle(0.5)
+                else:
+                    time.sleep(0.5)
                 c0 = (cpu_s(server.station_pid), cpu_s(server.api_pid),
                       cpu_s(server.opcua_pid), observer_cpu(server, twin))
                 res = twin.block(next_id, BLOCK)
