@@ -63,10 +63,18 @@ log = logging.getLogger(__name__)
 
 
 def auto_detect_processes() -> int:
-    """Detection processes for this machine: none below 4 cores, where the extra processes only
-    wait for a core (measured, docs/performance.md); else half the cores, at most 4."""
+    """Detection processes for this machine: none below 8 cores, else 4.
+
+    A worker detects one image alone: its own measuring batch, and a part beyond the first
+    windows followed from that image's blobs only (station 1's cameras see two marks each, too
+    few for a pose, so the image is searched over the whole tolerance). The four images cost
+    2.0x (at the reference) to 2.65x (displaced by 0.9 of the tolerance) the CPU of detecting
+    them together on the trigger thread (``python -m bench.detect_alone``). Shared out over two
+    workers, that is at best the trigger thread's time at the reference and 1.3x it for a
+    displaced part; over four, half of it at the reference and about the same displaced.
+    """
     cores = os.cpu_count() or 1
-    return 0 if cores < 4 else min(4, cores // 2)
+    return 0 if cores < 8 else 4
 
 
 @dataclass(frozen=True)
@@ -80,8 +88,8 @@ class PipelineOptions:
     # thread. On the 2-core machine the trigger thread was faster (six A/B pairs of `bench
     # station`, docs/performance.md): the threads mostly wait for each other's GIL.
     detect_workers: int = 0
-    # Worker processes for detection (server.detect_pool); 0 = threads in this process. The
-    # threads serialise on the GIL; `mvpose serve` uses processes (see docs/performance.md).
+    # Worker processes for detection (server.detect_pool), each detecting one image alone;
+    # 0 = in this process (`mvpose serve`: auto_detect_processes()).
     detect_processes: int = 0
     recorrect: bool = True  # the correction at the estimated pose (second pass if it matters)
     # A second pass only when a correction changed by more than this. 0.01 px is about the

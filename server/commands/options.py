@@ -50,8 +50,9 @@ def add_station_options(parser: argparse.ArgumentParser) -> None:
                             help=f"{what} (default: ${env}, else the station file's "
                             f"links.{backend}.{field})")
     parser.add_argument("--detect-processes", type=int, default=None,
-                        help="worker processes for mark detection (0 = in the station process; "
-                        "default: none below 4 cores, else half the cores, at most 4)")
+                        help="worker processes for mark detection (0 = on the station's trigger "
+                        "thread; default: none below 8 cores, else 4: a worker detects one image "
+                        "alone, see docs/performance.md)")
     parser.add_argument("--trigger-priority", type=int, default=None,
                         help="real-time (SCHED_FIFO) priority of the station process's trigger "
                         "path, 1-99, 0 = the normal scheduler (default: "

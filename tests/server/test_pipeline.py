@@ -21,7 +21,7 @@ from drivers.links.layout import Command, Status
 from mvpose_core.reasons import Reason
 from mvpose_core.synth import displaced, random_displacement
 from server.loopback import move_part, running_station, trigger
-from server.pipeline import PipelineOptions, _usual_slow
+from server.pipeline import PipelineOptions, _usual_slow, auto_detect_processes
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -204,6 +204,18 @@ async def test_the_station_calibration_is_applied_and_recorded(tmp_path: Path) -
     with pytest.raises(CalibrationFileError, match="calib.json: content hash"):
         async with running_station(settings, runtime_options(), http_port=0):
             pass
+
+
+# A detection worker detects one image alone, at up to 2.65x the CPU of the images together on
+# the trigger thread (python -m bench.detect_alone): fewer than four workers would make a
+# displaced part slower than the trigger thread, so `mvpose serve` starts none below 8 cores.
+@pytest.mark.parametrize(("cores", "workers"), [(None, 0), (1, 0), (2, 0), (4, 0), (7, 0),
+                                                (8, 4), (16, 4), (64, 4)])
+def test_detection_processes_start_only_where_four_of_them_fit(
+    monkeypatch: pytest.MonkeyPatch, cores: int | None, workers: int
+) -> None:
+    monkeypatch.setattr("os.cpu_count", lambda: cores)
+    assert auto_detect_processes() == workers
 
 
 @pytest.mark.parametrize("where", ["processes", "threads"])
