@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mvpose_core.detect import DetectOptions, detect_marks_many, recorrect
-from mvpose_core.detect.follow import next_near, pose_from_blobs
+from mvpose_core.detect.follow import _within, next_near, pose_from_blobs
 from mvpose_core.detect.layout import search_windows, window_box
 from mvpose_core.detect.window import _kept_at, _unfound
 from mvpose_core.render import RenderOptions, render_view
@@ -115,6 +115,31 @@ def test_the_next_windows_follow_a_part_that_stays_in_steps(station1) -> None:  
     assert next_near(a, d(0.52), d(-0.5), T0, recipe, opts) is None  # a jump: 100 mm / 10°
     assert next_near(a, d(0.52), d(0.5), T0, recipe,
                      DetectOptions(first_reach_mm=None)) is None  # one reach: no windows to move
+
+
+# "Within mm / deg of a pose" is the marks' centroid moved by at most mm and a rotation of at most
+# deg between the two poses, whichever of them it is seen from: the closed form on floats agrees
+# with the relative pose T_ref⁻¹ T taken by a linear solve, on parts spread over twice the
+# tolerance around poses away from the reference.
+def test_the_tolerance_check_is_the_parts_move_between_the_poses(station1) -> None:  # type: ignore[no-untyped-def]
+    _, recipe = station1
+    rng = np.random.default_rng(11)
+    c = np.array(recipe.mark_centroid(), dtype=float)
+    agree, outcomes = 0, set()
+    for _ in range(300):
+        T_ref = displaced(recipe, rng.uniform(0, 1), rng.normal(size=3), rng.normal(size=3))
+        T = displaced(recipe, rng.uniform(0, 2), rng.normal(size=3), rng.normal(size=3))
+        mm, deg = rng.uniform(5, 100), rng.uniform(0.5, 10)
+        D = np.linalg.solve(T_ref, T)
+        moved = np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c)
+        angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+        if min(abs(moved - mm), abs(angle - deg)) < 1e-6:
+            continue  # on the boundary, rounding decides
+        inside = bool(moved <= mm and angle <= deg)
+        assert _within(T, T_ref, recipe, mm, deg) == inside
+        agree += 1
+        outcomes.add(inside)
+    assert agree > 290 and outcomes == {True, False}
 
 
 # Without clutter the small windows' coarse blobs give the part's pose: a part displaced up to
