@@ -25,6 +25,7 @@ thread, never on an event loop.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import statistics
 import time
@@ -392,6 +393,8 @@ def _usual_slow(values: Sequence[float]) -> float:
 
 
 def _finite_measurement(meas: Measurement) -> bool:
-    values = [*np.asarray(meas.offset, dtype=float).ravel(), float(meas.sigma_trans_mm),
-              float(meas.sigma_rot_deg)]
-    return bool(np.all(np.isfinite(values)))
+    """Whether the offset and both sigmas are finite (on Python floats: numpy's isfinite on a
+    list of eight costs ~0.07 ms on the trigger thread)."""
+    values = [*np.asarray(meas.offset, dtype=float).ravel().tolist(),
+              float(meas.sigma_trans_mm), float(meas.sigma_rot_deg)]
+    return all(math.isfinite(v) for v in values)
