@@ -59,8 +59,8 @@ def camera_residuals(observations: Sequence[Observation], pose: PoseResult) -> l
     used = np.asarray(pose.used, dtype=bool)
     if used.shape != (len(observations),):  # a PoseResult built without ``used``: all in the fit
         used = np.ones(len(observations), dtype=bool)
-    # On Python floats, summed in the observations' order: a few numbers per camera, where
-    # numpy's per-call cost (~0.3 ms a trigger, run after detection) would be most of the work.
+    # On Python floats, summed in the observations' order: a few numbers per camera, for which
+    # numpy's per-call cost (on the trigger thread, after detection) would be most of the work.
     rows: dict[tuple[int, str], list[tuple[float, float, bool]]] = {}
     for o, (du, dv), u in zip(observations, r.tolist(), used.tolist(), strict=True):
         if math.isfinite(du) and math.isfinite(dv):
