@@ -145,7 +145,12 @@ async def test_a_plc_that_goes_and_comes_back_is_reported_lost_then_resumed(
         await until(lambda: "cannot connect" in link.status()["problem"], "a refused attempt")
         await asyncio.sleep(0)  # noqa: ASYNC110 - one pass; the attempts go on meanwhile
         cpu.start()  # on the same port
-        await until(lambda: link.status()["connected"], "connected again", 10)
+        await until(lambda: link.status()["connected"], "connected again", 10, every_s=0.001)
+        # Once the link is back, the PLC reads the handshake's block, not the one it held
+        # before the outage (READY, no error): a PLC acting on that would reset an error that
+        # is still there and trigger into it.
+        back = await twin.read_status()  # the CPU's memory, read at once
+        assert back.has(Status.ERROR) and not back.has(Status.READY), back
         assert link.status()["outages"] == attempts  # one outage, however many attempts
         await twin.reset_error(5.0)
         again = await twin.cycle(2, timeout=5.0)

@@ -10,8 +10,9 @@ drops the connection or stops answering is connected to again with a growing wai
 per outage; meanwhile its heartbeat stands still, so the handshake's watchdog reports it exactly
 as the Modbus link's does (state ERROR, error WATCHDOG, ``plc_online`` false) and the station
 shows it so. The handshake keeps its state across the outage: on reconnection the PLC is given
-the whole result block again, so an answer published while it was away is neither lost nor
-doubled (its result id and DONE_TOGGLE are the ones it was published with).
+the whole result block again before the link counts as connected, so an answer published while
+it was away is neither lost nor doubled (its result id and DONE_TOGGLE are the ones it was
+published with), and a PLC never acts on the block as it stood before the outage.
 """
 
 from __future__ import annotations
@@ -166,6 +167,12 @@ class S7Link(HandshakeLink):
                 check_pdu(conn.pdu_size, self.trigger, self.result, conn.plc)
                 await conn.check_block(self.trigger)
                 await conn.check_block(self.result)  # before any write: none lands half-way
+                # The PLC's copy of the result block is as the link left it before an outage
+                # (no ERROR, READY, however the handshake went on meanwhile): it is written
+                # whole, from the handshake's image, before the link counts as connected, so a
+                # PLC that acts once the link is back never reads the stale one.
+                self._writer.reset()
+                await self._publish(conn, runner)
                 self._connected(conn)
                 backoff.reset()
                 await self._poll(conn, runner)
@@ -180,7 +187,6 @@ class S7Link(HandshakeLink):
 
     def _connected(self, conn: S7Connection) -> None:
         self.stats.connects += 1
-        self._writer.reset()  # the PLC gets the whole result block first
         if self.outage.connected():
             log.warning("S7 link: PLC %s reachable again (PDU %d bytes)", conn.plc,
                         conn.pdu_size)
