@@ -341,6 +341,10 @@ class OpcUaObserver:
         self.events = 0
         self._run(self._open())
 
+    def settle(self, default_s: float) -> None:
+        """Wait ``default_s`` before the block: the subscription settles."""
+        time.sleep(default_s)
+
     def close(self) -> int:
         self._run(self._close())
         return self.events
@@ -380,9 +384,7 @@ def one_run(k: int, tmp: Path) -> dict[str, Any]:
                 obs = observers.get(cond)
                 if obs is not None:
                     obs.open()
-                # the observer's start (page load, subscription) settles
-                if isinstance(obs, BrowserView):
-                    obs.settle(0.5)
+                    obs.settle(0.5)  # its start (page load, subscription) settles
                 else:
                     time.sleep(0.5)
                 c0 = (cpu_s(server.station_pid), cpu_s(server.api_pid),
