@@ -228,10 +228,15 @@ def test_the_verdict_reads_from_two_metres_on_the_panel(line: Line) -> None:
 
 
 def test_a_kiosk_shows_the_line_view_and_nothing_else_without_a_login(line: Line) -> None:
+    line.place_part(150.0)
+    nok = line.trigger("VIN-KIOSK-NOK")  # a NOK of its own in the strip (its frames kept)
+    assert nok["result_code"] != 0, nok
+    line.place_part(0.0)
     page = line.page(line.kiosk, logged_in=False)
     assert page.url == f"{line.kiosk}/line"
-    nok = page.locator("ul.noks li").first
-    nok_id = nok.get_attribute("data-id")
+    _newest(page, nok["measurement_id"])
+    nok_id = page.locator("ul.noks li").first.get_attribute("data-id")
+    assert nok_id == str(nok["measurement_id"])
     page.wait_for_function("[...document.querySelectorAll('ul.noks img')].every("
                            "(i) => i.complete && i.naturalWidth > 0)", timeout=20000)
     assert page.locator("header nav a").count() == 0  # read-only: no tabs, no actions
@@ -261,8 +266,11 @@ def test_a_kiosk_shows_the_line_view_and_nothing_else_without_a_login(line: Line
 
 
 def test_a_station_that_goes_down_turns_the_tile_grey(line: Line) -> None:
+    line.place_part(0.0)
+    ok = line.trigger("VIN-DOWN")
     page = line.page()
-    assert page.locator("#verdict").get_attribute("data-verdict") in ("OK", "NOK")
+    _newest(page, ok["measurement_id"])
+    assert page.locator("#verdict").get_attribute("data-verdict") == "OK"
     line.stop_station()
     page.wait_for_function(
         "document.querySelector('#verdict').dataset.verdict === 'DOWN'", timeout=20000)
