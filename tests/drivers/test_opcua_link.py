@@ -384,7 +384,7 @@ def _tampered(path: Path, tmp_path: Path) -> Path:
     return tmp_path
 
 
-@MODULE_LOOP
+@pytest.mark.asyncio  # a server of its own, on the test's own loop
 async def test_security_none_and_anonymous_readers_only_when_listed(tmp_path: Path) -> None:
     handler = RecordingHandler()
     pki = tmp_path / "pki"
